@@ -1,0 +1,6 @@
+from .base import EncodedImage, ScaleModel
+from .local import LocalScaleNet, LocalScaleNetConfig, LocalScalePrediction, predict_scale_map
+from .scalenet import GlobalScalePrediction, ScaleNet, ScaleNetConfig, estimate_scale
+
+__all__ = ["EncodedImage", "ScaleModel", "LocalScaleNet", "LocalScaleNetConfig", "LocalScalePrediction",
+           "predict_scale_map", "ScaleNet", "ScaleNetConfig", "GlobalScalePrediction", "estimate_scale"]

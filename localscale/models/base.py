@@ -1,0 +1,100 @@
+"""Shared plumbing of the two scale models: image preparation, encoding, loading."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from ..io import ImageLike, load_image
+from ..preprocess import Letterbox, letterbox, to_tensor
+from .common import FeatureExtractor
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+
+
+@dataclass
+class EncodedImage:
+    """Backbone+ASPP features of one image, reusable for every pair it is in.
+
+    ``features``: ``1 x D x h x w`` (processing frame), ``letterbox``: how the original
+    image sits in that frame.
+    """
+
+    features: torch.Tensor
+    letterbox: Letterbox
+
+    @property
+    def nbytes(self) -> int:
+        return self.features.numel() * self.features.element_size()
+
+
+class ScaleModel(nn.Module):
+    """Base class: a feature extractor + a head over pairs of encoded images."""
+
+    arch = "ScaleModel"
+    config_class: type
+    default_weights = ""
+
+    def __init__(self, config):
+        super().__init__()
+        self.config = config
+        self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm)
+        self.meta: dict = {}
+
+    @property
+    def grid_size(self) -> int:
+        return self.config.image_size // FeatureExtractor.stride
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """``B x 3 x P x P`` in [0, 1] (P = ``config.image_size``) -> ``B x D x P/8 x P/8``."""
+        if images.dim() != 4 or images.shape[1] != 3 or images.shape[-2:] != (self.config.image_size,) * 2:
+            raise ValueError(f"encode: expected B x 3 x {self.config.image_size} x {self.config.image_size}, "
+                             f"got {tuple(images.shape)}")
+        return self.extractor(images)
+
+    def prepare(self, image: ImageLike, name: str = "image") -> tuple[torch.Tensor, Letterbox]:
+        """Load/validate an image and letterbox it: ``1 x 3 x P x P`` tensor + placement."""
+        rgb = load_image(image, name)
+        boxed, lb = letterbox(rgb, self.config.image_size)
+        return to_tensor(boxed)[None].to(self.device), lb
+
+    @torch.inference_mode()
+    def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False) -> EncodedImage:
+        """Encode one image for later pairing (the feature cache's unit)."""
+        x, lb = self.prepare(image, name)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+            f = self.encode(x)
+        return EncodedImage(f.float(), lb)
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path | None = None, device: str | torch.device = "cpu"):
+        """Load weights; ``path=None`` loads the default model bundled with the package."""
+        from ..checkpoint import load_model
+
+        if path is None:
+            path = WEIGHTS_DIR / cls.default_weights
+        return load_model(path, arch=cls.arch, device=device)
+
+
+def upsample_to_original(grid: torch.Tensor, lb: Letterbox) -> torch.Tensor:
+    """Resize a ``C x h x w`` map on the processing grid to the original image (``C x H x W``).
+
+    The grid covers the full ``P x P`` frame; it is upsampled to ``P x P``, the image's
+    region cropped out of the padding, and resized to the original resolution.
+    """
+    import torch.nn.functional as F
+
+    x = F.interpolate(grid[None].float(), size=(lb.size, lb.size), mode="bilinear", align_corners=False)
+    x = x[..., lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width]
+    return F.interpolate(x, size=(lb.height, lb.width), mode="bilinear", align_corners=False)[0]
+
+
+def as_numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().float().numpy()

@@ -1,0 +1,162 @@
+"""Local-ScaleNet: a dense, per-pixel scale distribution between two images.
+
+Pipeline (paper appendix "Local-ScaleNet")::
+
+    A, B --letterbox--> P x P --VGG16/8 + ASPP--> f_A, f_B (L2-normalised)
+    c_A  = corr(f_A, f_A),  c_AB = corr(f_A, f_B)     (ReLU + L2 norm)
+    c'_A, c'_AB = Reduction(c_A), Reduction(c_AB)      (Conv-BN-ReLU x 4 each)
+    logits = DenseHead(concat(c'_A, c'_AB))            (B x 13 x P/8 x P/8)
+
+The soft-scale map is corrected for the two letterbox factors and resized to A's
+original resolution. There is no consistency check (B->A is not aligned with A).
+
+Example::
+
+    net = LocalScaleNet.from_pretrained()
+    pred = net.predict("a.jpg", "b.jpg")
+    pred.scale  # H_A x W_A, > 1 where content looks bigger in B
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .. import scales
+from ..checkpoint import register
+from ..io import ImageLike
+from ..preprocess import Letterbox
+from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
+from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation
+
+
+@dataclass
+class LocalScaleNetConfig:
+    width: float = 0.25            #: VGG16 channel multiplier
+    feature_dim: int = 128         #: ASPP output channels
+    image_size: int = 192          #: processing frame P (multiple of 8)
+    reduction: tuple[int, ...] = (128, 64, 64, 32)
+    head_channels: int = 96
+    batch_norm: bool = True
+
+    def __post_init__(self):
+        self.reduction = tuple(self.reduction)
+        if self.image_size % 8 or self.image_size < 64:
+            raise ValueError(f"image_size must be a multiple of 8 and >= 64, got {self.image_size}")
+
+
+class DenseHead(nn.Module):
+    """Fully convolutional head: local context (dilated convs) + global context -> 13 logits/pixel."""
+
+    def __init__(self, cin: int, channels: int):
+        super().__init__()
+        self.context = conv_bn_relu(cin, channels, 1)
+        self.body = nn.Sequential(
+            conv_bn_relu(cin + channels, channels, 3),
+            conv_bn_relu(channels, channels, 3, dilation=2),
+            conv_bn_relu(channels, channels, 3, dilation=4),
+            conv_bn_relu(channels, channels, 3),
+        )
+        self.out = nn.Conv2d(channels, scales.NUM_BINS, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        g = self.context(x.mean((2, 3), keepdim=True)).expand(-1, -1, *x.shape[-2:])
+        return self.out(self.body(torch.cat([x, g], 1)))
+
+
+@dataclass
+class LocalScalePrediction:
+    """Output of :meth:`LocalScaleNet.predict`.
+
+    Attributes:
+        scale: ``H_A x W_A`` float32, ``S_{A->B}`` per pixel of A (original resolution).
+        confidence: ``H_A x W_A`` in [0, 1], ``1 - entropy / ln 13`` of the distribution.
+        probs: ``13 x h x w`` distributions on the processing grid of A (``h = w = P/8``).
+        letterbox_a, letterbox_b: placement of the images in the processing frame.
+    """
+
+    scale: np.ndarray
+    confidence: np.ndarray
+    probs: torch.Tensor
+    letterbox_a: Letterbox
+    letterbox_b: Letterbox
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def log2_scale(self) -> np.ndarray:
+        return np.log2(self.scale)
+
+    def distribution(self) -> np.ndarray:
+        """Per-pixel distribution at A's original resolution: ``13 x H_A x W_A`` (bins shifted
+        by the letterbox correction are not re-binned; use :attr:`scale` for values)."""
+        return as_numpy(upsample_to_original(self.probs, self.letterbox_a))
+
+
+@register
+class LocalScaleNet(ScaleModel):
+    """Dense Local-ScaleNet. See the module docstring for the pipeline."""
+
+    arch = "LocalScaleNet"
+    config_class = LocalScaleNetConfig
+    default_weights = "local_scalenet.pt"
+
+    def __init__(self, config: LocalScaleNetConfig | None = None, **overrides):
+        config = config or LocalScaleNetConfig(**overrides)
+        super().__init__(config)
+        n = self.grid_size ** 2
+        self.reduce_self = ReductionBlock(n, config.reduction)
+        self.reduce_cross = ReductionBlock(n, config.reduction)
+        self.head = DenseHead(2 * config.reduction[-1], config.head_channels)
+
+    def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
+        """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
+        c_a = normalise_correlation(correlation(fa, fa))
+        c_ab = normalise_correlation(correlation(fa, fb))
+        return self.head(torch.cat([self.reduce_self(c_a), self.reduce_cross(c_ab)], 1))
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """``B x 3 x P x P`` (x2, in [0, 1]) -> logits ``B x 13 x P/8 x P/8`` (processing frame)."""
+        return self.forward_features(self.encode(a), self.encode(b))
+
+    @torch.inference_mode()
+    def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, hard: bool = False,
+                              bf16: bool = False) -> LocalScalePrediction:
+        """Scale map from two cached encodings (see :meth:`encode_image`)."""
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+            logits = self.forward_features(ea.features, eb.features)
+        probs = F.softmax(logits.float(), 1)[0]
+        return self._readout(probs, ea.letterbox, eb.letterbox, hard)
+
+    @torch.inference_mode()
+    def predict(self, image_a: ImageLike, image_b: ImageLike, hard: bool = False,
+                bf16: bool = False) -> LocalScalePrediction:
+        """Per-pixel scale ``S_{A->B}`` between two images (paths or arrays, any size).
+
+        Args:
+            hard: D-ScaleNet read-out (arg-max bin) instead of the soft expectation.
+            bf16: run the network under bfloat16 autocast (faster on CPUs with AMX).
+        """
+        ea = self.encode_image(image_a, "image A", bf16)
+        eb = self.encode_image(image_b, "image B", bf16)
+        return self.predict_from_features(ea, eb, hard, bf16)
+
+    def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool) -> LocalScalePrediction:
+        log_s = torch.log(scales.hard_scale(probs, 0)) if hard else scales.soft_log_scale(probs, 0)
+        log_s = log_s + math.log(lb_a.factor / lb_b.factor)
+        conf = scales.confidence(probs, 0)
+        maps = upsample_to_original(torch.stack([log_s, conf]), lb_a)
+        return LocalScalePrediction(
+            scale=np.exp(as_numpy(maps[0])).astype(np.float32),
+            confidence=as_numpy(maps[1]).clip(0, 1).astype(np.float32),
+            probs=probs.cpu(), letterbox_a=lb_a, letterbox_b=lb_b)
+
+
+def predict_scale_map(image_a: ImageLike, image_b: ImageLike, model: LocalScaleNet | None = None,
+                      hard: bool = False) -> LocalScalePrediction:
+    """Functional form: per-pixel ``S_{A->B}`` with the default (or given) Local-ScaleNet."""
+    model = model or LocalScaleNet.from_pretrained()
+    return model.predict(image_a, image_b, hard=hard)

@@ -1,0 +1,123 @@
+"""Global ScaleNet (and its D-ScaleNet read-out): one scale factor for a pair of images.
+
+Pipeline (paper, Sec. 3)::
+
+    f_A, f_B  = FeatureExtractor(A), FeatureExtractor(B)      (shared with Local-ScaleNet)
+    c_A, c_B  = self-correlations,  c_AB = cross-correlation   (ReLU + L2 norm)
+    P_AB      = softmax(FC(flatten(Red_self(c_A), Red_self(c_B), Red_cross(c_AB))))
+
+The consistency check reuses the same correlations (``c_BA`` is a transpose of the raw
+``c_AB``), so both directions cost one backbone pass per image:
+``S = exp((ln S_AB - ln S_BA) / 2)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .. import scales
+from ..checkpoint import register
+from ..io import ImageLike
+from .base import EncodedImage, ScaleModel
+from .common import ReductionBlock, correlation, normalise_correlation, transpose_correlation
+
+
+@dataclass
+class ScaleNetConfig:
+    width: float = 0.25
+    feature_dim: int = 128
+    image_size: int = 192
+    reduction: tuple[int, ...] = (128, 64, 64, 32)
+    pooled_size: int = 6           #: reduced maps are average-pooled to this grid before the FC
+    fc_channels: int = 256
+    batch_norm: bool = True
+
+    def __post_init__(self):
+        self.reduction = tuple(self.reduction)
+        if self.image_size % 8 or self.image_size < 64:
+            raise ValueError(f"image_size must be a multiple of 8 and >= 64, got {self.image_size}")
+
+
+@dataclass
+class GlobalScalePrediction:
+    """Output of :meth:`ScaleNet.predict`.
+
+    Attributes:
+        scale: final ``S_{A->B}`` (consistency-checked soft scale, or what ``mode`` chose).
+        scale_ab, scale_ba: soft scales of each direction (``scale_ba`` is ``S_{B->A}``).
+        hard_scale: D-ScaleNet read-out (arg-max bin of ``probs_ab``).
+        probs_ab, probs_ba: the two 13-bin distributions.
+    """
+
+    scale: float
+    scale_ab: float
+    scale_ba: float
+    hard_scale: float
+    probs_ab: np.ndarray
+    probs_ba: np.ndarray
+
+
+@register
+class ScaleNet(ScaleModel):
+    """Global ScaleNet with the consistency check; see the module docstring."""
+
+    arch = "ScaleNet"
+    config_class = ScaleNetConfig
+    default_weights = "scalenet.pt"
+
+    def __init__(self, config: ScaleNetConfig | None = None, **overrides):
+        config = config or ScaleNetConfig(**overrides)
+        super().__init__(config)
+        n = self.grid_size ** 2
+        self.reduce_self = ReductionBlock(n, config.reduction)
+        self.reduce_cross = ReductionBlock(n, config.reduction)
+        self.pool = nn.AdaptiveAvgPool2d(config.pooled_size)
+        c = 3 * config.reduction[-1] * config.pooled_size ** 2
+        self.fc = nn.Sequential(nn.Linear(c, config.fc_channels), nn.ReLU(inplace=True),
+                                nn.Linear(config.fc_channels, scales.NUM_BINS))
+
+    def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of both directions from encoded features: ``(B x 13, B x 13)`` for A->B, B->A."""
+        raw = correlation(fa, fb)
+        c_ab = normalise_correlation(raw)
+        c_ba = normalise_correlation(transpose_correlation(raw, fb.shape[-2:]))
+        r_a = self.pool(self.reduce_self(normalise_correlation(correlation(fa, fa)))).flatten(1)
+        r_b = self.pool(self.reduce_self(normalise_correlation(correlation(fb, fb)))).flatten(1)
+        r_ab = self.pool(self.reduce_cross(c_ab)).flatten(1)
+        r_ba = self.pool(self.reduce_cross(c_ba)).flatten(1)
+        return self.fc(torch.cat([r_a, r_b, r_ab], 1)), self.fc(torch.cat([r_b, r_a, r_ba], 1))
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``B x 3 x P x P`` (x2) -> logits ``(B x 13, B x 13)`` for A->B and B->A (processing frame)."""
+        return self.forward_features(self.encode(a), self.encode(b))
+
+    @torch.inference_mode()
+    def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, bf16: bool = False) -> GlobalScalePrediction:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+            l_ab, l_ba = self.forward_features(ea.features, eb.features)
+        p_ab, p_ba = F.softmax(l_ab.float(), 1)[0], F.softmax(l_ba.float(), 1)[0]
+        corr = math.log(ea.letterbox.factor / eb.letterbox.factor)
+        ls_ab = float(scales.soft_log_scale(p_ab, 0)) + corr
+        ls_ba = float(scales.soft_log_scale(p_ba, 0)) - corr
+        hard = math.log(float(scales.hard_scale(p_ab, 0))) + corr
+        return GlobalScalePrediction(
+            scale=math.exp(float(scales.consistent_log_scale(torch.tensor(ls_ab), torch.tensor(ls_ba)))),
+            scale_ab=math.exp(ls_ab), scale_ba=math.exp(ls_ba), hard_scale=math.exp(hard),
+            probs_ab=p_ab.cpu().numpy(), probs_ba=p_ba.cpu().numpy())
+
+    @torch.inference_mode()
+    def predict(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> GlobalScalePrediction:
+        """Global ``S_{A->B}`` between two images (paths or arrays, any size)."""
+        return self.predict_from_features(self.encode_image(image_a, "image A", bf16),
+                                          self.encode_image(image_b, "image B", bf16), bf16)
+
+
+def estimate_scale(image_a: ImageLike, image_b: ImageLike, model: ScaleNet | None = None) -> float:
+    """Functional form: global ``S_{A->B}`` (consistency-checked) with the default ScaleNet."""
+    model = model or ScaleNet.from_pretrained()
+    return model.predict(image_a, image_b).scale
