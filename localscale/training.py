@@ -18,6 +18,7 @@ import math
 import os
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -200,6 +201,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         model.load_state_dict(ckpt["state_dict"])
         opt.load_state_dict(ckpt["train_state"]["optimizer"])
         sched.load_state_dict(ckpt["train_state"]["scheduler"])
+        sched.milestones = Counter(cfg.lr_milestones)   # a resumed run may extend its schedule
         step = ckpt["train_state"]["step"]
         if rank == 0:
             print(f"resuming from {last} at step {step}", file=sys.stderr)

@@ -100,8 +100,10 @@ class ScaleNet(ScaleModel):
     def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, bf16: bool = False) -> GlobalScalePrediction:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
             l_ab, l_ba = self.forward_features(ea.features, eb.features)
-        p_ab, p_ba = F.softmax(l_ab.float(), 1)[0], F.softmax(l_ba.float(), 1)[0]
-        corr = math.log(ea.letterbox.factor / eb.letterbox.factor)
+        return self._readout(F.softmax(l_ab.float(), 1)[0], F.softmax(l_ba.float(), 1)[0], ea.letterbox, eb.letterbox)
+
+    def _readout(self, p_ab: torch.Tensor, p_ba: torch.Tensor, lb_a, lb_b) -> GlobalScalePrediction:
+        corr = math.log(lb_a.factor / lb_b.factor)
         ls_ab = float(scales.soft_log_scale(p_ab, 0)) + corr
         ls_ba = float(scales.soft_log_scale(p_ba, 0)) - corr
         hard = math.log(float(scales.hard_scale(p_ab, 0))) + corr

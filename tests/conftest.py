@@ -1,0 +1,38 @@
+import os
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+
+def _photos():
+    from skimage import data
+
+    return {"astronaut": data.astronaut(), "coffee": data.coffee(), "chelsea": data.chelsea(),
+            "rocket": data.rocket(), "camera": data.camera(), "immunohistochemistry": data.immunohistochemistry()}
+
+
+@pytest.fixture(scope="session")
+def photos() -> dict:
+    """A few real photos bundled with scikit-image (never used to train the shipped models)."""
+    return _photos()
+
+
+@pytest.fixture(scope="session")
+def image_dir(tmp_path_factory, photos):
+    """Folder of small photos (jpg/png, colour and gray) for tiny training runs."""
+    d = tmp_path_factory.mktemp("photos")
+    for i, (name, img) in enumerate(photos.items()):
+        img = cv2.resize(img, (160, int(160 * img.shape[0] / img.shape[1])), interpolation=cv2.INTER_AREA)
+        if img.ndim == 3:
+            img = img[..., ::-1]
+        cv2.imwrite(str(d / f"{name}.{'png' if i % 2 else 'jpg'}"), img)
+    return d
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)

@@ -1,0 +1,99 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from localscale import CheckpointError, ImageError, LocalScaleNet, ScaleNet
+from localscale.checkpoint import load_model, save_model
+from localscale.models.common import correlation, transpose_correlation
+
+TINY = dict(width=0.125, feature_dim=16, image_size=64)
+
+
+@pytest.fixture(scope="module")
+def local_model():
+    torch.manual_seed(0)
+    return LocalScaleNet(**TINY).eval()
+
+
+def test_forward_shapes(local_model):
+    a, b = torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64)
+    assert local_model(a, b).shape == (2, 13, 8, 8)
+    g = ScaleNet(**TINY).eval()
+    l_ab, l_ba = g(a, b)
+    assert l_ab.shape == (2, 13) and l_ba.shape == (2, 13)
+
+
+def test_predict_returns_map_at_original_resolution(local_model, photos):
+    a = photos["astronaut"][:300, :200]
+    pred = local_model.predict(a, photos["coffee"])
+    assert pred.scale.shape == (300, 200) and pred.confidence.shape == (300, 200)
+    assert np.isfinite(pred.scale).all() and (pred.scale > 0).all()
+    assert pred.probs.shape == (13, 8, 8)
+    assert torch.allclose(pred.probs.sum(0), torch.ones(8, 8), atol=1e-5)
+    assert pred.distribution().shape == (13, 300, 200)
+
+
+def test_letterbox_correction_follows_the_convention(local_model, photos):
+    """B enlarged 2x looks the same in the processing frame; the returned scale must be 2x larger."""
+    a = photos["coffee"]
+    b = photos["chelsea"][:200, :300]
+    b2 = cv2.resize(b, (600, 400), interpolation=cv2.INTER_LINEAR)
+    s1 = local_model.predict(a, b).scale
+    s2 = local_model.predict(a, b2).scale
+    assert np.median(s2 / s1) == pytest.approx(2.0, rel=0.05)
+
+
+def test_cached_features_give_identical_predictions(local_model, photos):
+    ea = local_model.encode_image(photos["coffee"])
+    eb = local_model.encode_image(photos["chelsea"])
+    p1 = local_model.predict_from_features(ea, eb)
+    p2 = local_model.predict(photos["coffee"], photos["chelsea"])
+    assert np.allclose(p1.scale, p2.scale, rtol=1e-5)
+
+
+def test_global_consistency_reuses_one_correlation():
+    fa, fb = torch.randn(2, 8, 5, 6), torch.randn(2, 8, 4, 3)
+    assert torch.allclose(transpose_correlation(correlation(fa, fb), (4, 3)), correlation(fb, fa), atol=1e-5)
+
+
+def test_global_predict_consistency(photos):
+    torch.manual_seed(0)
+    g = ScaleNet(**TINY).eval()
+    p = g.predict(photos["coffee"], photos["chelsea"])
+    assert p.scale == pytest.approx(np.sqrt(p.scale_ab / p.scale_ba), rel=1e-5)
+    assert p.probs_ab.shape == (13,) and p.hard_scale > 0
+
+
+def test_checkpoint_roundtrip_and_errors(tmp_path, local_model, photos):
+    path = tmp_path / "m.pt"
+    save_model(local_model, path)
+    loaded = LocalScaleNet.from_pretrained(path)
+    x = torch.rand(1, 3, 64, 64)
+    assert torch.allclose(loaded(x, x), local_model(x, x), atol=1e-6)
+
+    with pytest.raises(CheckpointError, match="is a LocalScaleNet, expected a ScaleNet"):
+        ScaleNet.from_pretrained(path)
+    with pytest.raises(CheckpointError, match="not found"):
+        LocalScaleNet.from_pretrained(tmp_path / "missing.pt")
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        load_model(trunc)
+    ck = torch.load(path, weights_only=False)
+    ck["config"]["feature_dim"] = 32
+    torch.save(ck, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="do not match"):
+        load_model(tmp_path / "other.pt")
+    torch.save({"weights": 1}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not a localscale checkpoint"):
+        load_model(tmp_path / "foreign.pt")
+
+
+def test_bad_images_are_refused_with_a_clear_error(local_model, tmp_path):
+    with pytest.raises(ImageError, match="not found"):
+        local_model.predict(tmp_path / "nope.png", tmp_path / "nope.png")
+    with pytest.raises(ImageError, match="smaller than the minimum"):
+        local_model.predict(np.zeros((10, 10, 3), np.uint8), np.zeros((100, 100, 3), np.uint8))
+    with pytest.raises(ValueError, match="encode: expected"):
+        local_model.encode(torch.rand(1, 3, 32, 32))
