@@ -1,0 +1,85 @@
+"""Mean matching accuracy at 5 px: Hessian detector + {our HardNet, SIFT} x correction {none, global, local, gt}.
+
+Datasets: (1) held-out synthetic perspective pairs generated from the *held-out* photos of
+``--train-images`` (``localscale.data.split_images``), HPatches layout in a temp folder;
+(2) the real sequences in ``--sequences`` (pairs 1-k). ``local``/``global`` use the bundled
+default models when ``localscale/weights/*.pt`` exist (or ``--local-weights`` /
+``--global-weights``), else those columns are skipped with a note.
+
+    OMP_NUM_THREADS=1 python eval/matching_accuracy.py -o eval_out/matching [--quick]
+"""
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+from localscale.data import list_images, split_images
+from localscale.errors import CheckpointError
+from localscale.evaluation.hpatches import evaluate, load_hpatches, make_pairs, markdown_table, THRESHOLDS
+from localscale.evaluation.synthetic import make_sequences
+from localscale.features.pipeline import CorrectionGate
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("-o", "--out", default="eval_out/matching")
+    p.add_argument("--train-images", default="/work/shared/data/train_images")
+    p.add_argument("--sequences", default="/work/shared/data/sequences")
+    p.add_argument("--num-synthetic", type=int, default=30, help="held-out photos used (1 pair each)")
+    p.add_argument("--descriptors", nargs="+", default=["hardnet", "sift"])
+    p.add_argument("--num-features", type=int, default=1000)
+    p.add_argument("--local-weights", default=None)
+    p.add_argument("--global-weights", default=None)
+    p.add_argument("--max-side", type=int, default=None, help="downscale the real sequences (speed)")
+    p.add_argument("--gate-deadzone", type=float, default=None)
+    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+    from localscale.models import LocalScaleNet, ScaleNet
+    methods, notes, models = ["none", "global", "local", "gt"], [], {}
+    for m, cls, w in (("local", LocalScaleNet, a.local_weights), ("global", ScaleNet, a.global_weights)):
+        try:
+            models[m] = cls.from_pretrained(w)
+            if w:
+                notes.append(f"{m}: weights {w}")
+        except CheckpointError as e:
+            methods.remove(m)
+            notes.append(f"{m} skipped (no weights: {e})")
+    gate = CorrectionGate() if a.gate_deadzone is None else CorrectionGate(a.gate_deadzone)
+    for n in notes:
+        print("note:", n)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    held = split_images(list_images(a.train_images))[1][:a.num_synthetic]
+    tmp = tempfile.mkdtemp(prefix="ls_synth_")
+    make_sequences(held, tmp, num_images=2, size=480, seed=a.seed)
+    datasets = {"synthetic-heldout": make_pairs(load_hpatches(tmp))}
+    if a.sequences and Path(a.sequences).is_dir():
+        datasets["sequences"] = make_pairs(load_hpatches(a.sequences))
+    doc = {"notes": notes, "gate": vars(gate), "orientation": a.orientation, "results": {}}
+    rows = []
+    for dname, pairs in datasets.items():
+        for d in a.descriptors:
+            res = evaluate(pairs, methods, d, a.num_features, models.get("local"), models.get("global"), gate,
+                           orientation=a.orientation, max_side=a.max_side if dname == "sequences" else None)
+            doc["results"][f"{dname}/{d}"] = res
+            (out / f"{dname}_{d}.md").write_text(markdown_table(res["summary"], methods, list(THRESHOLDS),
+                                                                f"{dname} / {d}"))
+            s = res["summary"]["all"]
+            rows.append((dname, len(pairs), d, [s[m]["mma"][4] if m in s else float("nan") for m in methods],
+                         [s[m]["num_matches"] if m in s else float("nan") for m in methods]))
+    (out / "matching_accuracy.json").write_text(json.dumps(doc, indent=1))
+    hdr = f"{'dataset':<20}{'pairs':>6} {'descriptor':<10}" + "".join(f"{m:>10}" for m in methods)
+    print("\nMMA@5px (mutual NN; mean #matches in brackets)\n" + hdr)
+    for dname, n, d, mma, nm in rows:
+        print(f"{dname:<20}{n:>6} {d:<10}" + "".join(f"{v:>6.3f}({c:>3.0f})" for v, c in zip(mma, nm)))
+    print(f"wrote {out}/matching_accuracy.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

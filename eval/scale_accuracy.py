@@ -1,0 +1,215 @@
+"""Accuracy of the scale models on held-out synthetic pairs and on real sequences.
+
+Local mode (Local-ScaleNet): per-pixel scale-ratio error ``r = max(s,g)/min(s,g)`` over the
+co-visible pixels of A (original resolution, sampled on a 4-px grid), against
+
+* ``const-1``: the constant map 1 (no correction),
+* ``oracle const``: the best single global scale of each pair (median of the GT log-scale,
+  which minimises the mean |log error|): what a perfect *global* ScaleNet could do.
+
+Tables are split by scale band (|log2 s| < 1, 1..2, > 2) and by perspective strength of
+the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 <= high).
+
+Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
+scale alone, the D-ScaleNet hard read-out, the constant 1 and a random bin; plus timing.
+
+    python eval/scale_accuracy.py --mode local --photos ../shared/data/train_images \
+        --sequences ../shared/data/sequences --out results/scale_accuracy_local.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from localscale import LocalScaleNet, ScaleNet
+from localscale.data import list_images, split_images
+from localscale.geometry import HomographyConfig, covisible_mask, homography_scale_map, sample_homography, warp_image
+from localscale.io import load_image, read_homography
+
+BANDS = [("|log2 s|<1", 0, 1), ("1<=|log2 s|<2", 1, 2), ("|log2 s|>=2", 2, 99)]
+PERSPECTIVE = [("low", 0, 0.15), ("medium", 0.15, 0.35), ("high", 0.35, 99)]
+STRIDE = 4
+
+
+def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig):
+    """Held-out pairs at the photos' own resolution: ``(name, A, B, H)``; B filled from another photo."""
+    rng = np.random.default_rng(seed)
+    cache = {}
+
+    def img(i):
+        if i not in cache:
+            cache[i] = load_image(photos[i])
+        return cache[i]
+
+    for k in range(n):
+        i, j = rng.choice(len(photos), 2, replace=False)
+        a = img(i)
+        H = sample_homography(rng, a.shape[:2], a.shape[:2], cfg)
+        b, _ = warp_image(a, H, a.shape[:2], fill=img(j))
+        if covisible_mask(H, a.shape[:2], b.shape[:2], 8).sum() < 8:
+            continue
+        yield f"synthetic_{k:04d}", a, b, H
+
+
+def sequence_pairs(root: Path):
+    for seq in sorted(p for p in root.iterdir() if p.is_dir()):
+        ones = sorted(seq.glob("1.*"))
+        if not ones:
+            continue
+        a = load_image(ones[0])
+        for hf in sorted(seq.glob("H_1_*")):
+            k = hf.name.split("_")[-1]
+            bfile = next(iter(sorted(seq.glob(f"{k}.*"))), None)
+            if bfile is not None:
+                yield f"{seq.name}/1-{k}", a, load_image(bfile), read_homography(hf)
+
+
+def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b) -> dict:
+    h, w = pred.shape
+    gt = homography_scale_map(H, h, w, STRIDE)
+    m = covisible_mask(H, (h, w), shape_b, STRIDE) & np.isfinite(gt)
+    p = pred[STRIDE // 2::STRIDE, STRIDE // 2::STRIDE][:gt.shape[0], :gt.shape[1]]
+    lg, lp = np.log(gt[m]), np.log(p[m])
+    spread = float(np.log2(gt[m]).std()) if m.sum() > 1 else 0.0
+    return {"log_gt": lg, "err": np.abs(lp - lg), "const1": np.abs(lg), "oracle": np.abs(lg - np.median(lg)),
+            "spread": spread}
+
+
+def summarise(rows: list[dict], select=None) -> dict:
+    errs = {k: [] for k in ("err", "const1", "oracle")}
+    npairs = 0
+    for r in rows:
+        m = np.ones_like(r["err"], bool) if select is None else select(r)
+        if m.any():
+            npairs += 1
+            for k in errs:
+                errs[k].append(r[k][m])
+    if not npairs:
+        return {"pairs": 0}
+    out = {"pairs": npairs, "pixels": int(sum(len(e) for e in errs["err"]))}
+    for k, name in (("err", "local"), ("const1", "const-1"), ("oracle", "oracle const")):
+        e = np.concatenate(errs[k])
+        out[name] = {"mean_r": float(np.exp(e).mean()), "median_r": float(np.exp(np.median(e)))}
+    out["local_beats_oracle_pairs"] = float(np.mean([np.exp(r["err"]).mean() < np.exp(r["oracle"]).mean()
+                                                     for r in rows if select is None or select(r).any()]))
+    return out
+
+
+def local_table(rows: list[dict]) -> dict:
+    table = {"all": summarise(rows)}
+    for name, lo, hi in BANDS:
+        table[f"scale {name}"] = summarise(rows, lambda r, lo=lo, hi=hi: (np.abs(r["log_gt"] / math.log(2)) >= lo)
+                                           & (np.abs(r["log_gt"] / math.log(2)) < hi))
+    for name, lo, hi in PERSPECTIVE:
+        table[f"perspective {name}"] = summarise(
+            rows, lambda r, lo=lo, hi=hi: np.full(r["err"].shape, lo <= r["spread"] < hi))
+    return table
+
+
+def print_local_table(title: str, table: dict) -> None:
+    print(f"\n### {title}\n")
+    print("| subset | pairs | local mean r | local median r | const-1 mean r | oracle-const mean r | local < oracle (pairs) |")
+    print("|---|---|---|---|---|---|---|")
+    for k, v in table.items():
+        if not v.get("pairs"):
+            print(f"| {k} | 0 | | | | | |")
+            continue
+        print(f"| {k} | {v['pairs']} | {v['local']['mean_r']:.3f} | {v['local']['median_r']:.3f} | "
+              f"{v['const-1']['mean_r']:.3f} | {v['oracle const']['mean_r']:.3f} | {100 * v['local_beats_oracle_pairs']:.0f}% |")
+
+
+def run_local(args) -> dict:
+    model = LocalScaleNet.from_pretrained(args.model)
+    torch.set_num_threads(args.threads) if args.threads else None
+    results = {"model": str(args.model or "bundled"), "stride_px": STRIDE}
+    if args.photos:
+        _, held = split_images(list_images(args.photos))
+        cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
+        rows = []
+        for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg)), desc="synthetic"):
+            rows.append(pixel_errors(model.predict(a, b).scale, H, b.shape[:2]))
+        results["synthetic"] = local_table(rows)
+        results["synthetic_setup"] = {"photos": "held-out split (every 10th sorted file) of " + str(args.photos),
+                                      "pairs": len(rows), "seed": args.seed, "perspective": args.perspective,
+                                      "scale_range": [0.16, 6.0]}
+        print_local_table(f"held-out synthetic pairs ({len(rows)})", results["synthetic"])
+    if args.sequences:
+        rows, names = [], []
+        for name, a, b, H in tqdm(list(sequence_pairs(Path(args.sequences))), desc="sequences"):
+            rows.append(pixel_errors(model.predict(a, b).scale, H, b.shape[:2]))
+            names.append(name)
+        results["sequences"] = local_table(rows)
+        results["sequences_per_pair"] = {n: {"mean_r": float(np.exp(r["err"]).mean()),
+                                             "const1_mean_r": float(np.exp(r["const1"]).mean()),
+                                             "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+                                             "spread": r["spread"]} for n, r in zip(names, rows)}
+        print_local_table(f"real sequences ({len(rows)} pairs)", results["sequences"])
+    return results
+
+
+def run_global(args) -> dict:
+    model = ScaleNet.from_pretrained(args.model)
+    torch.set_num_threads(args.threads) if args.threads else None
+    _, held = split_images(list_images(args.photos))
+    cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
+    rng = np.random.default_rng(args.seed + 1)
+    err = {k: [] for k in ("consistency", "A->B only", "D-ScaleNet", "const-1", "random bin")}
+    t_full, t_cached = [], []
+    for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg)), desc="global"):
+        from localscale.geometry import global_scale
+
+        g = math.log(global_scale(H, a.shape[:2], b.shape[:2]))
+        t0 = time.perf_counter()
+        ea, eb = model.encode_image(a), model.encode_image(b)
+        t1 = time.perf_counter()
+        p = model.predict_from_features(ea, eb)
+        t2 = time.perf_counter()
+        t_full.append(t2 - t0)
+        t_cached.append(t2 - t1)
+        err["consistency"].append(abs(math.log(p.scale) - g))
+        err["A->B only"].append(abs(math.log(p.scale_ab) - g))
+        err["D-ScaleNet"].append(abs(math.log(p.hard_scale) - g))
+        err["const-1"].append(abs(g))
+        err["random bin"].append(abs(math.sqrt(2) ** rng.integers(-6, 7) and math.log(math.sqrt(2)) * rng.integers(-6, 7) - g))
+    res = {k: {"mean_r": float(np.mean(np.exp(v))), "median_r": float(np.exp(np.median(v)))} for k, v in err.items()}
+    res["timing_ms"] = {"uncached_pair_median": 1000 * float(np.median(t_full)),
+                        "cached_pair_median": 1000 * float(np.median(t_cached)), "threads": torch.get_num_threads()}
+    res["setup"] = {"pairs": len(err["const-1"]), "seed": args.seed, "perspective": args.perspective}
+    print(f"\n### global ScaleNet, held-out synthetic pairs ({len(err['const-1'])})\n")
+    print("| read-out | mean r | median r |\n|---|---|---|")
+    for k in err:
+        print(f"| {k} | {res[k]['mean_r']:.3f} | {res[k]['median_r']:.3f} |")
+    print(f"\ntiming per pair (median, {torch.get_num_threads()} threads): uncached "
+          f"{res['timing_ms']['uncached_pair_median']:.1f} ms, cached features {res['timing_ms']['cached_pair_median']:.1f} ms")
+    return res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--mode", choices=["local", "global"], default="local")
+    p.add_argument("--model", default=None, help="checkpoint (default: bundled)")
+    p.add_argument("--photos", default=None, help="photo folder; its held-out split makes the synthetic pairs")
+    p.add_argument("--sequences", default=None, help="HPatches-layout folder of real sequences (local mode)")
+    p.add_argument("--pairs", type=int, default=200)
+    p.add_argument("--perspective", type=float, default=0.45)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--out", default=None, help="JSON output")
+    args = p.parse_args(argv)
+    res = run_local(args) if args.mode == "local" else run_global(args)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
