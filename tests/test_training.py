@@ -61,3 +61,49 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(image_dir, tmp_path, monk
     with pytest.raises(TrainingDiverged, match="at step 5"):
         train(tiny_cfg(image_dir, tmp_path / "nan"))
     assert read_checkpoint(tmp_path / "nan" / "last.pt")["train_state"]["step"] == 3
+
+
+def test_ddp_under_torchrun_on_cpu(image_dir, tmp_path):
+    """Two gloo processes train together; rank 0 writes the checkpoint and the exported model."""
+    import os
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "-m", "localscale.training",
+           "--data", str(image_dir), "--out", str(tmp_path / "ddp"), "--width", "0.125", "--feature-dim", "16",
+           "--image-size", "64", "--steps", "2", "--batch-size", "2", "--holdout-every", "3", "--val-pairs", "4",
+           "--val-every", "2", "--ckpt-every", "2", "--workers", "0", "--threads", "1", "--amp", "off"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert read_checkpoint(tmp_path / "ddp" / "last.pt")["train_state"]["step"] == 2
+    load_model(tmp_path / "ddp" / "model.pt", arch="LocalScaleNet")
+
+
+def test_run_killed_mid_way_resumes_to_the_same_weights(image_dir, tmp_path):
+    """SIGKILL a training process after its first checkpoint; the resumed run ends bit-identical."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = ["--data", str(image_dir), "--width", "0.125", "--feature-dim", "16", "--image-size", "64",
+            "--steps", "8", "--batch-size", "2", "--holdout-every", "3", "--val-pairs", "4", "--val-every", "100",
+            "--ckpt-every", "2", "--workers", "0", "--threads", "1", "--amp", "off", "--lr", "1e-3"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    run = lambda out: [sys.executable, "-m", "localscale.training", "--out", str(out)] + args  # noqa: E731
+    proc = subprocess.Popen(run(tmp_path / "killed"), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    last = tmp_path / "killed" / "last.pt"
+    t0 = time.time()
+    while not last.exists() and time.time() - t0 < 120 and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = read_checkpoint(last)["train_state"]["step"]
+    assert 2 <= killed_at < 8
+    assert subprocess.run(run(tmp_path / "killed"), env=env, capture_output=True).returncode == 0
+    assert subprocess.run(run(tmp_path / "straight"), env=env, capture_output=True).returncode == 0
+    a = read_checkpoint(tmp_path / "straight" / "last.pt")["state_dict"]
+    b = read_checkpoint(last)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)

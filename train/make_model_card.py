@@ -1,0 +1,76 @@
+"""Export a training run as shipped weights + a JSON model card.
+
+    python train/make_model_card.py --run runs/local --name local_scalenet \
+        --eval results/scale_accuracy_local.json --command "python -m localscale.training ..."
+
+Writes ``localscale/weights/<name>.pt`` (fp16 weights, config, metadata) and ``<name>.json``.
+Uses ``<run>/model.pt`` when the run finished, else its latest ``last.pt``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from localscale.checkpoint import load_model, read_checkpoint, save_model
+
+DATA_CARD = {
+    "source": "../shared/data/train_images (291 photos, longer side <= 640 px); training used the 'train' split: "
+              "every 10th file in sorted order is held out for validation/evaluation (localscale.data.split_images)",
+    "groups_and_licences": {
+        "bsd68 (60)": "CBSD68 / Berkeley Segmentation Dataset BSDS300 (Martin et al. ICCV 2001): non-commercial research and educational use",
+        "urban100 (88)": "Urban100 (Huang et al. CVPR 2015), Flickr photos, Creative Commons per the authors",
+        "sunhays80 (71)": "Sun-Hays 80 (Sun & Hays ICCP 2012), Flickr scene photos, licence not stated",
+        "set14 (8) + set5 (1)": "classic super-resolution test images, licence not stated",
+        "kodak (20)": "Kodak Lossless True Color Image Suite, released for unrestricted use",
+        "wikiphotos (43)": "Wikimedia Commons photos (mostly CC, attribution per file page; list in shared/data/SOURCES.md)",
+    },
+    "pairs": "synthetic: random homography (log-uniform scale, rotation, skew, perspective, shift) warps a crop "
+             "of a photo into the target; the target's empty region is filled from another random photo; "
+             "ground truth = analytic sqrt|det J_H| on the stride-8 grid",
+    "never_used": "the evaluation sequences/pairs (../shared/data/sequences, ../shared/data/pairs) and scikit-image photos",
+}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--run", required=True)
+    p.add_argument("--name", required=True, help="file stem in localscale/weights/")
+    p.add_argument("--eval", nargs="*", default=[], help="eval JSON files to include")
+    p.add_argument("--command", default="", help="the command that trained it")
+    p.add_argument("--notes", default="")
+    a = p.parse_args(argv)
+    run = Path(a.run)
+    src = run / "model.pt" if (run / "model.pt").exists() else run / "last.pt"
+    model = load_model(src)
+    ck = read_checkpoint(run / "last.pt")
+    step = ck["train_state"]["step"]
+    train_cfg = ck["meta"].get("train_config", {})
+    val = [json.loads(line) for line in open(run / "val_log.jsonl")] if (run / "val_log.jsonl").exists() else []
+    out_dir = Path(__file__).resolve().parent.parent / "localscale" / "weights"
+    weights = out_dir / f"{a.name}.pt"
+    meta = {"steps": step, "train_config": train_cfg, "validation": val[-1] if val else {}}
+    save_model(model, weights, meta=meta, half=True)
+    card = {
+        "name": a.name, "architecture": model.arch, "config": {k: (list(v) if isinstance(v, tuple) else v)
+                                                               for k, v in vars(model.config).items()},
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "weights_file": weights.name, "weights_mb": round(weights.stat().st_size / 2**20, 2), "storage": "fp16",
+        "training": {"steps": step, "batch_size": train_cfg.get("batch_size"), "config": train_cfg,
+                     "command": a.command, "hardware": "2 CPU cores (no GPU), fp32, 1 torch thread"},
+        "data": DATA_CARD,
+        "validation_history": val,
+        "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
+        "convention": "S_{A->B} > 1: content looks bigger in B",
+        "notes": a.notes,
+    }
+    (out_dir / f"{a.name}.json").write_text(json.dumps(card, indent=1))
+    print(f"wrote {weights} ({card['weights_mb']} MB) and {a.name}.json (step {step})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
