@@ -66,6 +66,8 @@ class TrainConfig:
                                            #: ("auto" = CUDA, or a CPU with AMX where bf16 is faster)
     threads: int = 0                       #: torch CPU threads (0 = torch default)
     vgg_weights: str = ""                  #: optional local torchvision VGG16(-BN) state dict (width 1)
+    topk: int = 0                          #: Local-ScaleNet extra cue: k largest correlations per pixel
+    warp_features: bool = False            #: Local-ScaleNet extra cue: B's features warped onto A
 
     def pair_config(self) -> PairConfig:
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
@@ -73,7 +75,8 @@ class TrainConfig:
 
     def build_model(self):
         if self.model == "local":
-            return LocalScaleNet(LocalScaleNetConfig(self.width, self.feature_dim, self.image_size))
+            return LocalScaleNet(LocalScaleNetConfig(self.width, self.feature_dim, self.image_size,
+                                                     topk=self.topk, warp_features=self.warp_features))
         if self.model == "global":
             return ScaleNet(ScaleNetConfig(self.width, self.feature_dim, self.image_size))
         raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")

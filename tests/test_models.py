@@ -97,3 +97,15 @@ def test_bad_images_are_refused_with_a_clear_error(local_model, tmp_path):
         local_model.predict(np.zeros((10, 10, 3), np.uint8), np.zeros((100, 100, 3), np.uint8))
     with pytest.raises(ValueError, match="encode: expected"):
         local_model.encode(torch.rand(1, 3, 32, 32))
+
+
+def test_position_invariant_cues_variant(tmp_path, photos):
+    """top-k correlation profile + warped-B-features branch (the shipped configuration)."""
+    torch.manual_seed(0)
+    m = LocalScaleNet(**TINY, topk=100, warp_features=True).eval()   # topk > 8*8 cells is clipped
+    x = torch.rand(2, 3, 64, 64)
+    assert m(x, x.flip(-1)).shape == (2, 13, 8, 8)
+    save_model(m, tmp_path / "v.pt")
+    m2 = load_model(tmp_path / "v.pt")
+    assert m2.config.topk == 100 and m2.config.warp_features
+    assert torch.allclose(m2(x, x), m(x, x), atol=1e-6)

@@ -42,6 +42,11 @@ class LocalScaleNetConfig:
     reduction: tuple[int, ...] = (128, 64, 64, 32)
     head_channels: int = 96
     batch_norm: bool = True
+    #: position-invariant cues added beside the paper's reduced volumes (0 / False = paper only):
+    #: the k largest cross- and self-correlations of each pixel of A (how spread its match is),
+    topk: int = 0
+    #: and B's features soft-warped onto A through the correlation (what the match looks like)
+    warp_features: bool = False
 
     def __post_init__(self):
         self.reduction = tuple(self.reduction)
@@ -110,13 +115,28 @@ class LocalScaleNet(ScaleModel):
         n = self.grid_size ** 2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
-        self.head = DenseHead(2 * config.reduction[-1], config.head_channels)
+        cin = 2 * config.reduction[-1]
+        if config.topk:
+            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * config.topk, 64, 1), conv_bn_relu(64, 32, 1))
+            cin += 32
+        if config.warp_features:
+            self.reduce_warp = nn.Sequential(conv_bn_relu(3 * config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
+            cin += 64
+        self.head = DenseHead(cin, config.head_channels)
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
-        c_a = normalise_correlation(correlation(fa, fa))
-        c_ab = normalise_correlation(correlation(fa, fb))
-        return self.head(torch.cat([self.reduce_self(c_a), self.reduce_cross(c_ab)], 1))
+        raw_a, raw_ab = correlation(fa, fa), correlation(fa, fb)
+        parts = [self.reduce_self(normalise_correlation(raw_a)), self.reduce_cross(normalise_correlation(raw_ab))]
+        if self.config.topk:
+            k = min(self.config.topk, raw_ab.shape[1])
+            top = torch.cat([raw_ab.topk(k, 1).values, raw_a.topk(k, 1).values], 1)
+            parts.append(self.reduce_topk(top))
+        if self.config.warp_features:
+            att = torch.softmax(raw_ab.float() * 20.0, 1)                       # B x (hb*wb) x ha x wa
+            fb_warped = torch.bmm(fb.flatten(2), att.flatten(2)).view_as(fa)   # B x D x ha x wa
+            parts.append(self.reduce_warp(torch.cat([fa, fb_warped, fa * fb_warped], 1)))
+        return self.head(torch.cat(parts, 1))
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """``B x 3 x P x P`` (x2, in [0, 1]) -> logits ``B x 13 x P/8 x P/8`` (processing frame)."""
