@@ -116,8 +116,9 @@ class LocalScaleNet(ScaleModel):
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
         cin = 2 * config.reduction[-1]
-        if config.topk:
-            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * config.topk, 64, 1), conv_bn_relu(64, 32, 1))
+        self.topk = min(config.topk, n)
+        if self.topk:
+            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * self.topk, 64, 1), conv_bn_relu(64, 32, 1))
             cin += 32
         if config.warp_features:
             self.reduce_warp = nn.Sequential(conv_bn_relu(3 * config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
@@ -128,9 +129,8 @@ class LocalScaleNet(ScaleModel):
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
         raw_a, raw_ab = correlation(fa, fa), correlation(fa, fb)
         parts = [self.reduce_self(normalise_correlation(raw_a)), self.reduce_cross(normalise_correlation(raw_ab))]
-        if self.config.topk:
-            k = min(self.config.topk, raw_ab.shape[1])
-            top = torch.cat([raw_ab.topk(k, 1).values, raw_a.topk(k, 1).values], 1)
+        if self.topk:
+            top = torch.cat([raw_ab.topk(self.topk, 1).values, raw_a.topk(self.topk, 1).values], 1)
             parts.append(self.reduce_topk(top))
         if self.config.warp_features:
             att = torch.softmax(raw_ab.float() * 20.0, 1)                       # B x (hb*wb) x ha x wa
