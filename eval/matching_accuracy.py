@@ -34,6 +34,7 @@ def main(argv=None) -> int:
     p.add_argument("--local-weights", default=None)
     p.add_argument("--global-weights", default=None)
     p.add_argument("--max-side", type=int, default=None, help="downscale the real sequences (speed)")
+    p.add_argument("--gate-pair", type=float, default=None, help="pair-level gate (default: CorrectionGate)")
     p.add_argument("--gate-deadzone", type=float, default=None)
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
     p.add_argument("--seed", type=int, default=0)
@@ -49,7 +50,11 @@ def main(argv=None) -> int:
         except CheckpointError as e:
             methods.remove(m)
             notes.append(f"{m} skipped (no weights: {e})")
-    gate = CorrectionGate() if a.gate_deadzone is None else CorrectionGate(a.gate_deadzone)
+    gate = CorrectionGate()
+    if a.gate_pair is not None:
+        gate.min_pair_log2 = a.gate_pair
+    if a.gate_deadzone is not None:
+        gate.deadzone_log2 = a.gate_deadzone
     for n in notes:
         print("note:", n)
     out = Path(a.out)

@@ -66,6 +66,8 @@ class TrainConfig:
                                            #: ("auto" = CUDA, or a CPU with AMX where bf16 is faster)
     threads: int = 0                       #: torch CPU threads (0 = torch default)
     vgg_weights: str = ""                  #: optional local torchvision VGG16(-BN) state dict (width 1)
+    init_extractor: str = ""               #: checkpoint whose feature extractor initialises this model
+    freeze_extractor: bool = False         #: train only the correlation/reduction/head layers
     topk: int = 0                          #: Local-ScaleNet extra cue: k largest correlations per pixel
     warp_features: bool = False            #: Local-ScaleNet extra cue: B's features warped onto A
 
@@ -126,7 +128,6 @@ def validate(model, batches: list[dict], kind: str, device, amp_ctx) -> dict:
             gt = torch.log(batch["global_scale"].float())
             errs.append((scales.consistent_log_scale(ls_ab, ls_ba) - gt).abs().cpu())
             base.append(gt.abs().cpu())
-    model.train()
     e, b = torch.cat(errs).double(), torch.cat(base).double()
     return {"mean_r": float(torch.exp(e).mean()), "median_r": float(torch.exp(e.median())),
             "baseline_mean_r": float(torch.exp(b).mean())}
@@ -195,7 +196,16 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     model = cfg.build_model().to(device)
     if cfg.vgg_weights:
         model.extractor.backbone.load_torchvision_vgg16(cfg.vgg_weights)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    if cfg.init_extractor:
+        src = read_checkpoint(cfg.init_extractor)
+        ext = {k[len("extractor."):]: v.float() for k, v in src["state_dict"].items() if k.startswith("extractor.")}
+        try:
+            model.extractor.load_state_dict(ext)
+        except RuntimeError as e:
+            raise LocalScaleError(f"{cfg.init_extractor}: feature extractor does not fit ({str(e).splitlines()[0]})") from None
+    if cfg.freeze_extractor:
+        model.extractor.requires_grad_(False)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(cfg.lr_milestones), cfg.lr_gamma)
     step, history = 0, []
     last = out / "last.pt"
@@ -244,7 +254,12 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         bar = tqdm(total=stop, initial=step, desc=f"train {cfg.model}", disable=rank != 0, dynamic_ncols=True)
     except ImportError:  # pragma: no cover
         bar = None
-    model.train()
+    def set_train():
+        model.train()
+        if cfg.freeze_extractor:
+            core.extractor.eval()
+
+    set_train()
     t0, last_val = time.time(), {}
     for batch in loader:
         batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
@@ -272,6 +287,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             save_last()
         if rank == 0 and (step % cfg.val_every == 0 or step == cfg.steps):
             last_val = {"step": step, **validate(core, val_batches, cfg.model, device, amp_ctx)}
+            set_train()
             log.validation(last_val)
             if bar is not None:
                 bar.write(f"step {step}: val mean r {last_val['mean_r']:.3f} (median {last_val['median_r']:.3f}, "

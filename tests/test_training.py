@@ -107,3 +107,14 @@ def test_run_killed_mid_way_resumes_to_the_same_weights(image_dir, tmp_path):
     a = read_checkpoint(tmp_path / "straight" / "last.pt")["state_dict"]
     b = read_checkpoint(last)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_global_head_on_a_frozen_local_extractor(image_dir, tmp_path):
+    """ScaleNet can reuse a trained Local-ScaleNet extractor (one feature cache serves both models)."""
+    train(tiny_cfg(image_dir, tmp_path / "local", steps=2))
+    src = read_checkpoint(tmp_path / "local" / "last.pt")["state_dict"]
+    train(tiny_cfg(image_dir, tmp_path / "g", model="global", steps=3, lr=1e-2,
+                   init_extractor=str(tmp_path / "local" / "last.pt"), freeze_extractor=True))
+    g = read_checkpoint(tmp_path / "g" / "last.pt")["state_dict"]
+    ext = [k for k in src if k.startswith("extractor.")]
+    assert ext and all(torch.equal(src[k], g[k]) for k in ext)          # weights and BN statistics unchanged
