@@ -10,6 +10,14 @@ Pipeline (paper appendix "Local-ScaleNet")::
 The soft-scale map is corrected for the two letterbox factors and resized to A's
 original resolution. There is no consistency check (B->A is not aligned with A).
 
+Beyond the paper (optional, on in the shipped model): the reduced volumes see B's cells as
+*channels*, so a 1x1 conv must learn the same "how spread is my match" rule separately for
+every position of B. Two position-invariant cues make that explicit: the ``topk`` largest
+cross- and self-correlations of each pixel of A (sorted, so independent of where the match
+is), and B's features soft-warped onto A through the correlation, next to A's own (how the
+matched content looks at the two scales). Measured on identical data: training loss 1.59 at
+step 250 with the cues vs 1.71 without (the paper-only model needed ~1300 steps for 1.59).
+
 Example::
 
     net = LocalScaleNet.from_pretrained()
