@@ -7,7 +7,8 @@ co-visible pixels of A (original resolution, sampled on a 4-px grid), against
 * ``oracle const``: the best single global scale of each pair (median of the GT log-scale,
   which minimises the mean |log error|): what a perfect *global* ScaleNet could do.
 
-Tables are split by scale band (|log2 s| < 1, 1..2, > 2) and by perspective strength of
+``local+planar`` is the same prediction with the planar prior (``predict(..., planar=True)``,
+valid for planar scenes only, which all pairs here are). Tables are split by scale band (|log2 s| < 1, 1..2, > 2) and by perspective strength of
 the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 <= high).
 
 Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
@@ -33,6 +34,7 @@ from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
 from localscale.geometry import HomographyConfig, covisible_mask, homography_scale_map, sample_homography, warp_image
 from localscale.io import load_image, read_homography
+from localscale.planar import planarize
 
 BANDS = [("|log2 s|<1", 0, 1), ("1<=|log2 s|<2", 1, 2), ("|log2 s|>=2", 2, 99)]
 PERSPECTIVE = [("low", 0, 0.15), ("medium", 0.15, 0.35), ("high", 0.35, 99)]
@@ -72,19 +74,24 @@ def sequence_pairs(root: Path):
                 yield f"{seq.name}/1-{k}", a, load_image(bfile), read_homography(hf)
 
 
-def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b) -> dict:
+def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b, planar: np.ndarray | None = None) -> dict:
     h, w = pred.shape
     gt = homography_scale_map(H, h, w, STRIDE)
     m = covisible_mask(H, (h, w), shape_b, STRIDE) & np.isfinite(gt)
-    p = pred[STRIDE // 2::STRIDE, STRIDE // 2::STRIDE][:gt.shape[0], :gt.shape[1]]
-    lg, lp = np.log(gt[m]), np.log(p[m])
+    ys = np.minimum(np.arange(gt.shape[0]) * STRIDE + STRIDE // 2, h - 1)
+    xs = np.minimum(np.arange(gt.shape[1]) * STRIDE + STRIDE // 2, w - 1)
+    sub = lambda x: x[np.ix_(ys, xs)][m]  # noqa: E731  (pixel nearest to each grid cell centre)
+    lg = np.log(gt[m])
     spread = float(np.log2(gt[m]).std()) if m.sum() > 1 else 0.0
-    return {"log_gt": lg, "err": np.abs(lp - lg), "const1": np.abs(lg), "oracle": np.abs(lg - np.median(lg)),
-            "spread": spread}
+    out = {"log_gt": lg, "err": np.abs(np.log(sub(pred)) - lg), "const1": np.abs(lg),
+           "oracle": np.abs(lg - np.median(lg)), "spread": spread}
+    if planar is not None:
+        out["planar"] = np.abs(np.log(sub(planar)) - lg)
+    return out
 
 
 def summarise(rows: list[dict], select=None) -> dict:
-    errs = {k: [] for k in ("err", "const1", "oracle")}
+    errs = {k: [] for k in ("err", "planar", "const1", "oracle") if k in rows[0]}
     npairs = 0
     for r in rows:
         m = np.ones_like(r["err"], bool) if select is None else select(r)
@@ -95,7 +102,9 @@ def summarise(rows: list[dict], select=None) -> dict:
     if not npairs:
         return {"pairs": 0}
     out = {"pairs": npairs, "pixels": int(sum(len(e) for e in errs["err"]))}
-    for k, name in (("err", "local"), ("const1", "const-1"), ("oracle", "oracle const")):
+    for k, name in (("err", "local"), ("planar", "local+planar"), ("const1", "const-1"), ("oracle", "oracle const")):
+        if k not in errs:
+            continue
         e = np.concatenate(errs[k])
         out[name] = {"mean_r": float(np.exp(e).mean()), "median_r": float(np.exp(np.median(e)))}
     out["local_beats_oracle_pairs"] = float(np.mean([np.exp(r["err"]).mean() < np.exp(r["oracle"]).mean()
@@ -116,13 +125,16 @@ def local_table(rows: list[dict]) -> dict:
 
 def print_local_table(title: str, table: dict) -> None:
     print(f"\n### {title}\n")
-    print("| subset | pairs | local mean r | local median r | const-1 mean r | oracle-const mean r | local < oracle (pairs) |")
-    print("|---|---|---|---|---|---|---|")
+    print("| subset | pairs | local mean r | local median r | local+planar mean / median r | const-1 mean r "
+          "| oracle-const mean r | local < oracle (pairs) |")
+    print("|---|---|---|---|---|---|---|---|")
     for k, v in table.items():
         if not v.get("pairs"):
-            print(f"| {k} | 0 | | | | | |")
+            print(f"| {k} | 0 | | | | | | |")
             continue
-        print(f"| {k} | {v['pairs']} | {v['local']['mean_r']:.3f} | {v['local']['median_r']:.3f} | "
+        pl = v.get("local+planar")
+        pl = f"{pl['mean_r']:.3f} / {pl['median_r']:.3f}" if pl else "-"
+        print(f"| {k} | {v['pairs']} | {v['local']['mean_r']:.3f} | {v['local']['median_r']:.3f} | {pl} | "
               f"{v['const-1']['mean_r']:.3f} | {v['oracle const']['mean_r']:.3f} | {100 * v['local_beats_oracle_pairs']:.0f}% |")
 
 
@@ -135,7 +147,8 @@ def run_local(args) -> dict:
         cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
         rows = []
         for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg)), desc="synthetic"):
-            rows.append(pixel_errors(model.predict(a, b).scale, H, b.shape[:2]))
+            pred = model.predict(a, b)
+            rows.append(pixel_errors(pred.scale, H, b.shape[:2], planarize(pred.scale, pred.confidence)))
         results["synthetic"] = local_table(rows)
         results["synthetic_setup"] = {"photos": "held-out split (every 10th sorted file) of " + str(args.photos),
                                       "pairs": len(rows), "seed": args.seed, "perspective": args.perspective,
@@ -144,12 +157,14 @@ def run_local(args) -> dict:
     if args.sequences:
         rows, names = [], []
         for name, a, b, H in tqdm(list(sequence_pairs(Path(args.sequences))), desc="sequences"):
-            rows.append(pixel_errors(model.predict(a, b).scale, H, b.shape[:2]))
+            pred = model.predict(a, b)
+            rows.append(pixel_errors(pred.scale, H, b.shape[:2], planarize(pred.scale, pred.confidence)))
             names.append(name)
         results["sequences"] = local_table(rows)
         results["sequences_per_pair"] = {n: {"mean_r": float(np.exp(r["err"]).mean()),
                                              "const1_mean_r": float(np.exp(r["const1"]).mean()),
                                              "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+                                             "planar_mean_r": float(np.exp(r["planar"]).mean()),
                                              "spread": r["spread"]} for n, r in zip(names, rows)}
         print_local_table(f"real sequences ({len(rows)} pairs)", results["sequences"])
     return results

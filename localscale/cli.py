@@ -93,7 +93,7 @@ def cmd_predict(args) -> int:
         return 1 if failed else 0
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
-    pred = model.predict(args.image_a, args.image_b, hard=args.hard, bf16=args.bf16)
+    pred = model.predict(args.image_a, args.image_b, hard=args.hard, bf16=args.bf16, planar=args.planar)
     stem = f"{Path(args.image_a).stem}_{Path(args.image_b).stem}"
     for p in write_scale_map(pred, out, stem):
         print(p)
@@ -198,6 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", default="out")
     sp.add_argument("--pairs", help="text file with one 'A B' pair per line")
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
+    sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
     sp.add_argument("--bf16", action="store_true", help="bfloat16 autocast (fast on CPUs with AMX)")
     sp.add_argument("--batch-size", type=int, default=8)
     sp.add_argument("--cache-mb", type=float, default=256, help="feature cache bound for --pairs")

@@ -109,3 +109,11 @@ def test_position_invariant_cues_variant(tmp_path, photos):
     m2 = load_model(tmp_path / "v.pt")
     assert m2.config.topk == 100 and m2.config.warp_features
     assert torch.allclose(m2(x, x), m(x, x), atol=1e-6)
+
+
+def test_planar_option_gives_a_homography_scale_field(local_model, photos):
+    pred = local_model.predict(photos["coffee"], photos["chelsea"], planar=True)
+    raw = local_model.predict(photos["coffee"], photos["chelsea"])
+    assert pred.scale.shape == raw.scale.shape and np.isfinite(pred.scale).all()
+    ls = np.log(pred.scale)       # ln S = c - 1.5 ln(1 + p.x) is smooth: tiny second differences
+    assert np.abs(np.diff(ls, 2, axis=1)).max() < 1e-3

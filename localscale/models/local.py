@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from .. import scales
 from ..checkpoint import register
 from ..io import ImageLike
+from ..planar import planarize
 from ..preprocess import Letterbox
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
 from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation
@@ -152,39 +153,44 @@ class LocalScaleNet(ScaleModel):
 
     @torch.inference_mode()
     def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, hard: bool = False,
-                              bf16: bool = False) -> LocalScalePrediction:
+                              bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
         """Scale map from two cached encodings (see :meth:`encode_image`)."""
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
             logits = self.forward_features(ea.features, eb.features)
         probs = F.softmax(logits.float(), 1)[0]
-        return self._readout(probs, ea.letterbox, eb.letterbox, hard)
+        return self._readout(probs, ea.letterbox, eb.letterbox, hard, planar)
 
     @torch.inference_mode()
     def predict(self, image_a: ImageLike, image_b: ImageLike, hard: bool = False,
-                bf16: bool = False) -> LocalScalePrediction:
+                bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
         """Per-pixel scale ``S_{A->B}`` between two images (paths or arrays, any size).
 
         Args:
             hard: D-ScaleNet read-out (arg-max bin) instead of the soft expectation.
             bf16: run the network under bfloat16 autocast (faster on CPUs with AMX).
+            planar: replace the map by the best scale field of a homography (planar scenes
+                only; see :mod:`localscale.planar`).
         """
         ea = self.encode_image(image_a, "image A", bf16)
         eb = self.encode_image(image_b, "image B", bf16)
-        return self.predict_from_features(ea, eb, hard, bf16)
+        return self.predict_from_features(ea, eb, hard, bf16, planar)
 
-    def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool) -> LocalScalePrediction:
+    def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool,
+                 planar: bool = False) -> LocalScalePrediction:
         log_s = torch.log(scales.hard_scale(probs, 0)) if hard else scales.soft_log_scale(probs, 0)
         log_s = log_s + math.log(lb_a.factor / lb_b.factor)
         conf = scales.confidence(probs, 0)
         maps = upsample_to_original(torch.stack([log_s, conf]), lb_a)
-        return LocalScalePrediction(
-            scale=np.exp(as_numpy(maps[0])).astype(np.float32),
-            confidence=as_numpy(maps[1]).clip(0, 1).astype(np.float32),
-            probs=probs.cpu(), letterbox_a=lb_a, letterbox_b=lb_b)
+        scale = np.exp(as_numpy(maps[0])).astype(np.float32)
+        confidence = as_numpy(maps[1]).clip(0, 1).astype(np.float32)
+        if planar:
+            scale = planarize(scale, confidence, stride=max(1, round(8 / lb_a.factor)))
+        return LocalScalePrediction(scale=scale, confidence=confidence, probs=probs.cpu(),
+                                    letterbox_a=lb_a, letterbox_b=lb_b)
 
 
 def predict_scale_map(image_a: ImageLike, image_b: ImageLike, model: LocalScaleNet | None = None,
-                      hard: bool = False) -> LocalScalePrediction:
+                      hard: bool = False, planar: bool = False) -> LocalScalePrediction:
     """Functional form: per-pixel ``S_{A->B}`` with the default (or given) Local-ScaleNet."""
     model = model or LocalScaleNet.from_pretrained()
-    return model.predict(image_a, image_b, hard=hard)
+    return model.predict(image_a, image_b, hard=hard, planar=planar)
