@@ -241,6 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--descriptor", choices=["hardnet", "sift"], default="hardnet")
     sp.add_argument("--num-features", type=int, default=1000)
     sp.add_argument("--ratio", type=float, default=None, help="ratio test threshold (default: mutual NN only)")
+    sp.add_argument("--orientation", choices=["upright", "gradient"], default="upright",
+                    help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
     sp.add_argument("--local-model", default=None)
     sp.add_argument("--global-model", default=None)
     sp.add_argument("--device", default="cpu")

@@ -41,13 +41,25 @@ def homography_scale_at(H: np.ndarray, points: np.ndarray) -> np.ndarray:
         return np.sqrt(np.abs(det) / np.abs(w) ** 3)
 
 
+def orient_homography(H: np.ndarray, shape_a: tuple[int, int]) -> np.ndarray:
+    """Fix the overall sign of ``H`` so that ``w(x) = h31 x + h32 y + h33 > 0`` at A's centre.
+
+    A homography is defined up to scale, sign included (Oxford ``leuven`` H_1_5 and the EVD
+    pairs are stored with ``w < 0``); the scale maps and co-visibility here treat ``w <= 0``
+    as beyond the horizon, so every function taking an image shape orients ``H`` first.
+    """
+    H = np.asarray(H, np.float64)
+    cy, cx = (shape_a[0] - 1) / 2, (shape_a[1] - 1) / 2
+    return -H if H[2, 0] * cx + H[2, 1] * cy + H[2, 2] < 0 else H
+
+
 def homography_scale_map(H: np.ndarray, height: int, width: int, stride: int = 1) -> np.ndarray:
     """Analytic scale map ``S_{A->B}(x)`` of ``H`` over image A (``height x width``).
 
     Returns an ``(ceil(height/stride), ceil(width/stride))`` float64 array; values > 1
     mean content is bigger in B. Points on or beyond the horizon (``w <= 0``) are ``nan``.
     """
-    H = np.asarray(H, dtype=np.float64)
+    H = orient_homography(H, (height, width))
     pts = grid_points(height, width, stride)
     s = homography_scale_at(H, pts)
     s[pts @ H[2, :2] + H[2, 2] <= 0] = np.nan
@@ -72,7 +84,7 @@ def project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def covisible_mask(H: np.ndarray, shape_a: tuple[int, int], shape_b: tuple[int, int], stride: int = 1) -> np.ndarray:
     """Which grid points of A land inside B (in front of the camera). ``shape_*`` = ``(height, width)``."""
-    H = np.asarray(H, dtype=np.float64)
+    H = orient_homography(H, shape_a)
     pts = grid_points(shape_a[0], shape_a[1], stride)
     w = pts @ H[2, :2] + H[2, 2]
     q = project(H, pts)

@@ -83,3 +83,12 @@ def test_warp_fills_empty_region_from_other_image():
     assert (warped[5:25, 5:35] == 200).all()
     assert (warped[45:, 60:] == 17).all()       # not zeros: taken from the fill image
     assert valid[5:25, 5:35].min() == pytest.approx(1.0) and valid[45:, 60:].max() == 0
+
+
+def test_negative_sign_homographies_are_oriented():
+    """H and -H are the same homography (leuven H_1_5 and EVD files are stored with w < 0)."""
+    H = np.array([[1.2, 0.1, 3], [0.0, 1.1, -2], [0.0005, 0.0002, 1.0]])
+    for M in (H, -H):
+        assert np.allclose(G.homography_scale_map(M, 40, 50), G.homography_scale_map(H, 40, 50))
+        assert G.covisible_mask(M, (40, 50), (40, 50)).sum() == G.covisible_mask(H, (40, 50), (40, 50)).sum() > 0
+    assert G.global_scale(-H, (40, 50), (40, 50)) == pytest.approx(G.global_scale(H, (40, 50), (40, 50)))

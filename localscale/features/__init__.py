@@ -8,8 +8,8 @@ __all__ = ["detect_keypoints", "HessianDetector", "image_to_gray_tensor", "patch
            "SIFTPatchDescriptor", "get_descriptor"]
 from .matching import MutualNNMatcher, match_descriptors, matching_accuracy, orient_homography, reprojection_errors
 from .pipeline import (CORRECTIONS, NO_GATE, CorrectionGate, Features, MatchResult, add_match_arguments,
-                       draw_matches, extract, match_pair, run_match_cli, save_matches)
+                       draw_matches, extract, match_pair, run_match, run_match_cli, save_matches)
 
 __all__ += ["match_descriptors", "MutualNNMatcher", "reprojection_errors", "matching_accuracy", "extract",
             "match_pair", "Features", "MatchResult", "CorrectionGate", "NO_GATE", "CORRECTIONS", "draw_matches",
-            "save_matches", "run_match_cli", "add_match_arguments"]
+            "save_matches", "run_match", "run_match_cli", "add_match_arguments"]

@@ -17,7 +17,7 @@ import torch.nn as nn
 from kornia.feature import match_mnn, match_smnn
 
 from ..errors import LocalScaleError
-from ..geometry import project
+from ..geometry import orient_homography, project  # noqa: F401  (orient_homography re-exported)
 
 
 def match_descriptors(desc_a: torch.Tensor, desc_b: torch.Tensor, ratio: Optional[float] = None
@@ -69,18 +69,6 @@ def reprojection_errors(keypoints_a: np.ndarray, keypoints_b: np.ndarray, matche
     pb = np.asarray(keypoints_b, np.float64)[matches[:, 1]]
     err = np.linalg.norm(project(H, pa) - pb, axis=1)
     return np.where(np.isfinite(err), err, np.inf)
-
-
-def orient_homography(H: np.ndarray, shape_a: tuple) -> np.ndarray:
-    """Fix the overall sign of ``H`` so that ``w(x) = h31 x + h32 y + h33 > 0`` at A's centre.
-
-    A homography is defined up to scale, sign included (e.g. Oxford ``leuven`` H_1_5 and the
-    EVD pairs are stored with ``w < 0``); :mod:`localscale.geometry`'s scale maps and
-    co-visibility treat ``w <= 0`` as behind the camera, so flip such matrices first.
-    """
-    H = np.asarray(H, np.float64)
-    cy, cx = (shape_a[0] - 1) / 2, (shape_a[1] - 1) / 2
-    return -H if H[2, 0] * cx + H[2, 1] * cy + H[2, 2] < 0 else H
 
 
 def matching_accuracy(errors: np.ndarray, thresholds: Sequence[float] = (5.0,)) -> np.ndarray:

@@ -1,0 +1,8 @@
+"""Evaluation protocols (issue 6): HPatches-style MMA with patch-size correction."""
+from .hpatches import (HIGH_RES, METHODS, PairInfo, evaluate, load_hpatches, main, make_pairs, markdown_table,
+                       perspective_split, scale_split, summarise, write_outputs)
+from .synthetic import STRONG, make_sequences, random_pair
+
+__all__ = ["load_hpatches", "make_pairs", "evaluate", "summarise", "markdown_table", "write_outputs", "main",
+           "perspective_split", "scale_split", "PairInfo", "HIGH_RES", "METHODS", "make_sequences", "random_pair",
+           "STRONG"]

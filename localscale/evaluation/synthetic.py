@@ -1,0 +1,64 @@
+"""HPatches-layout sequences from any photos, with random strong-perspective homographies.
+
+Each photo gives one sequence folder ``<out>/s_<stem>/``: ``1.png`` (the photo, resized
+so its longer side is ``size``) and ``2.png .. {n}.png``, each the photo warped by a
+random homography ``H_1_k`` (``localscale.geometry.sample_homography``, perspective and
+scale ranges of :data:`STRONG`), the uncovered part filled from another photo (as in
+the scale networks' training data, so there are no artificial black borders), plus the
+plain-text ``H_1_k`` files (HPatches convention: pixel coords of image 1 -> image k).
+Homographies whose co-visible part of image 1 is below ``min_covisible`` are redrawn.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence, Union
+
+import cv2
+import numpy as np
+
+from ..geometry import HomographyConfig, covisible_mask, sample_homography, warp_image
+from ..io import load_image
+
+#: default sampler: strong perspective, zoom in and out
+STRONG = HomographyConfig(scale_range=(0.3, 3.5), rotation_deg=15.0, skew=0.1, perspective=0.6, translation=0.1)
+
+
+def resize_max_side(img: np.ndarray, size: int) -> np.ndarray:
+    s = size / max(img.shape[:2])
+    if abs(s - 1) < 1e-6:
+        return img
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+    return cv2.resize(img, (max(16, round(img.shape[1] * s)), max(16, round(img.shape[0] * s))), interpolation=interp)
+
+
+def random_pair(rng: np.random.Generator, img: np.ndarray, fill: np.ndarray | None = None,
+                cfg: HomographyConfig = STRONG, min_covisible: float = 0.25, tries: int = 20):
+    """``(B, H)``: ``img`` warped by a random homography with enough overlap (B has img's shape)."""
+    h, w = img.shape[:2]
+    for _ in range(tries):
+        H = sample_homography(rng, (h, w), (h, w), cfg)
+        if covisible_mask(H, (h, w), (h, w), 8).mean() >= min_covisible:
+            break
+    b, _ = warp_image(img, H, (h, w), fill=fill)
+    return b, H
+
+
+def make_sequences(photos: Sequence[Union[str, Path, np.ndarray]], out: Union[str, Path], num_images: int = 6,
+                   size: int = 480, seed: int = 0, cfg: HomographyConfig = STRONG) -> list[Path]:
+    """Write one HPatches-style sequence per photo; returns the sequence folders."""
+    out = Path(out)
+    rng = np.random.default_rng(seed)
+    imgs = [resize_max_side(load_image(p, f"photo {i}"), size) for i, p in enumerate(photos)]
+    folders = []
+    for i, img in enumerate(imgs):
+        name = Path(photos[i]).stem if isinstance(photos[i], (str, Path)) else f"{i:03d}"
+        d = out / f"s_{name}"
+        d.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(d / "1.png"), img[..., ::-1])
+        for k in range(2, num_images + 1):
+            fill = imgs[(i + k) % len(imgs)] if len(imgs) > 1 else None
+            b, H = random_pair(rng, img, fill, cfg)
+            cv2.imwrite(str(d / f"{k}.png"), b[..., ::-1])
+            np.savetxt(d / f"H_1_{k}", H, fmt="%.10g")
+        folders.append(d)
+    return folders

@@ -1,0 +1,95 @@
+"""Issue 6: HPatches loader, splits, protocol and the synthetic sequence generator."""
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from localscale.errors import LocalScaleError
+from localscale.evaluation import (evaluate, load_hpatches, main, make_pairs, make_sequences, perspective_split,
+                                   scale_split)
+from localscale.features.matching import orient_homography
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Run on one thread (the machine may be busy; two spinning threads on a loaded CPU are very slow)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory, photos):
+    root = tmp_path_factory.mktemp("hp")
+    imgs = [photos["astronaut"], photos["coffee"]]
+    make_sequences(imgs, root, num_images=3, size=128, seed=0)
+    # rename to HPatches-like names; add an illumination sequence and a ppm/jpg one
+    (root / "s_000").rename(root / "v_astro")
+    (root / "s_001").rename(root / "coffee")
+    shutil.copytree(root / "v_astro", root / "i_light")
+    for k in (1, 2, 3):
+        img = cv2.imread(str(root / "coffee" / f"{k}.png"))
+        (root / "coffee" / f"{k}.png").unlink()
+        cv2.imwrite(str(root / "coffee" / f"{k}.{'ppm' if k != 3 else 'jpg'}"), img)
+    (root / "not_a_sequence").mkdir()
+    return root
+
+
+def test_loader_layouts(tiny_root):
+    seqs = load_hpatches(tiny_root)
+    assert [s.name for s in seqs] == ["coffee", "v_astro"]
+    assert sorted(seqs[0].homographies) == [2, 3] and seqs[0].images[1].suffix == ".ppm"
+    assert [s.name for s in load_hpatches(tiny_root, include_illumination=True)] == ["coffee", "i_light", "v_astro"]
+    assert [s.name for s in load_hpatches(tiny_root, exclude=["coffee"])] == ["v_astro"]
+    with pytest.raises(LocalScaleError):
+        load_hpatches(tiny_root / "missing")
+    with pytest.raises(LocalScaleError):
+        load_hpatches(tiny_root / "not_a_sequence")
+
+
+def test_splits_and_sign(tiny_root):
+    pairs = make_pairs(load_hpatches(tiny_root))
+    assert len(pairs) == 4
+    for p in pairs:
+        assert p.perspective_split in ("easy", "medium", "hard") and p.scale_split.startswith("scale")
+        assert np.isfinite(p.log2_scale) and p.covisible > 0.2
+    assert perspective_split(0.05) == "easy" and perspective_split(0.2) == "medium" and perspective_split(0.3) == "hard"
+    assert scale_split(0.1) == "scale<1.4x" and scale_split(-1.0) == "scale1.4-2.8x" and scale_split(2) == "scale>2.8x"
+    H = np.array([[2.0, 0, 3], [0, 2, 1], [1e-4, 0, 1]])
+    assert np.allclose(orient_homography(-H, (100, 100)), H) and np.allclose(orient_homography(H, (100, 100)), H)
+
+
+def test_whole_eval_tiny(tiny_root, tmp_path):
+    from localscale.models import LocalScaleNet
+
+    torch.manual_seed(0)
+    pairs = make_pairs(load_hpatches(tiny_root))
+    local = LocalScaleNet(width=0.125, image_size=64).eval()
+    res = evaluate(pairs, ["none", "local", "gt", "pyramid"], "sift", num_features=150, local_model=local,
+                   progress=False)
+    s = res["summary"]
+    assert s["all"]["num_pairs"] == 4 and len(res["records"]) == 16
+    for m in ("none", "local", "gt", "pyramid"):
+        mma = s["all"][m]["mma"]
+        assert len(mma) == 10 and all(0 <= v <= 1 for v in mma) and np.all(np.diff(mma) >= -1e-9)
+    assert s["all"]["gt"]["mma"][4] > s["all"]["none"]["mma"][4]
+    with pytest.raises(LocalScaleError):
+        evaluate(pairs, ["local"], "sift")
+    from localscale.models import ScaleNet
+    res = evaluate(pairs[:1], ["global", "gt_gated"], "sift", num_features=100,
+                   global_model=ScaleNet(width=0.125, image_size=64).eval(), progress=False)
+    assert set(res["summary"]["all"]) >= {"global", "gt_gated"}
+
+
+def test_main_writes_outputs(tiny_root, tmp_path):
+    out = tmp_path / "out"
+    assert main([str(tiny_root), "-o", str(out), "--methods", "none", "gt", "local", "--descriptor", "sift",
+                 "--num-features", "100", "--local-weights", str(tmp_path / "missing.pt")]) == 0
+    doc = json.loads((out / "results_sift.json").read_text())
+    assert doc["methods"] == ["none", "gt"] and any("local skipped" in n for n in doc["notes"])
+    assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_sift.md").is_file()
+    assert (out / "mma_sift_all.png").stat().st_size > 0
