@@ -68,8 +68,8 @@ class TrainConfig:
     vgg_weights: str = ""                  #: optional local torchvision VGG16(-BN) state dict (width 1)
     init_extractor: str = ""               #: checkpoint whose feature extractor initialises this model
     freeze_extractor: bool = False         #: train only the correlation/reduction/head layers
-    topk: int = 0                          #: Local-ScaleNet extra cue: k largest correlations per pixel
-    warp_features: bool = False            #: Local-ScaleNet extra cue: B's features warped onto A
+    topk: int = 0                          #: extra cue: k largest correlations per pixel
+    warp_features: bool = False            #: extra cue: B's features soft-warped onto A
 
     def pair_config(self) -> PairConfig:
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
@@ -80,7 +80,8 @@ class TrainConfig:
             return LocalScaleNet(LocalScaleNetConfig(self.width, self.feature_dim, self.image_size,
                                                      topk=self.topk, warp_features=self.warp_features))
         if self.model == "global":
-            return ScaleNet(ScaleNetConfig(self.width, self.feature_dim, self.image_size))
+            return ScaleNet(ScaleNetConfig(self.width, self.feature_dim, self.image_size,
+                                           topk=self.topk, warp_features=self.warp_features))
         raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
 
 

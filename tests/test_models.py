@@ -117,3 +117,13 @@ def test_planar_option_gives_a_homography_scale_field(local_model, photos):
     assert pred.scale.shape == raw.scale.shape and np.isfinite(pred.scale).all()
     ls = np.log(pred.scale)       # ln S = c - 1.5 ln(1 + p.x) is smooth: tiny second differences
     assert np.abs(np.diff(ls, 2, axis=1)).max() < 1e-3
+
+
+def test_global_with_cues_is_symmetric_in_structure():
+    """Swapping A and B swaps the two directions (the head is shared, the correlation computed once)."""
+    torch.manual_seed(0)
+    g = ScaleNet(**TINY, topk=16, warp_features=True).eval()
+    a, b = torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 64)
+    l_ab, l_ba = g(a, b)
+    m_ab, m_ba = g(b, a)
+    assert torch.allclose(l_ab, m_ba, atol=1e-4) and torch.allclose(l_ba, m_ab, atol=1e-4)

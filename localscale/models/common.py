@@ -134,6 +134,20 @@ def normalise_correlation(corr: torch.Tensor) -> torch.Tensor:
     return F.normalize(F.relu(corr), dim=1)
 
 
+def topk_profile(raw_cross: torch.Tensor, raw_self: torch.Tensor, k: int) -> torch.Tensor:
+    """Position-invariant match-spread cue: the ``k`` largest cross- and self-correlations of
+    each pixel, sorted. ``B x N x H x W`` (x2) -> ``B x 2k x H x W``."""
+    return torch.cat([raw_cross.topk(k, 1).values, raw_self.topk(k, 1).values], 1)
+
+
+def warped_pair_features(raw: torch.Tensor, fa: torch.Tensor, fb: torch.Tensor, temperature: float = 20.0) -> torch.Tensor:
+    """B's features soft-warped onto A through the raw correlation ``raw`` (``B x Hb*Wb x Ha x Wa``),
+    next to A's own: ``B x 3D x Ha x Wa`` = ``[f_A, f_B->A, f_A * f_B->A]``."""
+    att = torch.softmax(raw.float() * temperature, 1)
+    fb_warped = torch.bmm(fb.flatten(2), att.flatten(2)).view_as(fa)
+    return torch.cat([fa, fb_warped, fa * fb_warped], 1)
+
+
 class ReductionBlock(nn.Sequential):
     """Four Conv-BN-ReLU layers reducing a ``B x N x H x W`` correlation volume."""
 

@@ -40,7 +40,8 @@ from ..io import ImageLike
 from ..planar import planarize
 from ..preprocess import Letterbox
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
-from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation
+from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
+                     warped_pair_features)
 
 
 @dataclass
@@ -139,12 +140,9 @@ class LocalScaleNet(ScaleModel):
         raw_a, raw_ab = correlation(fa, fa), correlation(fa, fb)
         parts = [self.reduce_self(normalise_correlation(raw_a)), self.reduce_cross(normalise_correlation(raw_ab))]
         if self.topk:
-            top = torch.cat([raw_ab.topk(self.topk, 1).values, raw_a.topk(self.topk, 1).values], 1)
-            parts.append(self.reduce_topk(top))
+            parts.append(self.reduce_topk(topk_profile(raw_ab, raw_a, self.topk)))
         if self.config.warp_features:
-            att = torch.softmax(raw_ab.float() * 20.0, 1)                       # B x (hb*wb) x ha x wa
-            fb_warped = torch.bmm(fb.flatten(2), att.flatten(2)).view_as(fa)   # B x D x ha x wa
-            parts.append(self.reduce_warp(torch.cat([fa, fb_warped, fa * fb_warped], 1)))
+            parts.append(self.reduce_warp(warped_pair_features(raw_ab, fa, fb)))
         return self.head(torch.cat(parts, 1))
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,8 @@ from .. import scales
 from ..checkpoint import register
 from ..io import ImageLike
 from .base import EncodedImage, ScaleModel
-from .common import ReductionBlock, correlation, normalise_correlation, transpose_correlation
+from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
+                     transpose_correlation, warped_pair_features)
 
 
 @dataclass
@@ -36,6 +37,9 @@ class ScaleNetConfig:
     pooled_size: int = 6           #: reduced maps are average-pooled to this grid before the FC
     fc_channels: int = 256
     batch_norm: bool = True
+    #: position-invariant cues (as in Local-ScaleNet), average-pooled into the FC input
+    topk: int = 0
+    warp_features: bool = False
 
     def __post_init__(self):
         self.reduction = tuple(self.reduction)
@@ -78,19 +82,33 @@ class ScaleNet(ScaleModel):
         self.reduce_cross = ReductionBlock(n, config.reduction)
         self.pool = nn.AdaptiveAvgPool2d(config.pooled_size)
         c = 3 * config.reduction[-1] * config.pooled_size ** 2
+        self.topk = min(config.topk, n)
+        if self.topk:
+            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * self.topk, 64, 1), conv_bn_relu(64, 32, 1))
+            c += 32
+        if config.warp_features:
+            self.reduce_warp = nn.Sequential(conv_bn_relu(3 * config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
+            c += 64
         self.fc = nn.Sequential(nn.Linear(c, config.fc_channels), nn.ReLU(inplace=True),
                                 nn.Linear(config.fc_channels, scales.NUM_BINS))
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of both directions from encoded features: ``(B x 13, B x 13)`` for A->B, B->A."""
-        raw = correlation(fa, fb)
-        c_ab = normalise_correlation(raw)
-        c_ba = normalise_correlation(transpose_correlation(raw, fb.shape[-2:]))
-        r_a = self.pool(self.reduce_self(normalise_correlation(correlation(fa, fa)))).flatten(1)
-        r_b = self.pool(self.reduce_self(normalise_correlation(correlation(fb, fb)))).flatten(1)
-        r_ab = self.pool(self.reduce_cross(c_ab)).flatten(1)
-        r_ba = self.pool(self.reduce_cross(c_ba)).flatten(1)
-        return self.fc(torch.cat([r_a, r_b, r_ab], 1)), self.fc(torch.cat([r_b, r_a, r_ba], 1))
+        raw_ab = correlation(fa, fb)
+        raw_ba = transpose_correlation(raw_ab, fb.shape[-2:])
+        raw_a, raw_b = correlation(fa, fa), correlation(fb, fb)
+        r_a = self.pool(self.reduce_self(normalise_correlation(raw_a))).flatten(1)
+        r_b = self.pool(self.reduce_self(normalise_correlation(raw_b))).flatten(1)
+        r_ab = self.pool(self.reduce_cross(normalise_correlation(raw_ab))).flatten(1)
+        r_ba = self.pool(self.reduce_cross(normalise_correlation(raw_ba))).flatten(1)
+        in_ab, in_ba = [r_a, r_b, r_ab], [r_b, r_a, r_ba]
+        if self.topk:
+            in_ab.append(self.reduce_topk(topk_profile(raw_ab, raw_a, self.topk)).mean((2, 3)))
+            in_ba.append(self.reduce_topk(topk_profile(raw_ba, raw_b, self.topk)).mean((2, 3)))
+        if self.config.warp_features:
+            in_ab.append(self.reduce_warp(warped_pair_features(raw_ab, fa, fb)).mean((2, 3)))
+            in_ba.append(self.reduce_warp(warped_pair_features(raw_ba, fb, fa)).mean((2, 3)))
+        return self.fc(torch.cat(in_ab, 1)), self.fc(torch.cat(in_ba, 1))
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``B x 3 x P x P`` (x2) -> logits ``(B x 13, B x 13)`` for A->B and B->A (processing frame)."""
