@@ -180,7 +180,7 @@ def cmd_match(args) -> int:
 def cmd_eval_hpatches(args, rest) -> int:
     from .evaluation.hpatches import main as hp_main
 
-    return hp_main([args.root] + rest) or 0
+    return hp_main(([args.root] if args.root else []) + rest) or 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -248,8 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--device", default="cpu")
     sp.set_defaults(func=cmd_match)
 
-    sp = sub.add_parser("eval-hpatches", help="HPatches-style MMA evaluation (see eval/hpatches.py --help)")
-    sp.add_argument("root")
+    sp = sub.add_parser("eval-hpatches", add_help=False,
+                        help="HPatches-style MMA evaluation (localscale eval-hpatches --help for its options)")
+    sp.add_argument("root", nargs="?")
     sp.set_defaults(func=None)
     return p
 
