@@ -150,6 +150,17 @@ class _Logger:
                 w.writeheader()
             w.writerow(row)
 
+    def truncate(self, step: int) -> None:
+        """On resume, drop log rows written after the checkpoint (they will be written again)."""
+        if not self.enabled:
+            return
+        if self.csv.exists():
+            lines = self.csv.read_text().splitlines(keepends=True)
+            self.csv.write_text("".join(lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= step]))
+        if self.val.exists():
+            rows = [ln for ln in self.val.read_text().splitlines(keepends=True) if json.loads(ln)["step"] <= step]
+            self.val.write_text("".join(rows))
+
     def validation(self, row: dict) -> None:
         if self.enabled:
             with open(self.val, "a") as f:
@@ -217,6 +228,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         sched.load_state_dict(ckpt["train_state"]["scheduler"])
         sched.milestones = Counter(cfg.lr_milestones)   # a resumed run may extend its schedule
         step = ckpt["train_state"]["step"]
+        log.truncate(step)
         if rank == 0:
             print(f"resuming from {last} at step {step}", file=sys.stderr)
     if world > 1:

@@ -107,6 +107,8 @@ def test_run_killed_mid_way_resumes_to_the_same_weights(image_dir, tmp_path):
     a = read_checkpoint(tmp_path / "straight" / "last.pt")["state_dict"]
     b = read_checkpoint(last)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+    steps = [int(r["step"]) for r in csv.DictReader(open(tmp_path / "killed" / "train_log.csv"))]
+    assert steps == list(range(1, 9))            # rows after the checkpoint were dropped, then rewritten
 
 
 def test_global_head_on_a_frozen_local_extractor(image_dir, tmp_path):
