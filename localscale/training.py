@@ -14,15 +14,13 @@ import argparse
 import csv
 import dataclasses
 import json
-import math
 import os
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Subset
@@ -219,7 +217,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         model.extractor.requires_grad_(False)
     opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(cfg.lr_milestones), cfg.lr_gamma)
-    step, history = 0, []
+    step = 0
     last = out / "last.pt"
     if last.exists():
         ckpt = read_checkpoint(last)

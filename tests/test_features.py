@@ -13,14 +13,6 @@ from localscale.features import (CorrectionGate, HardNetDescriptor, NO_GATE, Sca
                                  reprojection_errors, run_match_cli, sample_scale_map, save_matches)
 from localscale.geometry import HomographyConfig, homography_scale_map, project, sample_homography, warp_image
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Run on one thread (the machine may be busy; two spinning threads on a loaded CPU are very slow)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 
 def _small(img, side):

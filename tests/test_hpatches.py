@@ -12,14 +12,6 @@ from localscale.evaluation import (evaluate, load_hpatches, main, make_pairs, ma
                                    scale_split)
 from localscale.features.matching import orient_homography
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Run on one thread (the machine may be busy; two spinning threads on a loaded CPU are very slow)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 
 @pytest.fixture(scope="module")

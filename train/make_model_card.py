@@ -13,8 +13,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 from localscale.checkpoint import load_model, read_checkpoint, save_model
 
 DATA_CARD = {

@@ -44,6 +44,21 @@ class ScaleModel(nn.Module):
         self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm)
         self.meta: dict = {}
 
+    def _build_cue_branches(self, cells: int) -> int:
+        """Create the optional position-invariant cue branches (``config.topk``,
+        ``config.warp_features``); returns the channels they add."""
+        from .common import conv_bn_relu
+
+        extra = 0
+        self.topk = min(self.config.topk, cells)
+        if self.topk:
+            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * self.topk, 64, 1), conv_bn_relu(64, 32, 1))
+            extra += 32
+        if self.config.warp_features:
+            self.reduce_warp = nn.Sequential(conv_bn_relu(3 * self.config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
+            extra += 64
+        return extra
+
     @property
     def grid_size(self) -> int:
         return self.config.image_size // FeatureExtractor.stride

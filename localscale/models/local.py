@@ -125,15 +125,7 @@ class LocalScaleNet(ScaleModel):
         n = self.grid_size ** 2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
-        cin = 2 * config.reduction[-1]
-        self.topk = min(config.topk, n)
-        if self.topk:
-            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * self.topk, 64, 1), conv_bn_relu(64, 32, 1))
-            cin += 32
-        if config.warp_features:
-            self.reduce_warp = nn.Sequential(conv_bn_relu(3 * config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
-            cin += 64
-        self.head = DenseHead(cin, config.head_channels)
+        self.head = DenseHead(2 * config.reduction[-1] + self._build_cue_branches(n), config.head_channels)
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""

@@ -24,7 +24,7 @@ from .. import scales
 from ..checkpoint import register
 from ..io import ImageLike
 from .base import EncodedImage, ScaleModel
-from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
+from .common import (ReductionBlock, correlation, normalise_correlation, topk_profile,
                      transpose_correlation, warped_pair_features)
 
 
@@ -81,14 +81,7 @@ class ScaleNet(ScaleModel):
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
         self.pool = nn.AdaptiveAvgPool2d(config.pooled_size)
-        c = 3 * config.reduction[-1] * config.pooled_size ** 2
-        self.topk = min(config.topk, n)
-        if self.topk:
-            self.reduce_topk = nn.Sequential(conv_bn_relu(2 * self.topk, 64, 1), conv_bn_relu(64, 32, 1))
-            c += 32
-        if config.warp_features:
-            self.reduce_warp = nn.Sequential(conv_bn_relu(3 * config.feature_dim, 64, 1), conv_bn_relu(64, 64, 3))
-            c += 64
+        c = 3 * config.reduction[-1] * config.pooled_size ** 2 + self._build_cue_branches(n)
         self.fc = nn.Sequential(nn.Linear(c, config.fc_channels), nn.ReLU(inplace=True),
                                 nn.Linear(config.fc_channels, scales.NUM_BINS))
 
