@@ -182,6 +182,8 @@ def warp_image(image: np.ndarray, H: np.ndarray, shape_out: tuple[int, int],
         f = cv2.resize(fill, (w, h), interpolation=cv2.INTER_AREA)
         if f.ndim == 2 and warped.ndim == 3:
             f = np.repeat(f[..., None], warped.shape[2], 2)
+        elif f.ndim == 3 and warped.ndim == 2:
+            f = f.mean(2).astype(f.dtype)
         v = valid[..., None] if warped.ndim == 3 else valid
         warped = (warped.astype(np.float32) * v + f.astype(np.float32) * (1 - v))
         warped = warped.round().clip(0, 255).astype(image.dtype) if image.dtype == np.uint8 else warped.astype(image.dtype)

@@ -90,3 +90,12 @@ def test_negative_sign_homographies_are_oriented():
         assert np.allclose(G.homography_scale_map(M, 40, 50), G.homography_scale_map(H, 40, 50))
         assert G.covisible_mask(M, (40, 50), (40, 50)).sum() == G.covisible_mask(H, (40, 50), (40, 50)).sum() > 0
     assert G.global_scale(-H, (40, 50), (40, 50)) == pytest.approx(G.global_scale(H, (40, 50), (40, 50)))
+
+
+def test_warp_with_fill_of_another_channel_count():
+    gray = np.full((40, 40), 100, np.uint8)
+    rgb = np.full((20, 20, 3), 30, np.uint8)
+    w1, _ = G.warp_image(gray, zoom(0.5), (40, 40), fill=rgb)
+    w2, _ = G.warp_image(rgb, zoom(0.5), (40, 40), fill=gray)
+    assert w1.shape == (40, 40) and w1[35, 35] == 30
+    assert w2.shape == (40, 40, 3) and (w2[35, 35] == 100).all()
