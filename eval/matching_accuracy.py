@@ -26,8 +26,8 @@ from localscale.features.pipeline import CorrectionGate
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("-o", "--out", default="eval_out/matching")
-    p.add_argument("--train-images", default="/work/shared/data/train_images")
-    p.add_argument("--sequences", default="/work/shared/data/sequences")
+    p.add_argument("--train-images", default="../shared/data/train_images")
+    p.add_argument("--sequences", default="../shared/data/sequences")
     p.add_argument("--num-synthetic", type=int, default=30, help="held-out photos used (1 pair each)")
     p.add_argument("--descriptors", nargs="+", default=["hardnet", "sift"])
     p.add_argument("--num-features", type=int, default=1000)
