@@ -14,7 +14,7 @@ Checkpoints (``--out/last.pt``) resume automatically. ``--max-minutes`` bounds w
 
 Example (the shipped weights)::
 
-    OMP_NUM_THREADS=1 python train/train_descriptor.py --data /work/shared/data/train_images \
+    OMP_NUM_THREADS=1 python train/train_descriptor.py --data ../shared/data/train_images \
         --out /tmp/hardnet_run --steps 2000 --max-minutes 20 --export localscale/weights/hardnet.pt
 """
 from __future__ import annotations
