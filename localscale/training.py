@@ -64,6 +64,7 @@ class TrainConfig:
                                            #: ("auto" = CUDA, or a CPU with AMX where bf16 is faster)
     threads: int = 0                       #: torch CPU threads (0 = torch default)
     vgg_weights: str = ""                  #: optional local torchvision VGG16(-BN) state dict (width 1)
+    init_weights: str = ""                 #: checkpoint of the same architecture to fine-tune from (new schedule)
     init_extractor: str = ""               #: checkpoint whose feature extractor initialises this model
     freeze_extractor: bool = False         #: train only the correlation/reduction/head layers
     topk: int = 0                          #: extra cue: k largest correlations per pixel
@@ -206,6 +207,12 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     model = cfg.build_model().to(device)
     if cfg.vgg_weights:
         model.extractor.backbone.load_torchvision_vgg16(cfg.vgg_weights)
+    if cfg.init_weights:
+        src = read_checkpoint(cfg.init_weights)
+        try:
+            model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in src["state_dict"].items()})
+        except RuntimeError as e:
+            raise LocalScaleError(f"{cfg.init_weights}: weights do not fit this model ({str(e).splitlines()[0]})") from None
     if cfg.init_extractor:
         src = read_checkpoint(cfg.init_extractor)
         ext = {k[len("extractor."):]: v.float() for k, v in src["state_dict"].items() if k.startswith("extractor.")}

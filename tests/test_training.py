@@ -120,3 +120,13 @@ def test_global_head_on_a_frozen_local_extractor(image_dir, tmp_path):
     g = read_checkpoint(tmp_path / "g" / "last.pt")["state_dict"]
     ext = [k for k in src if k.startswith("extractor.")]
     assert ext and all(torch.equal(src[k], g[k]) for k in ext)          # weights and BN statistics unchanged
+
+
+def test_fine_tune_from_weights(image_dir, tmp_path):
+    """--init-weights starts a new run (own schedule and data seed) from a trained model."""
+    train(tiny_cfg(image_dir, tmp_path / "base", steps=2))
+    train(tiny_cfg(image_dir, tmp_path / "ft", steps=1, lr=0.0, seed=1, init_weights=str(tmp_path / "base" / "model.pt")))
+    a = read_checkpoint(tmp_path / "base" / "last.pt")["state_dict"]
+    b = read_checkpoint(tmp_path / "ft" / "last.pt")["state_dict"]
+    conv = [k for k in a if k.endswith("weight") and a[k].dim() == 4]
+    assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-3) for k in conv)   # fp16 export of the base
