@@ -17,10 +17,9 @@ from pathlib import Path
 import torch
 
 from localscale.data import list_images, split_images
-from localscale.errors import CheckpointError
-from localscale.evaluation.hpatches import evaluate, load_hpatches, make_pairs, markdown_table, THRESHOLDS
+from localscale.evaluation.hpatches import (THRESHOLDS, evaluate, gate_from_args, load_hpatches, load_scale_models,
+                                           make_pairs, markdown_table)
 from localscale.evaluation.synthetic import make_sequences
-from localscale.features.pipeline import CorrectionGate
 
 
 def main(argv=None) -> int:
@@ -40,21 +39,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    from localscale.models import LocalScaleNet, ScaleNet
-    methods, notes, models = ["none", "global", "local", "gt"], [], {}
-    for m, cls, w in (("local", LocalScaleNet, a.local_weights), ("global", ScaleNet, a.global_weights)):
-        try:
-            models[m] = cls.from_pretrained(w)
-            if w:
-                notes.append(f"{m}: weights {w}")
-        except CheckpointError as e:
-            methods.remove(m)
-            notes.append(f"{m} skipped (no weights: {e})")
-    gate = CorrectionGate()
-    if a.gate_pair is not None:
-        gate.min_pair_log2 = a.gate_pair
-    if a.gate_deadzone is not None:
-        gate.deadzone_log2 = a.gate_deadzone
+    methods = ["none", "global", "local", "gt"]
+    models, notes = load_scale_models(methods, a.local_weights, a.global_weights)
+    gate = gate_from_args(a)
     for n in notes:
         print("note:", n)
     out = Path(a.out)

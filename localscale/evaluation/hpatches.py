@@ -434,37 +434,51 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def load_scale_models(methods: list, local_weights=None, global_weights=None) -> tuple[dict, list]:
+    """Load the models the ``methods`` need; a method whose weights cannot be loaded is removed
+    from ``methods`` (in place) with a note. Returns ``({"local"|"global": model}, notes)``."""
+    from ..errors import CheckpointError
+    from ..models import LocalScaleNet, ScaleNet
+
+    models, notes = {}, []
+    for m, cls, w in (("local", LocalScaleNet, local_weights), ("global", ScaleNet, global_weights)):
+        if m not in methods:
+            continue
+        try:
+            models[m] = cls.from_pretrained(w)
+            if w:
+                notes.append(f"{m}: weights {w}")
+        except CheckpointError as e:
+            methods.remove(m)
+            notes.append(f"{m} skipped: {e}")
+    return models, notes
+
+
+def gate_from_args(args):
+    """``CorrectionGate`` with the ``--gate-*`` / ``--no-consistency`` options a parser defined."""
+    from ..features.pipeline import CorrectionGate
+
+    gate = CorrectionGate()
+    if getattr(args, "gate_pair", None) is not None:
+        gate.min_pair_log2 = args.gate_pair
+    if getattr(args, "gate_deadzone", None) is not None:
+        gate.deadzone_log2 = args.gate_deadzone
+    if getattr(args, "gate_min_confidence", None) is not None:
+        gate.min_confidence = args.gate_min_confidence
+    gate.consistency = not getattr(args, "no_consistency", False)
+    return gate
+
+
 def main(argv=None) -> int:
     """Entry of ``localscale eval-hpatches ROOT [options]``; methods whose default weights are
     missing are skipped with a note."""
-    from ..features.pipeline import CorrectionGate
-    from ..models import LocalScaleNet, ScaleNet
-    from ..errors import CheckpointError
     args = build_parser().parse_args(argv)
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
     pairs = make_pairs(seqs)
-    methods, notes = list(args.methods), []
-    local_model = global_model = None
-    if "local" in methods:
-        try:
-            local_model = LocalScaleNet.from_pretrained(args.local_weights)
-        except CheckpointError as e:
-            methods.remove("local")
-            notes.append(f"local skipped: {e}")
-    if "global" in methods:
-        try:
-            global_model = ScaleNet.from_pretrained(args.global_weights)
-        except CheckpointError as e:
-            methods.remove("global")
-            notes.append(f"global skipped: {e}")
-    gate = CorrectionGate()
-    if args.gate_pair is not None:
-        gate.min_pair_log2 = args.gate_pair
-    gate.consistency = not args.no_consistency
-    if args.gate_deadzone is not None:
-        gate.deadzone_log2 = args.gate_deadzone
-    if args.gate_min_confidence is not None:
-        gate.min_confidence = args.gate_min_confidence
+    methods = list(args.methods)
+    models, notes = load_scale_models(methods, args.local_weights, args.global_weights)
+    local_model, global_model = models.get("local"), models.get("global")
+    gate = gate_from_args(args)
     for n in notes:
         print("note:", n)
     print(f"{len(seqs)} sequences, {len(pairs)} pairs; methods {methods}")
