@@ -69,7 +69,7 @@ import numpy as np
 import torch
 
 from ..errors import LocalScaleError
-from ..geometry import covisible_mask, global_scale, perspective_spread
+from ..geometry import covisible_mask, global_scale, orient_homography, perspective_spread
 from ..io import load_image, read_homography
 
 HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
@@ -175,7 +175,6 @@ def make_pairs(seqs: Sequence[HSequence]) -> list[PairInfo]:
         sa = image_size(s.images[1])
         for k, H in sorted(s.homographies.items()):
             sb = image_size(s.images[k])
-            from ..features.matching import orient_homography
             H = orient_homography(H, sa)
             p = PairInfo(s.name, k, s.images[1], s.images[k], H)
             p.spread = perspective_spread(H, sa, sb)
@@ -255,7 +254,7 @@ class _Evaluator:
 
     def run_pair(self, pair: PairInfo, methods, thresholds) -> list[dict]:
         from ..features.matching import match_descriptors, matching_accuracy, reprojection_errors
-        from ..geometry import homography_scale_map
+        from ..features.pipeline import CORRECTIONS, scale_maps_for_pair
         self._keep = {pair.image_a, pair.image_b}
         a, fa = self.image(pair.image_a)
         b, fb = self.image(pair.image_b)
@@ -267,21 +266,11 @@ class _Evaluator:
                 ka, da = self.pyramid(pair.image_a)
                 kb, db = self.pyramid(pair.image_b)
             else:
-                if m == "none":
-                    sa = sb = None
-                elif m in ("gt", "gt_gated"):
-                    sa = homography_scale_map(H, *a.shape[:2]).astype(np.float32)
-                    sb = homography_scale_map(np.linalg.inv(H), *b.shape[:2]).astype(np.float32)
-                    if m == "gt_gated":
-                        sa, sb = self.gate.apply_pair(sa, sb)
-                elif m == "global":
-                    s = float(self.global_model.predict(a, b).scale)
-                    sa, sb = self.gate.apply_pair(s, 1 / s)
-                elif m == "local":
-                    ea, eb = self.encoding(pair.image_a), self.encoding(pair.image_b)
-                    pa = self.local_model.predict_from_features(ea, eb)
-                    pb = self.local_model.predict_from_features(eb, ea)
-                    sa, sb = self.gate.apply_pair(pa.scale, pb.scale, pa.confidence, pb.confidence)
+                if m == "gt_gated":
+                    sa, sb = self.gate.apply_pair(*scale_maps_for_pair(a, b, "gt", H))
+                elif m in CORRECTIONS:
+                    enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if m == "local" else None
+                    sa, sb = scale_maps_for_pair(a, b, m, H, self.local_model, self.global_model, self.gate, enc)
                 else:
                     raise LocalScaleError(f"unknown method {m!r}; choose from {METHODS}")
                 if sa is None and pair.image_a in self._none:

@@ -33,7 +33,7 @@ from ..geometry import homography_scale_map
 from ..io import load_image, read_homography
 from .descriptors import PatchDescriptor, get_descriptor
 from .detector import HessianDetector, image_to_gray_tensor
-from .matching import match_descriptors, matching_accuracy, orient_homography, reprojection_errors
+from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
 
 CORRECTIONS = ("none", "global", "local", "gt")
@@ -189,8 +189,11 @@ class MatchResult:
 
 
 def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: str, H=None, local_model=None,
-                        global_model=None, gate: CorrectionGate = CorrectionGate()):
-    """The maps ``(for A, for B)`` of a correction method (see module docstring)."""
+                        global_model=None, gate: CorrectionGate = CorrectionGate(), encodings=None):
+    """The maps ``(for A, for B)`` of a correction method (see module docstring).
+
+    ``encodings``: optional cached ``(EncodedImage of A, of B)`` for the local model.
+    """
     if correction not in CORRECTIONS:
         raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
     if correction == "none":
@@ -198,7 +201,7 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     if correction == "gt":
         if H is None:
             raise LocalScaleError("correction='gt' needs the homography H (A -> B)")
-        H = orient_homography(read_homography(H), image_a.shape[:2])
+        H = read_homography(H)   # homography_scale_map orients the sign of H itself
         return (homography_scale_map(H, *image_a.shape[:2]).astype(np.float32),
                 homography_scale_map(np.linalg.inv(H), *image_b.shape[:2]).astype(np.float32))
     if correction == "global":
@@ -210,8 +213,7 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     if local_model is None:
         from ..models import LocalScaleNet
         local_model = LocalScaleNet.from_pretrained()
-    ea = local_model.encode_image(image_a, "image A")
-    eb = local_model.encode_image(image_b, "image B")
+    ea, eb = encodings or (local_model.encode_image(image_a, "image A"), local_model.encode_image(image_b, "image B"))
     pa = local_model.predict_from_features(ea, eb)
     pb = local_model.predict_from_features(eb, ea)
     return gate.apply_pair(pa.scale, pb.scale, pa.confidence, pb.confidence)
