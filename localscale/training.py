@@ -15,7 +15,9 @@ import csv
 import dataclasses
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -180,6 +182,13 @@ def _setup_distributed(cfg: TrainConfig) -> tuple[int, int, torch.device]:
     return 0, 1, torch.device(cfg.device)
 
 
+def _single_threaded_worker(_: int) -> None:
+    # each DataLoader worker renders whole samples; OpenCV's own thread pool would oversubscribe the cores
+    import cv2
+    cv2.setNumThreads(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the main process's: it saves and stops
+
+
 def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     """Train (or resume) a model into ``cfg.out``. Returns the last validation row.
 
@@ -244,8 +253,12 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
 
     use_amp = cfg.amp == "on" or (cfg.amp == "auto" and (device.type == "cuda" or cpu_has_amx()))
     if device.type == "cuda":
-        amp_ctx = lambda: torch.autocast("cuda", dtype=torch.float16, enabled=use_amp)  # noqa: E731
-        scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+        torch.backends.cudnn.benchmark = True
+        # bf16 needs no loss scaling; fp16 + GradScaler only on GPUs without bf16
+        bf16 = torch.cuda.is_bf16_supported()
+        amp_ctx = lambda: torch.autocast("cuda", dtype=torch.bfloat16 if bf16 else torch.float16,  # noqa: E731
+                                         enabled=use_amp)
+        scaler = None if bf16 else torch.amp.GradScaler("cuda", enabled=use_amp)
     else:
         amp_ctx = lambda: torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_amp)  # noqa: E731
         scaler = None
@@ -266,7 +279,10 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     indices = [i for s in range(step, stop) for i in range((s * world + rank) * cfg.batch_size,
                                                            (s * world + rank + 1) * cfg.batch_size)]
     loader = DataLoader(Subset(train_set, indices), batch_size=cfg.batch_size, shuffle=False,
-                        num_workers=cfg.workers, collate_fn=collate, persistent_workers=False)
+                        num_workers=cfg.workers, collate_fn=collate, persistent_workers=False,
+                        pin_memory=device.type == "cuda", worker_init_fn=_single_threaded_worker,
+                        # fork() after tqdm/OpenCV/OpenMP threads exist can deadlock a worker on a held lock
+                        multiprocessing_context="spawn" if cfg.workers > 0 else None)
     try:
         from tqdm import tqdm
         bar = tqdm(total=stop, initial=step, desc=f"train {cfg.model}", disable=rank != 0, dynamic_ncols=True)
@@ -278,6 +294,14 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             core.extractor.eval()
 
     set_train()
+    # Ctrl-C / SIGINT finishes the current step, writes last.pt and stops (a second one stops at once)
+    interrupted = threading.Event()
+    previous_handler = None
+    if world == 1 and threading.current_thread() is threading.main_thread():   # DDP: torchrun handles signals
+        def _on_sigint(signum, frame):
+            interrupted.set()
+            signal.signal(signal.SIGINT, previous_handler)
+        previous_handler = signal.signal(signal.SIGINT, _on_sigint)
     t0, last_val = time.time(), {}
     for batch in loader:
         batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
@@ -301,8 +325,10 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             bar.set_postfix(loss=f"{loss.item():.4f}")
         log.train({"step": step, "loss": round(loss.item(), 6), "lr": opt.param_groups[0]["lr"],
                    "time_s": round(time.time() - t0, 2)})
-        if step % cfg.ckpt_every == 0 or step == stop:
+        if step % cfg.ckpt_every == 0 or step == stop or interrupted.is_set():
             save_last()
+        if interrupted.is_set():
+            break
         if rank == 0 and (step % cfg.val_every == 0 or step == cfg.steps):
             last_val = {"step": step, **validate(core, val_batches, cfg.model, device, amp_ctx)}
             set_train()
@@ -312,6 +338,10 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
                           f"constant-1 {last_val['baseline_mean_r']:.3f})")
     if bar is not None:
         bar.close()
+    if previous_handler is not None:
+        signal.signal(signal.SIGINT, previous_handler)
+    if interrupted.is_set():
+        raise KeyboardInterrupt
     if rank == 0 and step == cfg.steps:
         save_model(core, out / "model.pt", meta={"train_config": dataclasses.asdict(cfg), "steps": step,
                                                  "validation": last_val}, half=True)

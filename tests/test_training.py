@@ -130,3 +130,36 @@ def test_fine_tune_from_weights(image_dir, tmp_path):
     b = read_checkpoint(tmp_path / "ft" / "last.pt")["state_dict"]
     conv = [k for k in a if k.endswith("weight") and a[k].dim() == 4]
     assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-3) for k in conv)   # fp16 export of the base
+
+
+def test_ctrl_c_finishes_the_step_saves_and_resumes(image_dir, tmp_path):
+    """SIGINT (Ctrl-C / `timeout -s INT`) to the whole process group, DataLoader workers included:
+    the trainer writes last.pt for the step it finished, exits 130, and the same command resumes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "localscale.training", "--out", str(out), "--data", str(image_dir),
+           "--width", "0.125", "--feature-dim", "16", "--image-size", "64", "--steps", "400", "--batch-size", "2",
+           "--holdout-every", "3", "--val-pairs", "4", "--val-every", "1000", "--ckpt-every", "1000",
+           "--workers", "1", "--threads", "1", "--amp", "off"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    log = out / "train_log.csv"
+    t0 = time.time()
+    while time.time() - t0 < 120 and proc.poll() is None and (not log.exists() or len(log.read_text().splitlines()) < 4):
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err.decode()[-500:]
+    assert b"resume with the same command" in err
+    step = read_checkpoint(out / "last.pt")["train_state"]["step"]   # no periodic checkpoint was due
+    rows = [int(r["step"]) for r in csv.DictReader(open(log))]
+    assert 3 <= step < 400 and rows[-1] == step
+    resumed = subprocess.run(cmd[:cmd.index("--steps") + 1] + [str(step + 2)] + cmd[cmd.index("--steps") + 2:],
+                             env=env, capture_output=True)
+    assert resumed.returncode == 0, resumed.stderr.decode()[-500:]
+    assert read_checkpoint(out / "last.pt")["train_state"]["step"] == step + 2

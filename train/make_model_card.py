@@ -40,13 +40,17 @@ def main(argv=None) -> int:
     p.add_argument("--eval", nargs="*", default=[], help="eval JSON files to include")
     p.add_argument("--command", default="", help="the command that trained it")
     p.add_argument("--notes", default="")
+    p.add_argument("--hardware", default="2 CPU cores (no GPU), fp32, 1 torch thread")
     a = p.parse_args(argv)
     run = Path(a.run)
     src = run / "model.pt" if (run / "model.pt").exists() else run / "last.pt"
     model = load_model(src)
-    ck = read_checkpoint(run / "last.pt")
-    step = ck["train_state"]["step"]
-    train_cfg = ck["meta"].get("train_config", {})
+    if (run / "last.pt").exists():
+        ck = read_checkpoint(run / "last.pt")
+        step, train_cfg = ck["train_state"]["step"], ck["meta"].get("train_config", {})
+    else:   # only the exported model came back (e.g. from a remote GPU run)
+        meta = read_checkpoint(src)["meta"]
+        step, train_cfg = meta["steps"], meta.get("train_config", {})
     val = [json.loads(line) for line in open(run / "val_log.jsonl")] if (run / "val_log.jsonl").exists() else []
     out_dir = Path(__file__).resolve().parent.parent / "localscale" / "weights"
     weights = out_dir / f"{a.name}.pt"
@@ -58,7 +62,7 @@ def main(argv=None) -> int:
         "parameters": sum(p.numel() for p in model.parameters()),
         "weights_file": weights.name, "weights_mb": round(weights.stat().st_size / 2**20, 2), "storage": "fp16",
         "training": {"steps": step, "batch_size": train_cfg.get("batch_size"), "config": train_cfg,
-                     "command": a.command, "hardware": "2 CPU cores (no GPU), fp32, 1 torch thread"},
+                     "command": a.command, "hardware": a.hardware},
         "data": DATA_CARD,
         "validation_history": val,
         "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
