@@ -1,4 +1,4 @@
-"""Mean matching accuracy at 5 px: Hessian detector + {our HardNet, SIFT} x correction {none, global, local, gt}.
+"""Mean matching accuracy at 5 px: Hessian detector + {our HardNet, SIFT} x correction {none, global, local, fused, gt}.
 
 Datasets: (1) held-out synthetic perspective pairs generated from the *held-out* photos of
 ``--train-images`` (``localscale.data.split_images``), HPatches layout in a temp folder;
@@ -37,9 +37,11 @@ def main(argv=None) -> int:
     p.add_argument("--gate-deadzone", type=float, default=None)
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"],
+                   choices=["none", "global", "local", "fused", "gt"])
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    methods = ["none", "global", "local", "gt"]
+    methods = list(a.methods)
     models, notes = load_scale_models(methods, a.local_weights, a.global_weights)
     gate = gate_from_args(a)
     for n in notes:
@@ -61,14 +63,17 @@ def main(argv=None) -> int:
             doc["results"][f"{dname}/{d}"] = res
             (out / f"{dname}_{d}.md").write_text(markdown_table(res["summary"], methods, list(THRESHOLDS),
                                                                 f"{dname} / {d}"))
-            s = res["summary"]["all"]
-            rows.append((dname, len(pairs), d, [s[m]["mma"][4] if m in s else float("nan") for m in methods],
-                         [s[m]["num_matches"] if m in s else float("nan") for m in methods]))
+            for split in ("all", "easy", "medium", "hard"):
+                s = res["summary"].get(split)
+                if s:
+                    rows.append((f"{dname} {split}", s["num_pairs"], d,
+                                 [s[m]["mma"][4] if m in s else float("nan") for m in methods],
+                                 [s[m]["num_matches"] if m in s else float("nan") for m in methods]))
     (out / "matching_accuracy.json").write_text(json.dumps(doc, indent=1))
-    hdr = f"{'dataset':<20}{'pairs':>6} {'descriptor':<10}" + "".join(f"{m:>10}" for m in methods)
+    hdr = f"{'dataset / split':<26}{'pairs':>6} {'descriptor':<10}" + "".join(f"{m:>10}" for m in methods)
     print("\nMMA@5px (mutual NN; mean #matches in brackets)\n" + hdr)
     for dname, n, d, mma, nm in rows:
-        print(f"{dname:<20}{n:>6} {d:<10}" + "".join(f"{v:>6.3f}({c:>3.0f})" for v, c in zip(mma, nm)))
+        print(f"{dname:<26}{n:>6} {d:<10}" + "".join(f"{v:>6.3f}({c:>3.0f})" for v, c in zip(mma, nm)))
     print(f"wrote {out}/matching_accuracy.json")
     return 0
 

@@ -236,7 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("image_a")
     sp.add_argument("image_b")
     sp.add_argument("-o", "--output", default="out")
-    sp.add_argument("--correction", choices=["none", "global", "local", "gt"], default="local")
+    sp.add_argument("--correction", choices=["none", "global", "local", "fused", "gt"], default="local",
+                    help="patch-size correction: fused = local map shape + global ScaleNet level")
     sp.add_argument("--H", help="ground-truth homography A->B (needed for --correction gt; colours inliers)")
     sp.add_argument("--descriptor", choices=["hardnet", "sift"], default="hardnet")
     sp.add_argument("--num-features", type=int, default=1000)

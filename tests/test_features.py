@@ -209,6 +209,28 @@ def test_match_pair_local_and_global_with_tiny_models(photos):
     gated = match_pair(a, b, "global", global_model=glob, descriptor="sift", num_features=100,
                        gate=CorrectionGate(min_pair_log2=abs(np.log2(s)) + 0.01))
     assert gated.scale_a is None and gated.scale_b is None
+    # fused: the local maps' shape at the global model's level
+    loc = match_pair(a, b, "local", local_model=local, descriptor="sift", num_features=50, gate=NO_GATE)
+    fused = match_pair(a, b, "fused", local_model=local, global_model=glob, descriptor="sift", num_features=50,
+                       gate=NO_GATE)
+    assert np.isclose(np.median(np.log2(fused.scale_a)), np.log2(s), atol=1e-4)
+    assert np.isclose(np.median(np.log2(fused.scale_b)), -np.log2(s), atol=1e-4)
+    dl, df = np.log2(loc.scale_a), np.log2(fused.scale_a)
+    assert np.allclose(dl - dl.mean(), df - df.mean(), atol=1e-4)
+
+
+def test_fuse_local_global():
+    from localscale.features.pipeline import fuse_local_global
+
+    a = np.exp2(np.linspace(-1, 1, 25, dtype=np.float32)).reshape(5, 5)     # median 1, varies 0.5..2
+    b = np.full((4, 4), 3.0, np.float32)                                     # biased, flat
+    fa, fb = fuse_local_global(a, b, 2.0)
+    assert np.allclose(fa, 2.0 * a / np.median(a), rtol=1e-5) and np.allclose(fb, 0.5)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(LocalScaleError, match="global scale"):
+            fuse_local_global(a, b, bad)
+    with pytest.raises(LocalScaleError, match="no finite"):
+        fuse_local_global(np.full((2, 2), np.nan, np.float32), b, 1.0)
 
 
 def test_gate():
