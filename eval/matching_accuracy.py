@@ -20,6 +20,7 @@ from localscale.data import list_images, split_images
 from localscale.evaluation.hpatches import (THRESHOLDS, evaluate, gate_from_args, load_hpatches, load_scale_models,
                                            make_pairs, markdown_table)
 from localscale.evaluation.synthetic import make_sequences
+from localscale.features.pipeline import CORRECTIONS
 
 
 def main(argv=None) -> int:
@@ -37,8 +38,7 @@ def main(argv=None) -> int:
     p.add_argument("--gate-deadzone", type=float, default=None)
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"],
-                   choices=["none", "global", "local", "fused", "gt"])
+    p.add_argument("--methods", nargs="+", default=list(CORRECTIONS), choices=CORRECTIONS)
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     methods = list(a.methods)

@@ -212,10 +212,7 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
         return (homography_scale_map(H, *image_a.shape[:2]).astype(np.float32),
                 homography_scale_map(np.linalg.inv(H), *image_b.shape[:2]).astype(np.float32))
     if correction == "global":
-        if global_model is None:
-            from ..models import ScaleNet
-            global_model = ScaleNet.from_pretrained()
-        s = float(global_model.predict(image_a, image_b).scale)
+        s = _global_scale(image_a, image_b, global_model)
         return gate.apply_pair(s, 1.0 / s)
     if local_model is None:
         from ..models import LocalScaleNet
@@ -224,12 +221,17 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     pa = local_model.predict_from_features(ea, eb)
     pb = local_model.predict_from_features(eb, ea)
     if correction == "fused":
-        if global_model is None:
-            from ..models import ScaleNet
-            global_model = ScaleNet.from_pretrained()
-        s = float(global_model.predict(image_a, image_b).scale)
+        s = _global_scale(image_a, image_b, global_model)
         return gate.apply_pair(*fuse_local_global(pa.scale, pb.scale, s), pa.confidence, pb.confidence)
     return gate.apply_pair(pa.scale, pb.scale, pa.confidence, pb.confidence)
+
+
+def _global_scale(image_a: np.ndarray, image_b: np.ndarray, global_model=None) -> float:
+    """Consistency-checked ``S_{A->B}`` of ScaleNet (bundled weights when ``global_model`` is None)."""
+    if global_model is None:
+        from ..models import ScaleNet
+        global_model = ScaleNet.from_pretrained()
+    return float(global_model.predict(image_a, image_b).scale)
 
 
 def fuse_local_global(scale_a: np.ndarray, scale_b: np.ndarray, global_scale: float):
