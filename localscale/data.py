@@ -55,6 +55,10 @@ class PairConfig:
     photometric: float = 0.25                #: strength of brightness/contrast/gamma jitter on B
     gray_probability: float = 0.1            #: both images turned gray
     fill: bool = True                        #: fill B's empty region from another photo (else zeros)
+    #: render B from the *whole* photo, so that around A's crop B shows the photo's real
+    #: surroundings (as a second real view would); the fill photo covers only what lies beyond
+    #: the photo. Off: B shows A's crop only, with a sharp edge to the fill (the paper's recipe).
+    context: bool = False
 
 
 class SyntheticPairs(Dataset):
@@ -91,6 +95,9 @@ class SyntheticPairs(Dataset):
         return img
 
     def _crop(self, rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
+        return self._crop_with_offset(rng, img)[0]
+
+    def _crop_with_offset(self, rng: np.random.Generator, img: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
         h, w = img.shape[:2]
         frac = rng.uniform(*self.cfg.crop_fraction)
         aspect = math.exp(rng.uniform(*np.log(self.cfg.aspect_range)))
@@ -98,13 +105,14 @@ class SyntheticPairs(Dataset):
         cw = ch * aspect
         ch, cw = int(max(32, min(h, ch))), int(max(32, min(w, cw)))
         y, x = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
-        return img[y:y + ch, x:x + cw]
+        return img[y:y + ch, x:x + cw], (int(x), int(y))
 
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index)])
         cfg = self.cfg
         src, other = rng.choice(len(self.files), 2, replace=False)
-        a_orig = self._crop(rng, self._image(int(src)))
+        photo = self._image(int(src))
+        a_orig, (x0, y0) = self._crop_with_offset(rng, photo)
         ha, wa = a_orig.shape[:2]
         H = sample_homography(rng, (ha, wa), (ha, wa), cfg.homography)
 
@@ -112,7 +120,11 @@ class SyntheticPairs(Dataset):
         L = lb.matrix()
         H_proc = L @ H @ np.linalg.inv(L)
         a_proc, _ = letterbox(a_orig, cfg.image_size)
-        b_proc = self._render_target(rng, a_orig, L @ H, lb, int(other))
+        if cfg.context:   # the whole photo, placed so that A's crop lands where H puts it
+            shift = np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]])
+            b_proc = self._render_target(rng, photo, L @ H @ shift, lb, int(other), centre=(x0, y0, wa, ha))
+        else:
+            b_proc = self._render_target(rng, a_orig, L @ H, lb, int(other))
 
         if rng.random() < cfg.gray_probability:
             a_proc, b_proc = _gray3(a_proc), _gray3(b_proc)
@@ -134,10 +146,14 @@ class SyntheticPairs(Dataset):
             "perspective": float(np.log2(s[mask]).std()) if mask.sum() > 1 else 0.0,
         }
 
-    def _render_target(self, rng, a_orig: np.ndarray, H_to_proc: np.ndarray, lb, other: int) -> np.ndarray:
-        """Warp A straight into B's processing frame; fill B's empty image region from another photo."""
+    def _render_target(self, rng, a_orig: np.ndarray, H_to_proc: np.ndarray, lb, other: int,
+                       centre: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """Warp A (or the whole photo) straight into B's processing frame; fill B's empty image
+        region from another photo. ``centre``: ``(x0, y0, w, h)`` of A's crop in ``a_orig``
+        (default: all of it); the anti-alias blur is set by the zoom at A's centre."""
         P = self.cfg.image_size
-        centre = np.array([(a_orig.shape[1] - 1) / 2, (a_orig.shape[0] - 1) / 2])
+        x0, y0, cw, ch = centre or (0, 0, a_orig.shape[1], a_orig.shape[0])
+        centre = np.array([x0 + (cw - 1) / 2, y0 + (ch - 1) / 2])
         wc = H_to_proc[2, :2] @ centre + H_to_proc[2, 2]
         minify = math.sqrt(abs(np.linalg.det(H_to_proc)) / abs(wc) ** 3)
         src = a_orig

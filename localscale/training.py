@@ -55,6 +55,8 @@ class TrainConfig:
     perspective: float = 0.45
     scale_min: float = 0.16
     scale_max: float = 6.0
+    context: bool = False                  #: B shows the photo's real surroundings of A (PairConfig.context)
+    crop_min: float = 0.6                  #: smallest side of A's crop, as a fraction of the photo
     holdout_every: int = 10                #: every n-th photo (sorted) is held out for validation
     val_pairs: int = 64
     val_every: int = 500
@@ -74,7 +76,8 @@ class TrainConfig:
 
     def pair_config(self) -> PairConfig:
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
-            scale_range=(self.scale_min, self.scale_max), perspective=self.perspective))
+            scale_range=(self.scale_min, self.scale_max), perspective=self.perspective),
+            crop_fraction=(self.crop_min, 1.0), context=self.context)
 
     def build_model(self):
         if self.model == "local":

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
@@ -58,3 +59,35 @@ def test_split_is_deterministic_and_disjoint(image_dir):
     tr, ho = split_images(files, holdout_every=3)
     assert set(tr).isdisjoint(ho) and len(tr) + len(ho) == len(files)
     assert split_images(list(reversed(files)), 3) == (tr, ho)
+
+
+
+def test_context_shows_the_photos_surroundings_around_a(tmp_path):
+    """With ``context`` B is rendered from the whole photo: inside A's footprint it is the same
+    warp of A as without context; around it, B shows the photo instead of the fill photo."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (160, 200, 3)).astype(np.uint8), (0, 0), 1.5)
+    cv2.imwrite(str(tmp_path / "texture.png"), texture)
+    cv2.imwrite(str(tmp_path / "gray.png"), np.full((160, 200, 3), 128, np.uint8))   # the fill photo
+    kw = dict(photometric=0.0, gray_probability=0.0, crop_fraction=(0.5, 0.5))
+    plain = SyntheticPairs(tmp_path, seed=3, config=small_cfg(**kw))
+    ctx = SyntheticPairs(tmp_path, seed=3, config=small_cfg(context=True, **kw))
+    shares = []
+    for i in range(40):
+        p, c = plain[i], ctx[i]
+        assert torch.equal(p["H"], c["H"]) and torch.equal(p["a"], c["a"]) and torch.equal(p["scale"], c["scale"])
+        region = (p["a"].sum(0) > 0).numpy().astype(np.uint8)    # B's image region (B has A's size)
+        if p["a"][:, region > 0].std() < 0.01 or p["global_scale"] > 0.8:   # A from the gray photo / no room
+            continue
+        footprint = cv2.warpPerspective(region, p["H"].numpy(), (64, 64), flags=cv2.INTER_NEAREST) > 0
+        inside = cv2.erode(footprint.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        grow = lambda k: cv2.dilate(footprint.astype(np.uint8), np.ones((k, k), np.uint8)) > 0  # noqa: E731
+        around = grow(9) & ~grow(3) & (region > 0)                 # a ring just outside A's footprint
+        if inside.sum() < 20 or around.sum() < 20:
+            continue
+        diff = (p["b"] - c["b"]).abs().sum(0).numpy() * 255
+        assert np.median(diff[inside]) < 2                       # same content where A lands
+        is_fill = lambda b: (b.permute(1, 2, 0).numpy() * 255).round().astype(int) == 128  # noqa: E731
+        assert is_fill(p["b"])[around].all(1).mean() > 0.95      # no context: the fill photo around A
+        shares.append(is_fill(c["b"])[around].all(1).mean())   # context: the photo shows through
+    assert len(shares) >= 3 and max(shares) < 0.9 and np.mean(shares) < 0.5, shares
