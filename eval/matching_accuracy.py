@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     p.add_argument("--gate-deadzone", type=float, default=None)
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--crop", type=float, default=1.0,
+                   help="< 1: image 1 is this central part of the photo, image 2 shows its real surroundings")
     p.add_argument("--methods", nargs="+", default=list(CORRECTIONS), choices=CORRECTIONS)
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -50,8 +52,8 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     held = split_images(list_images(a.train_images))[1][:a.num_synthetic]
     tmp = tempfile.mkdtemp(prefix="ls_synth_")
-    make_sequences(held, tmp, num_images=2, size=480, seed=a.seed)
-    datasets = {"synthetic-heldout": make_pairs(load_hpatches(tmp))}
+    make_sequences(held, tmp, num_images=2, size=480, seed=a.seed, crop=a.crop)
+    datasets = {"synthetic-heldout" + ("" if a.crop == 1 else f"-crop{a.crop:g}"): make_pairs(load_hpatches(tmp))}
     if a.sequences and Path(a.sequences).is_dir():
         datasets["sequences"] = make_pairs(load_hpatches(a.sequences))
     doc = {"notes": notes, "gate": vars(gate), "orientation": a.orientation, "results": {}}

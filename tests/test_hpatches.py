@@ -85,3 +85,36 @@ def test_main_writes_outputs(tiny_root, tmp_path):
     assert doc["methods"] == ["none", "gt"] and any("local skipped" in n for n in doc["notes"])
     assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_sift.md").is_file()
     assert (out / "mma_sift_all.png").stat().st_size > 0
+
+
+
+def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
+    """``crop < 1``: image 1 is the photo's centre; image k = the whole photo warped so that
+    ``H_1_k`` still maps image 1 onto it, with the photo (not the fill) around that footprint."""
+    gray = np.full_like(photos["astronaut"], 128)                  # the fill photo
+    imgs = [photos["astronaut"], gray, gray, gray]                 # image k of sequence 0 is filled from imgs[k]
+    for crop in (1.0, 0.6):
+        d = make_sequences(imgs, tmp_path / f"c{crop}", num_images=3, size=128, seed=4, crop=crop)[0]
+        one = cv2.imread(str(d / "1.png"))
+        assert max(one.shape[:2]) == 128
+        fill_share = []
+        for k in (2, 3):
+            H = np.loadtxt(d / f"H_1_{k}")
+            b = cv2.imread(str(d / f"{k}.png"))
+            size = b.shape[1::-1]
+            footprint = cv2.warpPerspective(np.ones(one.shape[:2], np.uint8), H, size)
+            inside = cv2.erode(footprint, np.ones((5, 5), np.uint8)) > 0
+            ncc = np.corrcoef(cv2.warpPerspective(one, H, size)[inside].ravel().astype(float),
+                              b[inside].ravel().astype(float))[0, 1]
+            assert ncc > 0.9, ncc                                   # H_1_k maps image 1 onto image k
+            grow = lambda n: cv2.dilate(footprint, np.ones((n, n), np.uint8)) > 0  # noqa: E731
+            around = grow(21) & ~grow(7)                            # a ring just outside image 1's footprint
+            if around.sum() > 50:
+                fill_share.append((np.abs(b[around].astype(int) - 128) <= 1).all(1).mean())
+        assert fill_share
+        if crop == 1.0:
+            assert min(fill_share) > 0.95                             # only the fill around image 1
+        else:
+            assert np.mean(fill_share) < 0.5                          # mostly the photo's surroundings
+    with pytest.raises(ValueError):
+        make_sequences(imgs, tmp_path / "bad", crop=0)

@@ -6,6 +6,9 @@ random homography ``H_1_k`` (``localscale.geometry.sample_homography``, perspect
 scale ranges of :data:`STRONG`), the uncovered part filled from another photo (as in
 the scale networks' training data, so there are no artificial black borders), plus the
 plain-text ``H_1_k`` files (HPatches convention: pixel coords of image 1 -> image k).
+With ``crop < 1`` image 1 is the central ``crop`` part of the photo and image k is rendered
+from the *whole* photo, so around image 1's content it shows the photo's real surroundings,
+as a second real view would (the fill photo only covers what lies beyond the photo).
 Homographies whose co-visible part of image 1 is below ``min_covisible`` are redrawn.
 """
 from __future__ import annotations
@@ -44,20 +47,35 @@ def random_pair(rng: np.random.Generator, img: np.ndarray, fill: np.ndarray | No
 
 
 def make_sequences(photos: Sequence[Union[str, Path, np.ndarray]], out: Union[str, Path], num_images: int = 6,
-                   size: int = 480, seed: int = 0, cfg: HomographyConfig = STRONG) -> list[Path]:
-    """Write one HPatches-style sequence per photo; returns the sequence folders."""
+                   size: int = 480, seed: int = 0, cfg: HomographyConfig = STRONG, crop: float = 1.0) -> list[Path]:
+    """Write one HPatches-style sequence per photo; returns the sequence folders.
+
+    ``crop`` in (0, 1]: image 1 is the central part of this side fraction (longer side ``size``),
+    the other images show the whole photo around it (module docstring).
+    """
+    if not 0 < crop <= 1:
+        raise ValueError(f"crop must be in (0, 1], got {crop}")
     out = Path(out)
     rng = np.random.default_rng(seed)
-    imgs = [resize_max_side(load_image(p, f"photo {i}"), size) for i, p in enumerate(photos)]
+    imgs = [resize_max_side(load_image(p, f"photo {i}"), round(size / crop)) for i, p in enumerate(photos)]
     folders = []
     for i, img in enumerate(imgs):
         name = Path(photos[i]).stem if isinstance(photos[i], (str, Path)) else f"{i:03d}"
         d = out / f"s_{name}"
         d.mkdir(parents=True, exist_ok=True)
+        full, (x0, y0) = img, (0, 0)
+        if crop < 1:
+            ch, cw = round(img.shape[0] * crop), round(img.shape[1] * crop)
+            y0, x0 = (img.shape[0] - ch) // 2, (img.shape[1] - cw) // 2
+            img = np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw])
         cv2.imwrite(str(d / "1.png"), img[..., ::-1])
         for k in range(2, num_images + 1):
             fill = imgs[(i + k) % len(imgs)] if len(imgs) > 1 else None
+            if fill is not None and crop < 1:
+                fill = resize_max_side(fill, size)
             b, H = random_pair(rng, img, fill, cfg)
+            if crop < 1:   # re-render from the whole photo: same H on image 1's pixels
+                b, _ = warp_image(full, H @ np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]]), img.shape[:2], fill=fill)
             cv2.imwrite(str(d / f"{k}.png"), b[..., ::-1])
             np.savetxt(d / f"H_1_{k}", H, fmt="%.10g")
         folders.append(d)
