@@ -24,6 +24,8 @@ def main(argv=None) -> int:
     p.add_argument("--crop", type=float, default=1.0,
                    help="< 1: image 1 is this central part of the photo, the others show its real surroundings")
     a = p.parse_args(argv)
+    if not 0 < a.crop <= 1:
+        p.error(f"--crop must be in (0, 1], got {a.crop}")
     files = list_images(a.photos)
     if a.held_out:
         files = split_images(files)[1]

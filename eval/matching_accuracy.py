@@ -42,6 +42,8 @@ def main(argv=None) -> int:
                    help="< 1: image 1 is this central part of the photo, image 2 shows its real surroundings")
     p.add_argument("--methods", nargs="+", default=list(CORRECTIONS), choices=CORRECTIONS)
     a = p.parse_args(argv)
+    if not 0 < a.crop <= 1:
+        p.error(f"--crop must be in (0, 1], got {a.crop}")
     torch.set_num_threads(1)
     methods = list(a.methods)
     models, notes = load_scale_models(methods, a.local_weights, a.global_weights)

@@ -44,8 +44,11 @@ PERSPECTIVE = [("low", 0, 0.15), ("medium", 0.15, 0.35), ("high", 0.35, 99)]
 STRIDE = 4
 
 
-def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig):
-    """Held-out pairs at the photos' own resolution: ``(name, A, B, H)``; B filled from another photo."""
+def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig, crop: float = 1.0):
+    """Held-out pairs at the photos' own resolution: ``(name, A, B, H)``; B filled from another photo.
+
+    ``crop < 1``: A is the central ``crop`` part of the photo and B is rendered from the whole
+    photo, so around A's content B shows the photo's real surroundings."""
     rng = np.random.default_rng(seed)
     cache = {}
 
@@ -56,9 +59,13 @@ def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig
 
     for k in range(n):
         i, j = rng.choice(len(photos), 2, replace=False)
-        a = img(i)
+        full = img(i)
+        ch, cw = round(full.shape[0] * crop), round(full.shape[1] * crop)
+        y0, x0 = (full.shape[0] - ch) // 2, (full.shape[1] - cw) // 2
+        a = np.ascontiguousarray(full[y0:y0 + ch, x0:x0 + cw])
         H = sample_homography(rng, a.shape[:2], a.shape[:2], cfg)
-        b, _ = warp_image(a, H, a.shape[:2], fill=img(j))
+        shift = np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]])
+        b, _ = warp_image(full, H @ shift, a.shape[:2], fill=img(j))
         if covisible_mask(H, a.shape[:2], b.shape[:2], 8).sum() < 8:
             continue
         yield f"synthetic_{k:04d}", a, b, H
@@ -149,12 +156,12 @@ def run_local(args) -> dict:
         _, held = split_images(list_images(args.photos))
         cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
         rows = []
-        for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg)), desc="synthetic"):
+        for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="synthetic"):
             pred = model.predict(a, b)
             rows.append(pixel_errors(pred.scale, H, b.shape[:2], planarize(pred.scale, pred.confidence)))
         results["synthetic"] = local_table(rows)
         results["synthetic_setup"] = {"photos": "held-out split (every 10th sorted file) of " + str(args.photos),
-                                      "pairs": len(rows), "seed": args.seed, "perspective": args.perspective,
+                                      "pairs": len(rows), "seed": args.seed, "perspective": args.perspective, "crop": args.crop,
                                       "scale_range": [0.16, 6.0]}
         print_local_table(f"held-out synthetic pairs ({len(rows)})", results["synthetic"])
     if args.sequences:
@@ -184,7 +191,7 @@ def run_global(args) -> dict:
     if local is not None:
         err["median of Local-ScaleNet map"] = []
     t_full, t_cached = [], []
-    for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg)), desc="global"):
+    for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="global"):
         from localscale.geometry import global_scale
 
         g = math.log(global_scale(H, a.shape[:2], b.shape[:2]))
@@ -205,7 +212,7 @@ def run_global(args) -> dict:
     res = {k: {"mean_r": float(np.mean(np.exp(v))), "median_r": float(np.exp(np.median(v)))} for k, v in err.items()}
     res["timing_ms"] = {"uncached_pair_median": 1000 * float(np.median(t_full)),
                         "cached_pair_median": 1000 * float(np.median(t_cached)), "threads": torch.get_num_threads()}
-    res["setup"] = {"pairs": len(err["const-1"]), "seed": args.seed, "perspective": args.perspective}
+    res["setup"] = {"pairs": len(err["const-1"]), "seed": args.seed, "perspective": args.perspective, "crop": args.crop}
     print(f"\n### global ScaleNet, held-out synthetic pairs ({len(err['const-1'])})\n")
     print("| read-out | mean r | median r |\n|---|---|---|")
     for k in err:
@@ -225,10 +232,14 @@ def main(argv=None) -> int:
     p.add_argument("--sequences", default=None, help="HPatches-layout folder of real sequences (local mode)")
     p.add_argument("--pairs", type=int, default=200)
     p.add_argument("--perspective", type=float, default=0.45)
+    p.add_argument("--crop", type=float, default=1.0,
+                   help="< 1: A is this central part of the photo and B shows its real surroundings")
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
+    if not 0 < args.crop <= 1:
+        p.error(f"--crop must be in (0, 1], got {args.crop}")
     res = run_local(args) if args.mode == "local" else run_global(args)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
