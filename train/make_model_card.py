@@ -33,6 +33,11 @@ DATA_CARD = {
 }
 
 
+CONTEXT_NOTE = ("; with context (--context): the target is rendered from the whole photo, so around the "
+                "crop's content it shows the photo's real surroundings, and the fill photo covers only what lies "
+                "beyond the photo")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True)
@@ -41,6 +46,9 @@ def main(argv=None) -> int:
     p.add_argument("--command", default="", help="the command that trained it")
     p.add_argument("--notes", default="")
     p.add_argument("--hardware", default="2 CPU cores (no GPU), fp32, 1 torch thread")
+    p.add_argument("--init-card", default="",
+                   help="model card of the weights this run was initialised from (--init-weights); "
+                        "its training record is kept under training.initialised_from")
     a = p.parse_args(argv)
     run = Path(a.run)
     src = run / "model.pt" if (run / "model.pt").exists() else run / "last.pt"
@@ -63,12 +71,15 @@ def main(argv=None) -> int:
         "weights_file": weights.name, "weights_mb": round(weights.stat().st_size / 2**20, 2), "storage": "fp16",
         "training": {"steps": step, "batch_size": train_cfg.get("batch_size"), "config": train_cfg,
                      "command": a.command, "hardware": a.hardware},
-        "data": DATA_CARD,
+        "data": dict(DATA_CARD, pairs=DATA_CARD["pairs"] + (CONTEXT_NOTE if train_cfg.get("context") else "")),
         "validation_history": val,
         "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
         "convention": "S_{A->B} > 1: content looks bigger in B",
         "notes": a.notes,
     }
+    if a.init_card:
+        init = json.loads(Path(a.init_card).read_text())
+        card["training"]["initialised_from"] = {k: init.get(k) for k in ("name", "training", "validation_history", "notes")}
     (out_dir / f"{a.name}.json").write_text(json.dumps(card, indent=1))
     print(f"wrote {weights} ({card['weights_mb']} MB) and {a.name}.json (step {step})")
     return 0

@@ -26,7 +26,7 @@ Splits, from the GT homography of each pair:
   region): ``scale<1.4x`` for g < 0.5, ``scale1.4-2.8x`` for 0.5 <= g < 1.5, ``scale>2.8x``.
 
 Gating of the local correction (:class:`localscale.features.pipeline.CorrectionGate`).
-With the shipped 2026-11-30 Local-ScaleNet, HardNet, MMA@5 (none -> local), pair level with
+With the stage-1 (GPU) Local-ScaleNet of 2026-11-30, HardNet, MMA@5 (none -> local), pair level with
 consistency on:
 
 =====================================  ===================  ==================  ===================
