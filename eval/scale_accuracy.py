@@ -35,7 +35,8 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
-from localscale.geometry import HomographyConfig, covisible_mask, homography_scale_map, sample_homography, warp_image
+from localscale.geometry import (HomographyConfig, central_crop, covisible_mask, homography_scale_map,
+                                 sample_homography, translation, warp_image)
 from localscale.io import load_image, read_homography
 from localscale.planar import planarize
 
@@ -60,12 +61,9 @@ def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig
     for k in range(n):
         i, j = rng.choice(len(photos), 2, replace=False)
         full = img(i)
-        ch, cw = round(full.shape[0] * crop), round(full.shape[1] * crop)
-        y0, x0 = (full.shape[0] - ch) // 2, (full.shape[1] - cw) // 2
-        a = np.ascontiguousarray(full[y0:y0 + ch, x0:x0 + cw])
+        a, (x0, y0) = central_crop(full, crop)
         H = sample_homography(rng, a.shape[:2], a.shape[:2], cfg)
-        shift = np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]])
-        b, _ = warp_image(full, H @ shift, a.shape[:2], fill=img(j))
+        b, _ = warp_image(full, H @ translation(-x0, -y0), a.shape[:2], fill=img(j))
         if covisible_mask(H, a.shape[:2], b.shape[:2], 8).sum() < 8:
             continue
         yield f"synthetic_{k:04d}", a, b, H

@@ -20,7 +20,7 @@ import torch
 from torch.utils.data import Dataset
 
 from .errors import ImageError
-from .geometry import HomographyConfig, homography_scale_map, grid_points, project, sample_homography
+from .geometry import HomographyConfig, grid_points, homography_scale_map, project, sample_homography, translation
 from .io import load_image
 from .preprocess import letterbox, make_letterbox, to_tensor
 
@@ -121,8 +121,8 @@ class SyntheticPairs(Dataset):
         H_proc = L @ H @ np.linalg.inv(L)
         a_proc, _ = letterbox(a_orig, cfg.image_size)
         if cfg.context:   # the whole photo, placed so that A's crop lands where H puts it
-            shift = np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]])
-            b_proc = self._render_target(rng, photo, L @ H @ shift, lb, int(other), centre=(x0, y0, wa, ha))
+            b_proc = self._render_target(rng, photo, L @ H @ translation(-x0, -y0), lb, int(other),
+                                         centre=(x0, y0, wa, ha))
         else:
             b_proc = self._render_target(rng, a_orig, L @ H, lb, int(other))
 

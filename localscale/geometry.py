@@ -115,6 +115,23 @@ class HomographyConfig:
     translation: float = 0.2
 
 
+def translation(dx: float, dy: float) -> np.ndarray:
+    """3x3 homography of a pure shift by ``(dx, dy)`` pixels."""
+    return np.array([[1.0, 0, dx], [0, 1, dy], [0, 0, 1]])
+
+
+def central_crop(image: np.ndarray, fraction: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """The central part of ``image`` with sides ``fraction`` of its own, and its offset ``(x0, y0)``.
+
+    A homography ``H`` on the crop's pixels is ``H @ translation(-x0, -y0)`` on the image's.
+    """
+    if not 0 < fraction <= 1:
+        raise ValueError(f"crop fraction must be in (0, 1], got {fraction}")
+    ch, cw = round(image.shape[0] * fraction), round(image.shape[1] * fraction)
+    y0, x0 = (image.shape[0] - ch) // 2, (image.shape[1] - cw) // 2
+    return np.ascontiguousarray(image[y0:y0 + ch, x0:x0 + cw]), (x0, y0)
+
+
 def sample_homography(rng: np.random.Generator, shape_a: tuple[int, int], shape_b: tuple[int, int],
                       cfg: HomographyConfig = HomographyConfig()) -> np.ndarray:
     """Random homography A->B: log-uniform scale, rotation, skew, perspective, shift.

@@ -19,7 +19,7 @@ from typing import Sequence, Union
 import cv2
 import numpy as np
 
-from ..geometry import HomographyConfig, covisible_mask, sample_homography, warp_image
+from ..geometry import HomographyConfig, central_crop, covisible_mask, sample_homography, translation, warp_image
 from ..io import load_image
 
 #: default sampler: strong perspective, zoom in and out
@@ -34,15 +34,22 @@ def resize_max_side(img: np.ndarray, size: int) -> np.ndarray:
     return cv2.resize(img, (max(16, round(img.shape[1] * s)), max(16, round(img.shape[0] * s))), interpolation=interp)
 
 
+def random_homography(rng: np.random.Generator, shape: tuple[int, int], cfg: HomographyConfig = STRONG,
+                      min_covisible: float = 0.25, tries: int = 20) -> np.ndarray:
+    """A random homography from a ``shape`` image to one of the same shape, redrawn (up to
+    ``tries`` times) until at least ``min_covisible`` of the first image stays visible."""
+    for _ in range(tries):
+        H = sample_homography(rng, shape, shape, cfg)
+        if covisible_mask(H, shape, shape, 8).mean() >= min_covisible:
+            break
+    return H
+
+
 def random_pair(rng: np.random.Generator, img: np.ndarray, fill: np.ndarray | None = None,
                 cfg: HomographyConfig = STRONG, min_covisible: float = 0.25, tries: int = 20):
     """``(B, H)``: ``img`` warped by a random homography with enough overlap (B has img's shape)."""
-    h, w = img.shape[:2]
-    for _ in range(tries):
-        H = sample_homography(rng, (h, w), (h, w), cfg)
-        if covisible_mask(H, (h, w), (h, w), 8).mean() >= min_covisible:
-            break
-    b, _ = warp_image(img, H, (h, w), fill=fill)
+    H = random_homography(rng, img.shape[:2], cfg, min_covisible, tries)
+    b, _ = warp_image(img, H, img.shape[:2], fill=fill)
     return b, H
 
 
@@ -63,19 +70,16 @@ def make_sequences(photos: Sequence[Union[str, Path, np.ndarray]], out: Union[st
         name = Path(photos[i]).stem if isinstance(photos[i], (str, Path)) else f"{i:03d}"
         d = out / f"s_{name}"
         d.mkdir(parents=True, exist_ok=True)
-        full, (x0, y0) = img, (0, 0)
-        if crop < 1:
-            ch, cw = round(img.shape[0] * crop), round(img.shape[1] * crop)
-            y0, x0 = (img.shape[0] - ch) // 2, (img.shape[1] - cw) // 2
-            img = np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw])
+        full = img
+        img, (x0, y0) = central_crop(full, crop) if crop < 1 else (full, (0, 0))
         cv2.imwrite(str(d / "1.png"), img[..., ::-1])
         for k in range(2, num_images + 1):
             fill = imgs[(i + k) % len(imgs)] if len(imgs) > 1 else None
             if fill is not None and crop < 1:
                 fill = resize_max_side(fill, size)
-            b, H = random_pair(rng, img, fill, cfg)
-            if crop < 1:   # re-render from the whole photo: same H on image 1's pixels
-                b, _ = warp_image(full, H @ np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]]), img.shape[:2], fill=fill)
+            H = random_homography(rng, img.shape[:2], cfg)
+            # rendered from the whole photo: H on image 1's pixels is H @ shift on the photo's
+            b, _ = warp_image(full, H @ translation(-x0, -y0), img.shape[:2], fill=fill)
             cv2.imwrite(str(d / f"{k}.png"), b[..., ::-1])
             np.savetxt(d / f"H_1_{k}", H, fmt="%.10g")
         folders.append(d)
