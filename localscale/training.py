@@ -75,6 +75,8 @@ class TrainConfig:
     warp_features: bool = False            #: extra cue: B's features soft-warped onto A
 
     def pair_config(self) -> PairConfig:
+        if not 0 < self.crop_min <= 1:
+            raise LocalScaleError(f"crop_min must be in (0, 1] (a fraction of the photo side), got {self.crop_min}")
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
             scale_range=(self.scale_min, self.scale_max), perspective=self.perspective),
             crop_fraction=(self.crop_min, 1.0), context=self.context)

@@ -6,6 +6,7 @@ import torch
 
 from localscale import training
 from localscale.checkpoint import load_model, read_checkpoint
+from localscale.errors import LocalScaleError
 from localscale.training import TrainConfig, TrainingDiverged, train
 
 
@@ -163,3 +164,9 @@ def test_ctrl_c_finishes_the_step_saves_and_resumes(image_dir, tmp_path):
                              env=env, capture_output=True)
     assert resumed.returncode == 0, resumed.stderr.decode()[-500:]
     assert read_checkpoint(out / "last.pt")["train_state"]["step"] == step + 2
+
+
+@pytest.mark.parametrize("crop_min", [0.0, 1.5])
+def test_bad_crop_min_is_a_clear_error(crop_min):
+    with pytest.raises(LocalScaleError, match="crop_min must be in"):
+        TrainConfig(crop_min=crop_min).pair_config()
