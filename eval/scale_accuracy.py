@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -220,9 +221,114 @@ def run_global(args) -> dict:
     return res
 
 
+def real_pairs(roots: list[Path]):
+    """``(name, A, B, H)`` of every HPatches-layout folder under each root (sequences and two-image pairs)."""
+    for root in roots:
+        yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
+
+
+def _pair_row(local, scalenet, name, a, b, H) -> dict:
+    from localscale.reliability import pair_statistics
+
+    ea, eb = local.encode_image(a), local.encode_image(b)
+    fwd = local.predict_from_features(ea, eb)
+    bwd = local.predict_from_features(eb, ea)
+    g = scalenet.predict(a, b)
+    pe = pixel_errors(fwd.scale, H, b.shape[:2])
+    h, w = fwd.scale.shape
+    ys = np.minimum(np.arange(math.ceil(h / STRIDE)) * STRIDE + STRIDE // 2, h - 1)
+    xs = np.minimum(np.arange(math.ceil(w / STRIDE)) * STRIDE + STRIDE // 2, w - 1)
+    gt = homography_scale_map(H, h, w, STRIDE)
+    cov = covisible_mask(H, (h, w), b.shape[:2], STRIDE)
+    m = cov & np.isfinite(gt)
+    row = {"name": name, "local": pe["err"], "global": np.abs(math.log(g.scale) - pe["log_gt"]),
+           "const1": pe["const1"], "oracle": pe["oracle"], "log_gt": pe["log_gt"],
+           "global_pair_error_log2": abs(math.log2(g.scale) - float(np.mean(pe["log_gt"])) / math.log(2)),
+           "global_inconsistency_log2": abs(math.log2(g.scale_ab) + math.log2(g.scale_ba))}
+    if fwd.visible is not None:
+        pv = fwd.visible[np.ix_(ys, xs)] > 0.5
+        row["iou"] = float((pv & cov).sum() / max(1, (pv | cov).sum()))
+    score = fwd.reliability if fwd.reliability is not None else fwd.confidence
+    row["score"] = score[np.ix_(ys, xs)][m]
+    row.update(pair_statistics(fwd, bwd))
+    return row
+
+
+def run_real(args) -> dict:
+    """All real pairs: local map, global ScaleNet as a constant map, const-1, per-pair oracle;
+    co-visibility IoU, reliability AUROC, the pair flag; identity and gray-copy invariants."""
+    from localscale.reliability import PairCheckConfig, auroc, flag_reasons
+
+    local = LocalScaleNet.from_pretrained(args.model)
+    scalenet = ScaleNet.from_pretrained(args.global_model)
+    torch.set_num_threads(args.threads) if args.threads else None
+    roots = [Path(r) for r in args.real]
+    rows = [_pair_row(local, scalenet, *item) for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
+    cfg = PairCheckConfig()
+    res = {"local_model": str(args.model or "bundled"), "global_model": str(args.global_model or "bundled"),
+           "roots": [str(r) for r in roots], "pairs": len(rows), "stride_px": STRIDE}
+
+    def pooled(key, sel=lambda r: True):   # mean over pairs of each pair's mean r
+        e = [float(np.exp(r[key]).mean()) for r in rows if sel(r)]
+        return float(np.mean(e)) if e else float("nan")
+
+    groups = {"all": lambda r: True, "sequences": lambda r: not r["name"].startswith("pairs/"),
+              "extreme pairs": lambda r: r["name"].startswith("pairs/"),
+              "bark": lambda r: "/bark/" in r["name"], "leuven 1-6": lambda r: r["name"].endswith("leuven/1-6"),
+              "ExtremeZoom": lambda r: "ExtremeZoom" in r["name"]}
+    res["table"] = {g: {k: pooled(k, sel) for k in ("local", "global", "const1", "oracle")}
+                    | {"pairs": sum(map(sel, rows))} for g, sel in groups.items()}
+    res["per_pair"] = {r["name"]: {"local_mean_r": float(np.exp(r["local"]).mean()),
+                                   "global_mean_r": float(np.exp(r["global"]).mean()),
+                                   "const1_mean_r": float(np.exp(r["const1"]).mean()),
+                                   "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+                                   "iou": r.get("iou"), "inconsistency_log2": r["inconsistency_log2"],
+                                   "visible_fraction": r["visible_fraction"], "mean_reliability": r["mean_reliability"],
+                                   "flag_reasons": flag_reasons(r, cfg)} for r in rows}
+    ious = [r["iou"] for r in rows if "iou" in r]
+    res["visibility_iou_mean"] = float(np.mean(ious)) if ious else None
+    err = np.exp(np.concatenate([r["local"] for r in rows]))
+    score = np.concatenate([r["score"] for r in rows])
+    keep = (err <= 1.25) | (err > 1.5)
+    res["reliability_auroc"] = auroc(score[keep], err[keep] <= 1.25)
+    bins = np.linspace(0, 1, 11)
+    res["reliability_curve"] = [{"score": f"{lo:.1f}-{hi:.1f}", "pixels": int(((score >= lo) & (score < hi)).sum()),
+                                 "share_r_below_1.25": float((err[(score >= lo) & (score < hi)] <= 1.25).mean())
+                                 if ((score >= lo) & (score < hi)).any() else None}
+                                for lo, hi in zip(bins[:-1], bins[1:] + np.r_[np.zeros(9), 1e-9])]
+    bad = [r for r in rows if np.exp(r["local"]).mean() > 2]
+    good = [r for r in rows if np.exp(r["local"]).mean() < 1.3]
+    res["flag"] = {"fires_on_bad (mean r > 2)": f"{sum(bool(flag_reasons(r, cfg)) for r in bad)}/{len(bad)}",
+                   "fires_on_good (mean r < 1.3)": f"{sum(bool(flag_reasons(r, cfg)) for r in good)}/{len(good)}"}
+    inv = []
+    for seq in sorted(p for p in roots[0].iterdir() if p.is_dir()):
+        a = load_image(next(iter(sorted(seq.glob("1.*")))))
+        same = float(np.median(local.predict(a, a).scale))
+        gray = float(np.median(local.predict(np.repeat(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)[..., None], 3, 2), a).scale))
+        inv.append({"image": f"{seq.name}/1", "identity_median": same, "gray_vs_colour_median": gray,
+                    "global_identity": scalenet.predict(a, a).scale})
+    res["invariants"] = inv
+
+    print(f"\n### real pairs ({len(rows)}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
+    print("| set | pairs | local map | global ScaleNet as a constant map | constant 1 | best constant per pair (oracle) |")
+    print("|---|---|---|---|---|---|")
+    for g, v in res["table"].items():
+        print(f"| {g} | {v['pairs']} | {v['local']:.3f} | {v['global']:.3f} | {v['const1']:.3f} | {v['oracle']:.3f} |")
+    print(f"\nco-visibility IoU (mean over pairs): {res['visibility_iou_mean']}")
+    print(f"reliability AUROC (r <= 1.25 vs r > 1.5): {res['reliability_auroc']:.3f}")
+    print(f"pair flag: {res['flag']}")
+    print("\n| image | predict(A, A) median | predict(gray A, A) median | ScaleNet(A, A) |\n|---|---|---|---|")
+    for r in inv:
+        print(f"| {r['image']} | {r['identity_median']:.3f} | {r['gray_vs_colour_median']:.3f} | {r['global_identity']:.3f} |")
+    return res
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--mode", choices=["local", "global"], default="local")
+    p.add_argument("--mode", choices=["local", "global", "real"], default="local")
+    p.add_argument("--real", nargs="*", default=["../shared/data/sequences", "../shared/data/pairs"],
+                   help="real mode: HPatches-layout folders (the first one also gives the invariant images)")
+    p.add_argument("--global-model", default=None, help="real mode: ScaleNet checkpoint (default: bundled)")
     p.add_argument("--model", default=None, help="checkpoint (default: bundled)")
     p.add_argument("--local-model", default=None, help="global mode: also score the median of this Local-ScaleNet's "
                    "map as a global estimate (default: bundled; 'none' to skip)")
@@ -238,7 +344,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:
         p.error(f"--crop must be in (0, 1], got {args.crop}")
-    res = run_local(args) if args.mode == "local" else run_global(args)
+    res = {"local": run_local, "global": run_global, "real": run_real}[args.mode](args)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(res, indent=1))

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 import torch.distributed as dist
+import torch.nn.functional as F
 from torch.utils.data import DataLoader, Subset
 
 from . import scales
@@ -73,22 +74,64 @@ class TrainConfig:
     freeze_extractor: bool = False         #: train only the correlation/reduction/head layers
     topk: int = 0                          #: extra cue: k largest correlations per pixel
     warp_features: bool = False            #: extra cue: B's features soft-warped onto A
+    visibility: bool = False               #: local: also predict per-pixel co-visibility (BCE loss)
+    visibility_weight: float = 0.5         #: weight of the visibility BCE beside the KL loss
+    rotation: float = 30.0                 #: max |in-plane rotation| in degrees of ordinary pairs
+    translation: float = 0.2               #: max shift of A's centre in B, fraction of B's size
+    identity_probability: float = 0.0      #: PairConfig: share of exact / near identity pairs
+    full_rotation_probability: float = 0.0 #: PairConfig: share of pairs rotated over the whole circle
+    low_overlap_probability: float = 0.0   #: PairConfig: share of pairs with A far off B's centre
+    unrelated_probability: float = 0.0     #: PairConfig: share of pairs where B is another photo
+    gray_one_side_probability: float = 0.0 #: PairConfig: one side gray
+    strong_light_probability: float = 0.0  #: PairConfig: strong lighting change on B
+    degrade_probability: float = 0.0       #: PairConfig: blur / noise / JPEG, each, on each side
+    photometric: float = 0.25              #: PairConfig: strength of the mild photometric jitter
 
     def pair_config(self) -> PairConfig:
         if not 0 < self.crop_min <= 1:
             raise LocalScaleError(f"crop_min must be in (0, 1] (a fraction of the photo side), got {self.crop_min}")
+        for name in ("identity_probability", "full_rotation_probability", "low_overlap_probability",
+                     "unrelated_probability", "gray_one_side_probability", "strong_light_probability",
+                     "degrade_probability"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise LocalScaleError(f"{name.replace('_', '-')} must be in [0, 1], got {getattr(self, name)}")
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
-            scale_range=(self.scale_min, self.scale_max), perspective=self.perspective),
-            crop_fraction=(self.crop_min, 1.0), context=self.context)
+            scale_range=(self.scale_min, self.scale_max), perspective=self.perspective,
+            rotation_deg=self.rotation, translation=self.translation),
+            crop_fraction=(self.crop_min, 1.0), context=self.context, photometric=self.photometric,
+            identity_probability=self.identity_probability,
+            full_rotation_probability=self.full_rotation_probability,
+            low_overlap_probability=self.low_overlap_probability,
+            unrelated_probability=self.unrelated_probability,
+            gray_one_side_probability=self.gray_one_side_probability,
+            strong_light_probability=self.strong_light_probability,
+            degrade_probability=self.degrade_probability)
 
     def build_model(self):
         if self.model == "local":
             return LocalScaleNet(LocalScaleNetConfig(self.width, self.feature_dim, self.image_size,
-                                                     topk=self.topk, warp_features=self.warp_features))
+                                                     topk=self.topk, warp_features=self.warp_features,
+                                                     visibility=self.visibility))
         if self.model == "global":
             return ScaleNet(ScaleNetConfig(self.width, self.feature_dim, self.image_size,
                                            topk=self.topk, warp_features=self.warp_features))
         raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
+
+
+#: layers a fine-tune may add to a trained model (initialised fresh when absent from the source)
+NEW_LAYER_PREFIXES = ("head.visible.",)
+
+
+def _load_matching(model, state_dict: dict, source: str) -> tuple[list[str], list[str]]:
+    """Load ``state_dict``; only the optional new layers (:data:`NEW_LAYER_PREFIXES`) may be missing."""
+    try:
+        missing, unexpected = model.load_state_dict(state_dict, strict=False)
+    except RuntimeError as e:
+        raise LocalScaleError(f"{source}: weights do not fit this model ({str(e).splitlines()[0]})") from None
+    bad = [k for k in missing if not k.startswith(NEW_LAYER_PREFIXES)] + list(unexpected)
+    if bad:
+        raise LocalScaleError(f"{source}: weights do not fit this model ({len(bad)} mismatched keys, e.g. {bad[0]})")
+    return list(missing), list(unexpected)
 
 
 def cpu_has_amx() -> bool:
@@ -103,27 +146,41 @@ def cpu_has_amx() -> bool:
         return False
 
 
-def compute_loss(model, batch: dict, kind: str) -> torch.Tensor:
+def compute_loss(model, batch: dict, kind: str, visibility_weight: float = 0.5) -> torch.Tensor:
+    """Local: KL on the co-visible cells (+ BCE of the visibility output over A's image region).
+    Global: KL of both directions on pairs that share content."""
     if kind == "local":
-        logits = model(batch["a"], batch["b"])
+        logits, vis = model(batch["a"], batch["b"], all_outputs=True)
         target = scales.scale_to_distribution(batch["scale"], dim=1)
-        return scales.kl_loss(logits, target, batch["mask"])
+        loss = scales.kl_loss(logits, target, batch["mask"])
+        if vis is not None:
+            valid = batch["valid"].float()
+            bce = F.binary_cross_entropy_with_logits(vis[:, 0].float(), batch["mask"].float(), reduction="none")
+            loss = loss + visibility_weight * (bce * valid).sum() / valid.sum().clamp_min(1.0)
+        return loss
     l_ab, l_ba = model(batch["a"], batch["b"])
     g = batch["global_scale"].float()
-    return 0.5 * (scales.kl_loss(l_ab, scales.scale_to_distribution(g, 1))
-                  + scales.kl_loss(l_ba, scales.scale_to_distribution(1.0 / g, 1)))
+    related = batch["related"] if "related" in batch else None
+    return 0.5 * (scales.kl_loss(l_ab, scales.scale_to_distribution(g, 1), related)
+                  + scales.kl_loss(l_ba, scales.scale_to_distribution(1.0 / g, 1), related))
+
 
 
 @torch.no_grad()
 def validate(model, batches: list[dict], kind: str, device, amp_ctx) -> dict:
     """Mean scale-ratio error r on held-out pairs, with the constant-1 baseline."""
     model.eval()
-    errs, base = [], []
+    errs, base, inter, union = [], [], 0.0, 0.0
     for batch in batches:
         batch = {k: v.to(device) for k, v in batch.items()}
         with amp_ctx():
-            out = model(batch["a"], batch["b"])
+            out = model(batch["a"], batch["b"], all_outputs=True) if kind == "local" else model(batch["a"], batch["b"])
         if kind == "local":
+            out, vis = out
+            if vis is not None:
+                pv, gv, valid = vis[:, 0] > 0, batch["mask"], batch["valid"]
+                inter += float((pv & gv & valid).sum())
+                union += float(((pv | gv) & valid).sum())
             log_s = scales.soft_log_scale(torch.softmax(out.float(), 1), 1)
             m = batch["mask"]
             gt = torch.log(batch["scale"])
@@ -133,11 +190,19 @@ def validate(model, batches: list[dict], kind: str, device, amp_ctx) -> dict:
             ls_ab = scales.soft_log_scale(torch.softmax(out[0].float(), 1), 1)
             ls_ba = scales.soft_log_scale(torch.softmax(out[1].float(), 1), 1)
             gt = torch.log(batch["global_scale"].float())
-            errs.append((scales.consistent_log_scale(ls_ab, ls_ba) - gt).abs().cpu())
-            base.append(gt.abs().cpu())
+            keep = batch["related"] if "related" in batch else torch.ones_like(gt, dtype=torch.bool)
+            errs.append((scales.consistent_log_scale(ls_ab, ls_ba) - gt).abs()[keep].cpu())
+            base.append(gt.abs()[keep].cpu())
     e, b = torch.cat(errs).double(), torch.cat(base).double()
-    return {"mean_r": float(torch.exp(e).mean()), "median_r": float(torch.exp(e.median())),
-            "baseline_mean_r": float(torch.exp(b).mean())}
+    row = {"mean_r": float(torch.exp(e).mean()), "median_r": float(torch.exp(e.median())),
+           "baseline_mean_r": float(torch.exp(b).mean())}
+    if union:
+        row["visibility_iou"] = inter / union
+    return row
+
+
+def _grads_finite(model) -> bool:
+    return all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
 class _Logger:
@@ -223,10 +288,11 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         model.extractor.backbone.load_torchvision_vgg16(cfg.vgg_weights)
     if cfg.init_weights:
         src = read_checkpoint(cfg.init_weights)
-        try:
-            model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in src["state_dict"].items()})
-        except RuntimeError as e:
-            raise LocalScaleError(f"{cfg.init_weights}: weights do not fit this model ({str(e).splitlines()[0]})") from None
+        sd = {k: v.float() if v.is_floating_point() else v for k, v in src["state_dict"].items()}
+        missing, unexpected = _load_matching(model, sd, cfg.init_weights)
+        if rank == 0 and missing:
+            print(f"init from {cfg.init_weights}: new layers {', '.join(sorted({k.rsplit('.', 1)[0] for k in missing}))}",
+                  file=sys.stderr)
     if cfg.init_extractor:
         src = read_checkpoint(cfg.init_extractor)
         ext = {k[len("extractor."):]: v.float() for k, v in src["state_dict"].items() if k.startswith("extractor.")}
@@ -307,14 +373,16 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             interrupted.set()
             signal.signal(signal.SIGINT, previous_handler)
         previous_handler = signal.signal(signal.SIGINT, _on_sigint)
-    t0, last_val = time.time(), {}
+    t0, last_val, skipped = time.time(), {}, 0
+    saved_step = step if last.exists() else None
     for batch in loader:
         batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
         with amp_ctx():
-            loss = compute_loss(model, batch, cfg.model)
+            loss = compute_loss(model, batch, cfg.model, cfg.visibility_weight)
         if not torch.isfinite(loss):
-            raise TrainingDiverged(f"loss is {loss.item()} at step {step + 1}; stopped, the last good "
-                                   f"checkpoint ({last}, step {step - step % cfg.ckpt_every}) is kept")
+            kept = f"the last good checkpoint ({last}, step {saved_step}) is kept" if saved_step is not None \
+                else "no checkpoint had been written yet"
+            raise TrainingDiverged(f"loss is {loss.item()} at step {step + 1}; stopped, {kept}")
         opt.zero_grad(set_to_none=True)
         if scaler is not None:
             scaler.scale(loss).backward()
@@ -322,7 +390,15 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             scaler.update()
         else:
             loss.backward()
-            opt.step()
+            if _grads_finite(core):
+                opt.step()
+            else:
+                skipped += 1
+                if skipped > 20:
+                    raise TrainingDiverged(f"non-finite gradients in {skipped} steps (last at step {step + 1}); "
+                                           f"stopped, the last checkpoint is step {saved_step}")
+                if bar is not None:
+                    bar.write(f"step {step + 1}: non-finite gradients, update skipped")
         sched.step()
         step += 1
         if bar is not None:
@@ -332,6 +408,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
                    "time_s": round(time.time() - t0, 2)})
         if step % cfg.ckpt_every == 0 or step == stop or interrupted.is_set():
             save_last()
+            saved_step = step
         if interrupted.is_set():
             break
         if rank == 0 and (step % cfg.val_every == 0 or step == cfg.steps):

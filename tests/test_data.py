@@ -91,3 +91,76 @@ def test_context_shows_the_photos_surroundings_around_a(tmp_path):
         assert is_fill(p["b"])[around].all(1).mean() > 0.95      # no context: the fill photo around A
         shares.append(is_fill(c["b"])[around].all(1).mean())   # context: the photo shows through
     assert len(shares) >= 3 and max(shares) < 0.9 and np.mean(shares) < 0.5, shares
+
+
+def _rotation_deg(H):
+    return abs(np.degrees(np.arctan2(H[1, 0] - H[0, 1], H[0, 0] + H[1, 1])))
+
+
+def test_identity_pairs_have_scale_one_everywhere(image_dir):
+    from localscale.data import PAIR_KINDS
+
+    ds = SyntheticPairs(image_dir, seed=0, config=small_cfg(identity_probability=1.0))
+    kinds = set()
+    for i in range(12):
+        it = ds[i]
+        kinds.add(PAIR_KINDS[it["kind"]])
+        m = it["mask"]
+        assert m.sum() >= 0.8 * it["valid"].sum()              # nearly all of A is visible
+        assert torch.all((it["scale"][m] - 1).abs() < 0.1)      # within +-5% scale and a little perspective
+        assert _rotation_deg(it["H"].numpy()) <= 3.5
+    assert kinds == {"identity", "near-identity"}
+
+
+def test_exact_identity_pair_without_photometric_change_is_the_same_image(image_dir):
+    from localscale.data import PAIR_KINDS
+
+    ds = SyntheticPairs(image_dir, seed=0, config=small_cfg(identity_probability=1.0, photometric=0.0,
+                                                             gray_probability=0.0))
+    items = [ds[i] for i in range(12)]
+    exact = [it for it in items if PAIR_KINDS[it["kind"]] == "identity"]
+    assert exact and all(torch.allclose(it["a"], it["b"], atol=1 / 255) for it in exact)
+
+
+def test_unrelated_pairs_have_nothing_visible(image_dir):
+    ds = SyntheticPairs(image_dir, seed=0, config=small_cfg(unrelated_probability=1.0))
+    for i in range(5):
+        it = ds[i]
+        assert not it["related"] and not it["mask"].any() and it["valid"].any()
+        assert not torch.allclose(it["a"], it["b"], atol=0.1)
+
+
+def test_full_rotation_and_low_overlap_options(image_dir):
+    plain = SyntheticPairs(image_dir, seed=0, config=small_cfg())
+    rot = SyntheticPairs(image_dir, seed=0, config=small_cfg(full_rotation_probability=1.0))
+    far = SyntheticPairs(image_dir, seed=0, config=small_cfg(low_overlap_probability=1.0, low_overlap_shift=0.6))
+    # (the angle read off H includes skew and perspective: ordinary pairs reach a little beyond 30 deg)
+    assert max(_rotation_deg(plain[i]["H"].numpy()) for i in range(30)) < 70
+    assert max(_rotation_deg(rot[i]["H"].numpy()) for i in range(30)) > 120
+    visible = lambda ds: np.mean([float(ds[i]["mask"].sum() / ds[i]["valid"].sum()) for i in range(30)])  # noqa: E731
+    assert visible(far) < visible(plain) - 0.1
+
+
+def test_gray_on_one_side_and_degradations(image_dir):
+    ds = SyntheticPairs(image_dir, seed=0, config=small_cfg(gray_one_side_probability=1.0, gray_probability=0.0,
+                                                             degrade_probability=1.0, strong_light_probability=1.0))
+    is_gray = lambda t: bool(torch.allclose(t[0], t[1], atol=1 / 255) and torch.allclose(t[1], t[2], atol=1 / 255))  # noqa: E731
+    sides = []
+    for i in range(10):
+        it = ds[i]
+        sides.append((is_gray(it["a"]), is_gray(it["b"])))
+        near_image = cv2.dilate(it["valid"].numpy().astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        pad = ~torch.from_numpy(np.kron(near_image, np.ones((8, 8), bool)))
+        assert it["a"][:, pad].abs().sum() == 0 and it["b"][:, pad].abs().sum() == 0   # padding stays black
+    assert all(a != b for a, b in sides if not (a and b))   # exactly one side gray (a colourless photo may be both)
+    assert any(a for a, _ in sides) and any(b for _, b in sides)
+
+
+def test_pair_options_are_range_checked():
+    import pytest
+
+    from localscale.errors import LocalScaleError
+    from localscale.training import TrainConfig
+
+    with pytest.raises(LocalScaleError, match="identity-probability"):
+        TrainConfig(identity_probability=1.5).pair_config()

@@ -53,9 +53,9 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(image_dir, tmp_path, monk
     real = training.compute_loss
     calls = {"n": 0}
 
-    def flaky(model, batch, kind):
+    def flaky(model, batch, kind, *args):
         calls["n"] += 1
-        loss = real(model, batch, kind)
+        loss = real(model, batch, kind, *args)
         return loss * float("nan") if calls["n"] == 5 else loss
 
     monkeypatch.setattr(training, "compute_loss", flaky)

@@ -57,9 +57,18 @@ class LocalScaleNetConfig:
     topk: int = 0
     #: and B's features soft-warped onto A through the correlation (what the match looks like)
     warp_features: bool = False
+    #: a second output: per pixel of A, the probability that it is visible in B
+    visibility: bool = False
+    #: logistic calibration of the per-pixel reliability, ``(bias, w_confidence, w_visible,
+    #: w_spread)``: ``P(r < 1.25) = sigmoid(bias + w . features)``, fitted on held-out
+    #: synthetic pairs after training (empty: not calibrated)
+    calibration: tuple[float, ...] = ()
 
     def __post_init__(self):
         self.reduction = tuple(self.reduction)
+        self.calibration = tuple(float(c) for c in self.calibration)
+        if self.calibration and len(self.calibration) != 4:
+            raise ValueError(f"calibration needs 4 coefficients, got {len(self.calibration)}")
         if self.image_size % 8 or self.image_size < 64:
             raise ValueError(f"image_size must be a multiple of 8 and >= 64, got {self.image_size}")
 
@@ -67,7 +76,7 @@ class LocalScaleNetConfig:
 class DenseHead(nn.Module):
     """Fully convolutional head: local context (dilated convs) + global context -> 13 logits/pixel."""
 
-    def __init__(self, cin: int, channels: int):
+    def __init__(self, cin: int, channels: int, visibility: bool = False):
         super().__init__()
         self.context = conv_bn_relu(cin, channels, 1)
         self.body = nn.Sequential(
@@ -77,10 +86,13 @@ class DenseHead(nn.Module):
             conv_bn_relu(channels, channels, 3),
         )
         self.out = nn.Conv2d(channels, scales.NUM_BINS, 1)
+        self.visible = nn.Conv2d(channels, 1, 1) if visibility else None
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``B x C x h x w`` -> scale logits ``B x 13 x h x w`` and visibility logits ``B x 1 x h x w`` (or None)."""
         g = self.context(x.mean((2, 3), keepdim=True)).expand(-1, -1, *x.shape[-2:])
-        return self.out(self.body(torch.cat([x, g], 1)))
+        y = self.body(torch.cat([x, g], 1))
+        return self.out(y), (self.visible(y) if self.visible is not None else None)
 
 
 @dataclass
@@ -92,6 +104,10 @@ class LocalScalePrediction:
         confidence: ``H_A x W_A`` in [0, 1], ``1 - entropy / ln 13`` of the distribution.
         probs: ``13 x h x w`` distributions on the processing grid of A (``h = w = P/8``).
         letterbox_a, letterbox_b: placement of the images in the processing frame.
+        visible: ``H_A x W_A`` in [0, 1], the probability that each pixel of A is visible in B
+            (None for a model without the visibility output). The scale is meaningful only there.
+        reliability: ``H_A x W_A`` in [0, 1], the calibrated probability that the scale at a
+            pixel is within a factor 1.25 of the truth (None for an uncalibrated model).
     """
 
     scale: np.ndarray
@@ -99,6 +115,8 @@ class LocalScalePrediction:
     probs: torch.Tensor
     letterbox_a: Letterbox
     letterbox_b: Letterbox
+    visible: np.ndarray | None = None
+    reliability: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
 
     @property
@@ -125,10 +143,16 @@ class LocalScaleNet(ScaleModel):
         n = self.grid_size ** 2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
-        self.head = DenseHead(2 * config.reduction[-1] + self._build_cue_branches(n), config.head_channels)
+        self.head = DenseHead(2 * config.reduction[-1] + self._build_cue_branches(n), config.head_channels,
+                              config.visibility)
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
+        return self.forward_features_all(fa, fb)[0]
+
+    def forward_features_all(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Scale logits ``B x 13 x h x w`` and visibility logits ``B x 1 x h x w`` (None without the
+        visibility output) from encoded features."""
         raw_a, raw_ab = correlation(fa, fa), correlation(fa, fb)
         parts = [self.reduce_self(normalise_correlation(raw_a)), self.reduce_cross(normalise_correlation(raw_ab))]
         if self.topk:
@@ -137,18 +161,21 @@ class LocalScaleNet(ScaleModel):
             parts.append(self.reduce_warp(warped_pair_features(raw_ab, fa, fb)))
         return self.head(torch.cat(parts, 1))
 
-    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """``B x 3 x P x P`` (x2, in [0, 1]) -> logits ``B x 13 x P/8 x P/8`` (processing frame)."""
-        return self.forward_features(self.encode(a), self.encode(b))
+    def forward(self, a: torch.Tensor, b: torch.Tensor, all_outputs: bool = False):
+        """``B x 3 x P x P`` (x2, in [0, 1]) -> logits ``B x 13 x P/8 x P/8`` (processing frame);
+        with ``all_outputs`` also the visibility logits ``B x 1 x P/8 x P/8`` (or None)."""
+        out = self.forward_features_all(self.encode(a), self.encode(b))
+        return out if all_outputs else out[0]
 
     @torch.inference_mode()
     def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, hard: bool = False,
                               bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
         """Scale map from two cached encodings (see :meth:`encode_image`)."""
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
-            logits = self.forward_features(ea.features, eb.features)
+            logits, vis = self.forward_features_all(ea.features, eb.features)
         probs = F.softmax(logits.float(), 1)[0]
-        return self._readout(probs, ea.letterbox, eb.letterbox, hard, planar)
+        visible = torch.sigmoid(vis.float())[0, 0] if vis is not None else None
+        return self._readout(probs, ea.letterbox, eb.letterbox, hard, planar, visible)
 
     @torch.inference_mode()
     def predict(self, image_a: ImageLike, image_b: ImageLike, hard: bool = False,
@@ -166,17 +193,43 @@ class LocalScaleNet(ScaleModel):
         return self.predict_from_features(ea, eb, hard, bf16, planar)
 
     def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool,
-                 planar: bool = False) -> LocalScalePrediction:
+                 planar: bool = False, visible: torch.Tensor | None = None) -> LocalScalePrediction:
         log_s = torch.log(scales.hard_scale(probs, 0)) if hard else scales.soft_log_scale(probs, 0)
         log_s = log_s + math.log(lb_a.factor / lb_b.factor)
         conf = scales.confidence(probs, 0)
-        maps = upsample_to_original(torch.stack([log_s, conf]), lb_a)
+        grids = [log_s, conf] + ([visible] if visible is not None else [])
+        if self.config.calibration:
+            grids.append(reliability(probs, visible, self.config.calibration, 0))
+        maps = upsample_to_original(torch.stack(grids), lb_a)
         scale = np.exp(as_numpy(maps[0])).astype(np.float32)
         confidence = as_numpy(maps[1]).clip(0, 1).astype(np.float32)
+        vis_map = as_numpy(maps[2]).clip(0, 1).astype(np.float32) if visible is not None else None
+        rel_map = as_numpy(maps[-1]).clip(0, 1).astype(np.float32) if self.config.calibration else None
         if planar:
             scale = planarize(scale, confidence, stride=max(1, round(8 / lb_a.factor)))
         return LocalScalePrediction(scale=scale, confidence=confidence, probs=probs.cpu(),
-                                    letterbox_a=lb_a, letterbox_b=lb_b)
+                                    letterbox_a=lb_a, letterbox_b=lb_b, visible=vis_map, reliability=rel_map)
+
+
+def reliability_features(probs: torch.Tensor, visible: torch.Tensor | None, dim: int = 1) -> torch.Tensor:
+    """Per-pixel features of the reliability calibration, stacked on ``dim``: the entropy
+    confidence, the visibility probability (1 when the model has none) and the spread of the
+    distribution (std of ``log2 s`` in bins). ``probs``: ``... x 13 x ...`` -> ``... x 3 x ...``."""
+    conf = scales.confidence(probs, dim)
+    log2 = scales.bin_scales().to(probs).log2().view([-1 if d == dim % probs.dim() else 1 for d in range(probs.dim())])
+    mean = (probs * log2).sum(dim, keepdim=True)
+    spread = ((probs * (log2 - mean) ** 2).sum(dim)).clamp_min(0).sqrt()
+    vis = visible if visible is not None else torch.ones_like(conf)
+    return torch.stack([conf, vis.to(conf), spread], dim % probs.dim())
+
+
+def reliability(probs: torch.Tensor, visible: torch.Tensor | None, calibration: tuple[float, ...],
+                dim: int = 1) -> torch.Tensor:
+    """Calibrated ``P(r < 1.25)`` per pixel from :func:`reliability_features`."""
+    f = reliability_features(probs, visible, dim)
+    w = torch.tensor(calibration[1:], dtype=f.dtype, device=f.device)
+    w = w.view([-1 if d == dim % f.dim() else 1 for d in range(f.dim())])
+    return torch.sigmoid(calibration[0] + (f * w).sum(dim % f.dim()))
 
 
 def predict_scale_map(image_a: ImageLike, image_b: ImageLike, model: LocalScaleNet | None = None,
