@@ -162,3 +162,152 @@ def test_train_state_is_plain_data_and_restores_the_schedule(tmp_path):
         sched2.step()
         lrs.append(opt2.param_groups[0]["lr"])
     assert lrs == pytest.approx([0.125, 0.125, 0.125])   # 1 * 0.5 (step 2) * 0.25 (step 4, twice)
+
+
+# ---------------------------------------------------------------- image files
+import resource  # noqa: E402
+import warnings  # noqa: E402
+
+import cv2  # noqa: E402
+from PIL import Image, ImageOps  # noqa: E402
+
+import localscale.io as lio  # noqa: E402
+from localscale.errors import HomographyError, ImageError  # noqa: E402
+from localscale.io import load_image, read_homography  # noqa: E402
+
+HUGE_HEADERS = {
+    "pfm": b"PF\n20000 20000\n-1.0\n",
+    "pam": b"P7\nWIDTH 20000\nHEIGHT 20000\nDEPTH 3\nMAXVAL 255\nTUPLTYPE RGB\nENDHDR\n",
+    "hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\nEXPOSURE=1.0\n\n-Y 20000 +X 20000\n",
+}
+
+
+@pytest.fixture
+def no_decode(monkeypatch):
+    """Fail the test if load_image hands the file to the decoder."""
+    calls = []
+    monkeypatch.setattr(lio.cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
+    return calls
+
+
+@pytest.mark.parametrize("fmt", sorted(HUGE_HEADERS))
+def test_huge_size_in_a_header_pil_cannot_read_is_refused_undecoded(tmp_path, fmt, no_decode):
+    p = tmp_path / f"huge.{fmt}"
+    p.write_bytes(HUGE_HEADERS[fmt] + bytes(4096))
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ImageError, match="20000x20000") as e:
+        load_image(p)
+    assert "larger than the limit" in _one_line(e) and str(p) in str(e.value)
+    assert not no_decode
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200 * 1024   # KiB: < 200 MB
+
+
+def test_file_whose_size_is_unreadable_is_refused_undecoded(tmp_path, no_decode):
+    p = tmp_path / "mystery.img"
+    p.write_bytes(b"\x00\x01 no known image header " * 40)
+    no_size = {"pfm": b"PF\n-1.0\n", "pam": b"P7\nDEPTH 3\nMAXVAL 255\nENDHDR\n",   # right signature, no size
+               "hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\nno resolution line\n"}
+    for fmt, header in no_size.items():
+        (tmp_path / f"bad.{fmt}").write_bytes(header + bytes(100))
+    for f in [p] + [tmp_path / f"bad.{fmt}" for fmt in no_size]:
+        with pytest.raises(ImageError, match="size cannot be read from the header") as e:
+            load_image(f)
+        _one_line(e)
+    assert not no_decode
+
+
+@pytest.mark.parametrize("ext", [".pfm", ".pam", ".hdr"])
+def test_small_pfm_pam_hdr_files_still_load(tmp_path, ext):
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.05, 0.9, (20, 30, 3)).astype(np.float32)
+    data = img if ext != ".pam" else (img * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(ext, data)
+    assert ok
+    p = tmp_path / f"small{ext}"
+    p.write_bytes(buf.tobytes())
+    out = load_image(p)
+    assert out.shape == (20, 30, 3) and out.dtype == np.uint8
+    want = (img[..., ::-1] * 255).round()
+    assert np.abs(out.astype(np.float32) - want).mean() < 3   # RGBE keeps ~8 bits of mantissa
+
+
+def _exif(orientation: int) -> Image.Exif:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    return exif
+
+
+@pytest.mark.parametrize("orientation", [6, 8])
+def test_portrait_jpeg_with_exif_orientation_loads_portrait(tmp_path, photos, orientation):
+    stored = cv2.resize(photos["coffee"], (64, 48), interpolation=cv2.INTER_AREA)   # landscape pixels
+    p = tmp_path / f"o{orientation}.jpg"
+    Image.fromarray(stored).save(p, quality=95, exif=_exif(orientation))
+    out = load_image(p)
+    assert out.shape == (64, 48, 3)   # portrait, as a viewer shows it
+    with Image.open(p) as im:
+        upright = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    assert upright.shape == out.shape
+    assert np.abs(out.astype(int) - upright).mean() < 3
+    assert np.abs(out.astype(int) - np.rot90(upright, 2)).mean() > 10   # a rotation is not mistaken
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_exif_orientation_matches_pil(tmp_path, orientation):
+    rng = np.random.default_rng(orientation)
+    stored = rng.integers(0, 256, (20, 36, 3), dtype=np.uint8)
+    p = tmp_path / f"o{orientation}.png"
+    Image.fromarray(stored).save(p, exif=_exif(orientation))
+    with Image.open(p) as im:
+        im.load()
+        want = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    assert np.array_equal(load_image(p), want)
+
+
+def test_decoder_messages_stay_off_the_terminal(tmp_path, photos, capfd):
+    img = photos["coffee"][:120, :160, ::-1]
+    ok, png = cv2.imencode(".png", img)
+    (tmp_path / "t.png").write_bytes(png.tobytes()[:len(png) // 2])
+    with pytest.raises(ImageError, match="cannot decode") as e:
+        load_image(tmp_path / "t.png")
+    _one_line(e)
+    ok, jpg = cv2.imencode(".jpg", img)
+    bad = jpg.copy()
+    bad[len(bad) // 2:len(bad) // 2 + 40] = 0   # corrupt the entropy-coded data: libjpeg warns, still decodes
+    (tmp_path / "c.jpg").write_bytes(bad.tobytes())
+    with pytest.warns(UserWarning, match="decoder reported a problem: Corrupt JPEG data"):
+        assert load_image(tmp_path / "c.jpg").shape == (120, 160, 3)
+    err = capfd.readouterr().err
+    assert "WARN" not in err and "Corrupt JPEG" not in err and "libpng" not in err
+    import sys
+    print("stderr still works", file=sys.stderr)
+    os.write(2, b"fd 2 still works\n")
+    err = capfd.readouterr().err
+    assert "stderr still works" in err and "fd 2 still works" in err
+
+
+def test_symlink_loop_and_broken_link_are_named(tmp_path):
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    with pytest.raises(ImageError, match="symbolic link loop") as e:
+        load_image(a)
+    _one_line(e)
+    (tmp_path / "dangling.png").symlink_to(tmp_path / "gone.png")
+    with pytest.raises(ImageError, match="broken symbolic link"):
+        load_image(tmp_path / "dangling.png")
+
+
+def test_opaque_alpha_is_dropped_silently(tmp_path, photos):
+    rgb = photos["coffee"][:64, :80]
+    Image.fromarray(rgb).save(tmp_path / "o.gif")   # GIF without transparency
+    Image.fromarray(np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)])).save(tmp_path / "o.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gif = load_image(tmp_path / "o.gif")
+        png = load_image(tmp_path / "o.png")
+        load_image(np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)]))
+    assert gif.shape == png.shape == rgb.shape and np.array_equal(png, rgb)
+    half = np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)])
+    half[0, 0, 3] = 0
+    with pytest.warns(UserWarning, match="alpha channel dropped"):
+        load_image(half)
