@@ -311,3 +311,38 @@ def test_opaque_alpha_is_dropped_silently(tmp_path, photos):
     half[0, 0, 3] = 0
     with pytest.warns(UserWarning, match="alpha channel dropped"):
         load_image(half)
+
+
+# ---------------------------------------------------------------- homographies
+@pytest.mark.parametrize("H", [
+    [[1, 0, 1e4], [0, 1, -1.2e4], [0, 0, 1]],             # translation by ~1e4 px
+    [[1e-7, 0, 0], [0, 1e-7, 0], [0, 0, 1]],               # zoom out by 1e7
+    [[1e7, 0, 0], [0, 1e7, 0], [0, 0, 1]],                 # zoom in by 1e7
+    [[0.9, 0.1, 2e4], [-0.1, 0.9, 3e4], [1e-6, 2e-6, 1]],  # far-away projective view
+])
+def test_valid_homographies_with_extreme_entries_are_accepted(tmp_path, H):
+    H = np.array(H, dtype=np.float64)
+    assert np.array_equal(read_homography(H), H)
+    np.savetxt(tmp_path / "H", H)
+    assert np.allclose(read_homography(tmp_path / "H"), H, rtol=1e-15, atol=0)
+    pts = np.array([[10.0, 20.0, 1.0], [300.0, -40.0, 1.0]]).T
+    back = np.linalg.solve(H, H @ pts)   # invertible in float64
+    assert np.allclose(back / back[2], pts, rtol=1e-6)
+
+
+@pytest.mark.parametrize("H", [
+    [[1, 2, 3], [2, 4, 6], [0, 0, 1]],          # two proportional rows
+    [[1, 2, 3], [4, 5, 6], [7, 8, 9]],          # rank 2 (row 3 = 2 row 2 - row 1)
+    [[1e4, 0, 5e3], [0, 0, 0], [0, 0, 1]],      # a zero row, large entries
+    [[1e-9, 0, 0], [0, 1e-9, 0], [0, 0, 0]],    # projects everything to infinity
+    np.zeros((3, 3)),
+])
+def test_rank_deficient_homographies_are_refused(H):
+    with pytest.raises(HomographyError, match="singular homography") as e:
+        read_homography(np.array(H, dtype=np.float64))
+    _one_line(e)
+
+
+def test_non_finite_homography_is_refused():
+    with pytest.raises(HomographyError, match="NaN or inf"):
+        read_homography(np.array([[1, 0, np.inf], [0, 1, 0], [0, 0, 1]]))
