@@ -71,7 +71,7 @@ def safe_load(path: str | Path) -> Any:
         if found:
             raise CheckpointError(f"{path}: checkpoint contains non-tensor objects ({found.group(1)}); refused, "
                                   f"only tensors and plain data (dict, list, str, numbers) are loaded") from None
-        raise CheckpointError(f"{path}: cannot read checkpoint, not a tensors-and-plain-data torch file, "
+        raise CheckpointError(f"{path}: cannot read checkpoint, not a torch file of tensors and plain data, "
                               f"or truncated or corrupt") from None
     except Exception as e:
         msg = str(e).strip().splitlines()
