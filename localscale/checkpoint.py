@@ -4,10 +4,19 @@ A checkpoint is a ``torch.save``-d dict::
 
     {"localscale_format": 1, "arch": "LocalScaleNet", "config": {...},
      "state_dict": {...}, "meta": {...}, "train_state": {...}  # optional}
+
+Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain data
+(dict, list, tuple, str, numbers, bool, None) are unpickled, so a checkpoint cannot run
+code when it is loaded. A file holding any other object is refused with a
+:class:`CheckpointError`.
 """
 from __future__ import annotations
 
 import dataclasses
+import pickle
+import re
+import warnings
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -43,19 +52,85 @@ def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, hal
     tmp.replace(path)
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read and validate the container (not the weights) of a checkpoint file."""
+def safe_load(path: str | Path) -> Any:
+    """``torch.load`` restricted to tensors and plain data (``weights_only=True``), on the CPU.
+
+    Raises:
+        CheckpointError: the file is missing, holds other objects (refused unread), or is
+            truncated or corrupt. The message is one line and names the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        with warnings.catch_warnings():   # torch warns about the pickle protocol of foreign files
+            warnings.simplefilter("ignore")
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        found = re.search(r"GLOBAL ([\w.]+)", str(e))
+        if found:
+            raise CheckpointError(f"{path}: checkpoint contains non-tensor objects ({found.group(1)}); refused, "
+                                  f"only tensors and plain data (dict, list, str, numbers) are loaded") from None
+        raise CheckpointError(f"{path}: cannot read checkpoint, not a torch file of tensors and plain data, "
+                              f"or truncated or corrupt") from None
     except Exception as e:
+        msg = str(e).strip().splitlines()
         raise CheckpointError(f"{path}: cannot read checkpoint, truncated or corrupt "
-                              f"({type(e).__name__}: {str(e).splitlines()[0][:120]})") from None
+                              f"({type(e).__name__}: {msg[0][:120] if msg else ''})") from None
+
+
+def check_format(ckpt: dict, path: str | Path) -> None:
+    """Refuse a ``localscale_format`` other than :data:`FORMAT_VERSION`."""
+    version = ckpt.get("localscale_format")
+    if type(version) is not int or version != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: unsupported checkpoint format version {version!r} "
+                              f"(this localscale reads version {FORMAT_VERSION})")
+
+
+def check_state_dict(sd: Any, path: str | Path) -> None:
+    """A state dict must map names (str) to tensors."""
+    if not isinstance(sd, dict):
+        raise CheckpointError(f"{path}: 'state_dict' is a {type(sd).__name__}, not a dict of tensors")
+    for k, v in sd.items():
+        if not isinstance(k, str) or not isinstance(v, torch.Tensor):
+            raise CheckpointError(f"{path}: 'state_dict' entry {str(k)[:80]!r} is a {type(v).__name__}, "
+                                  f"not a tensor")
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read and validate the container (not the weights) of a checkpoint file.
+
+    Checks: a dict with ``localscale_format`` equal to :data:`FORMAT_VERSION` and a
+    ``state_dict`` mapping names to tensors.
+    """
+    ckpt = safe_load(path)
     if not isinstance(ckpt, dict) or "localscale_format" not in ckpt:
         raise CheckpointError(f"{path}: not a localscale checkpoint (no 'localscale_format' key)")
+    check_format(ckpt, path)
+    if "state_dict" not in ckpt:
+        raise CheckpointError(f"{path}: checkpoint has no 'state_dict' (no weights)")
+    check_state_dict(ckpt["state_dict"], path)
     return ckpt
+
+
+def train_state(optimizer: torch.optim.Optimizer, scheduler: Any, step: int) -> dict[str, Any]:
+    """Optimizer and LR-scheduler state as tensors and plain data, for a resumable checkpoint.
+
+    ``MultiStepLR`` keeps its milestones in a ``collections.Counter``; it is stored as a
+    plain dict (torch before 2.4 refuses a ``Counter`` under ``weights_only=True``).
+    """
+    sched = {k: dict(v) if isinstance(v, Counter) else v for k, v in scheduler.state_dict().items()}
+    return {"optimizer": optimizer.state_dict(), "scheduler": sched, "step": int(step)}
+
+
+def restore_train_state(optimizer: torch.optim.Optimizer, scheduler: Any, state: dict[str, Any]) -> int:
+    """Load what :func:`train_state` stored (milestones back into a ``Counter``); returns the step."""
+    optimizer.load_state_dict(state["optimizer"])
+    sched = dict(state["scheduler"])
+    if isinstance(sched.get("milestones"), dict):
+        sched["milestones"] = Counter(sched["milestones"])
+    scheduler.load_state_dict(sched)
+    return int(state["step"])
 
 
 def load_model(path: str | Path, arch: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
@@ -71,11 +146,15 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
     if found not in _REGISTRY:
         raise CheckpointError(f"{path}: unknown architecture {found!r}")
     cls = _REGISTRY[found]
+    if not isinstance(ckpt.get("config"), dict):
+        raise CheckpointError(f"{path}: checkpoint has no valid 'config' (got {type(ckpt.get('config')).__name__})")
     try:
         config = cls.config_class(**ckpt["config"])
-    except TypeError as e:
-        raise CheckpointError(f"{path}: config does not fit {found} ({e})") from None
-    model = cls(config)
+        model = cls(config)
+    except Exception as e:
+        msg = str(e).strip().splitlines()
+        raise CheckpointError(f"{path}: config does not fit {found} "
+                              f"({type(e).__name__}: {msg[0][:160] if msg else ''})") from None
     sd = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
     try:
         model.load_state_dict(sd)

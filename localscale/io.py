@@ -3,18 +3,30 @@
 ``load_image`` always returns an ``H x W x 3`` uint8 RGB array:
 
 * grayscale is replicated to three channels;
-* RGBA / gray+alpha: the alpha channel is dropped (a warning says so);
+* RGBA / gray+alpha: the alpha channel is dropped (a warning says so unless it is fully opaque);
 * 16-bit images are rescaled to 8 bit (``x / 257``, a warning says so);
 * float arrays must be finite and in ``[0, 1]``;
 * images smaller than :data:`MIN_SIDE` on a side or above :data:`MAX_PIXELS` pixels are
-  refused; for files the size is read from the header before anything is decoded.
+  refused; for files the size is read from the header before anything is decoded, and a
+  file whose size cannot be read from its header is refused undecoded;
+* the EXIF orientation tag of a file is applied (a portrait photo stays portrait).
+
+Decoder messages (OpenCV's log, libjpeg/libpng warnings on stderr) are kept off the
+terminal while a file is decoded; a decoder warning on a file that still decodes is
+reported as one Python warning.
 """
 from __future__ import annotations
 
+import errno
 import os
+import re
+import stat
+import tempfile
+import threading
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Union
+from typing import Iterator, Union
 
 import cv2
 import numpy as np
@@ -24,18 +36,161 @@ from .errors import HomographyError, ImageError
 MIN_SIDE = 16
 MAX_PIXELS = 100_000_000
 ImageLike = Union[str, os.PathLike, np.ndarray]
+_HEAD_BYTES = 65536
 
 
-def _header_size(path: Path) -> tuple[int, int] | None:
-    """``(width, height)`` from the file header without decoding pixels (None if unknown)."""
+def _text_header_size(head: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` of the formats OpenCV decodes and PIL cannot identify: PFM, PAM and
+    Radiance HDR, parsed from their text headers (None if the header is not one of them or is bad)."""
+    if head[:2] in (b"PF", b"Pf"):                    # PFM: "PF" / "Pf", width, height, scale
+        tokens = head[2:256].split()
+        if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit():
+            return int(tokens[0]), int(tokens[1])
+        return None
+    if head[:3] in (b"P7\n", b"P7\r", b"P7 "):        # PAM: "WIDTH w", "HEIGHT h" lines up to ENDHDR
+        fields = {}
+        for line in head[3:].splitlines():
+            line = line.split(b"#")[0].strip()
+            if line == b"ENDHDR":
+                break
+            parts = line.split()
+            if len(parts) == 2 and parts[1].isdigit():
+                fields[parts[0].upper()] = int(parts[1])
+        else:
+            return None
+        if b"WIDTH" not in fields or b"HEIGHT" not in fields:
+            return None
+        return fields[b"WIDTH"], fields[b"HEIGHT"]
+    if head.startswith((b"#?RADIANCE", b"#?RGBE")):   # Radiance: header lines, blank line, "-Y h +X w"
+        _, sep, rest = head.partition(b"\n\n")
+        m = re.match(rb"\s*([-+][XY])\s+(\d+)\s+([-+][XY])\s+(\d+)\s*\n", rest) if sep else None
+        if m is None or m.group(1)[1:] == m.group(3)[1:]:
+            return None
+        dims = {m.group(1)[1:]: int(m.group(2)), m.group(3)[1:]: int(m.group(4))}
+        return dims[b"X"], dims[b"Y"]
+    return None
+
+
+def _pil_header(path: Path) -> tuple[tuple[int, int], int] | None:
+    """``((width, height), exif_orientation)`` read by PIL without decoding pixels (None if unknown)."""
     try:
         from PIL import Image
-
-        Image.MAX_IMAGE_PIXELS = None  # we apply our own limit below
-        with Image.open(path) as im:
-            return im.size
+    except ImportError:  # pragma: no cover
+        return None
+    limit = Image.MAX_IMAGE_PIXELS
+    try:
+        Image.MAX_IMAGE_PIXELS = None   # the size is checked against MAX_PIXELS by the caller
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                size = im.size
+                orientation = 1
+                try:   # PNG keeps EXIF after the pixels at times: reading it there would decode them
+                    if im.format != "PNG" or "exif" in im.info:
+                        orientation = int(im.getexif().get(0x0112, 1))
+                except Exception:
+                    orientation = 1
+                return size, orientation
     except Exception:
         return None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
+
+
+def _header(path: Path) -> tuple[tuple[int, int], int] | None:
+    """``((width, height), exif_orientation)`` from the file header, None if the size is unknown."""
+    with open(path, "rb") as f:
+        head = f.read(_HEAD_BYTES)
+    size = _text_header_size(head)
+    if size is not None:
+        return size, 1
+    return _pil_header(path)
+
+
+_quiet_lock = threading.Lock()
+_quiet_depth = 0
+_quiet_saved: dict = {}
+
+
+@contextmanager
+def _quiet_decoder() -> Iterator[list]:
+    """Silence OpenCV's log and send what the C decoders print on stderr (fd 2) to a temporary
+    file while a decode runs; yields a list that receives the captured lines afterwards.
+
+    Nested and concurrent uses share one redirection (the first to enter sets it up, the last
+    to leave restores stderr), so decodes in several threads stay concurrent."""
+    global _quiet_depth
+    captured: list = []
+    with _quiet_lock:
+        if _quiet_depth == 0:
+            _quiet_saved.clear()
+            try:
+                _quiet_saved["level"] = cv2.utils.logging.getLogLevel()
+                cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+            except Exception:  # pragma: no cover - OpenCV without the logging module
+                pass
+            try:
+                sink = tempfile.TemporaryFile()
+                _quiet_saved["fd"] = os.dup(2)
+                _quiet_saved["sink"] = sink
+                os.dup2(sink.fileno(), 2)
+            except OSError:  # no usable fd 2: leave stderr alone
+                _quiet_saved.pop("fd", None)
+        _quiet_depth += 1
+    try:
+        yield captured
+    finally:
+        with _quiet_lock:
+            _quiet_depth -= 1
+            sink = _quiet_saved.get("sink")
+            if _quiet_depth == 0:
+                if "fd" in _quiet_saved:
+                    os.dup2(_quiet_saved["fd"], 2)
+                    os.close(_quiet_saved["fd"])
+                if "level" in _quiet_saved:
+                    cv2.utils.logging.setLogLevel(_quiet_saved["level"])
+                _quiet_saved.clear()
+            if sink is not None:
+                try:
+                    sink.seek(0)
+                    captured.extend(line for line in sink.read().decode("utf-8", "replace").splitlines()
+                                    if line.strip())
+                except (OSError, ValueError):  # pragma: no cover
+                    pass
+                if _quiet_depth == 0:
+                    sink.close()
+
+
+def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn an image stored with EXIF orientation ``1..8`` upright (as PIL's ``exif_transpose``)."""
+    if orientation == 2:
+        return arr[:, ::-1]
+    if orientation == 3:
+        return arr[::-1, ::-1]
+    if orientation == 4:
+        return arr[::-1]
+    if orientation == 5:
+        return arr.swapaxes(0, 1)
+    if orientation == 6:
+        return np.rot90(arr, -1)
+    if orientation == 7:
+        return arr[::-1, ::-1].swapaxes(0, 1)
+    if orientation == 8:
+        return np.rot90(arr, 1)
+    return arr
+
+
+def _stat_file(path: Path, name: str) -> os.stat_result:
+    try:
+        return path.stat()
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ImageError(f"{name}: symbolic link loop: {path}") from None
+        if e.errno == errno.ENOENT:
+            if path.is_symlink():
+                raise ImageError(f"{name}: broken symbolic link (its target does not exist): {path}") from None
+            raise ImageError(f"{name}: file not found: {path}") from None
+        raise ImageError(f"{name}: cannot access {path} ({e.strerror})") from None
 
 
 def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
@@ -43,30 +198,44 @@ def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
 
     Raises:
         ImageError: missing/unreadable/corrupt file, bad dtype or shape, NaN/inf,
-            image too small or too large.
+            image too small or too large, size not readable from the file header.
     """
     if isinstance(image, (str, os.PathLike)):
         path = Path(image)
-        if not path.exists():
-            raise ImageError(f"{name}: file not found: {path}")
-        if path.is_dir():
+        label = f"{name} ({path})"
+        st = _stat_file(path, name)
+        if stat.S_ISDIR(st.st_mode):
             raise ImageError(f"{name}: is a directory, not an image file: {path}")
-        if path.stat().st_size == 0:
+        if st.st_size == 0:
             raise ImageError(f"{name}: empty file (0 bytes): {path}")
-        size = _header_size(path)
-        if size is not None:
-            _check_size(size[1], size[0], f"{name} ({path})")
-        data = np.fromfile(str(path), dtype=np.uint8)
-        arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        try:
+            header = _header(path)
+        except OSError as e:
+            raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
+        if header is None:
+            raise ImageError(f"{name}: cannot decode image, its size cannot be read from the header "
+                             f"(corrupt, truncated or unsupported format): {path}")
+        (width, height), orientation = header
+        _check_size(height, width, label)
+        try:
+            data = np.fromfile(str(path), dtype=np.uint8)
+        except OSError as e:
+            raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
+        with _quiet_decoder() as messages:
+            arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if arr is None:
             raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
-        if size is None:
-            _check_size(arr.shape[0], arr.shape[1], f"{name} ({path})")
+        if sorted(arr.shape[:2]) != sorted((height, width)):
+            raise ImageError(f"{name}: decoded image is {arr.shape[1]}x{arr.shape[0]}, but its header says "
+                             f"{width}x{height} (corrupt file): {path}")
+        if messages:
+            warnings.warn(f"{label}: the decoder reported a problem: {messages[0][:200]}", stacklevel=2)
         if arr.ndim == 3:
             code = cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB
             if arr.shape[2] in (3, 4):
                 arr = cv2.cvtColor(arr, code)
-        return to_rgb_uint8(arr, f"{name} ({path})")
+        arr = _apply_orientation(arr, orientation)
+        return to_rgb_uint8(arr, label)
     if isinstance(image, np.ndarray):
         return to_rgb_uint8(image, name)
     try:  # torch tensors: C x H x W float in [0, 1] or uint8
@@ -90,7 +259,8 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image") -> np.ndarray:
         raise ImageError(f"{name}: expected H x W, H x W x 3 or H x W x 4, got shape {arr.shape}")
     _check_size(arr.shape[0], arr.shape[1], name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
-        warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
+        if not _is_opaque(arr[..., -1]):
+            warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
         arr = arr[..., :-1]
     if arr.dtype == np.uint8:
         out = arr
@@ -110,6 +280,15 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image") -> np.ndarray:
     if out.ndim == 2:
         out = np.repeat(out[..., None], 3, axis=2)
     return np.ascontiguousarray(out)
+
+
+def _is_opaque(alpha: np.ndarray) -> bool:
+    """True if every alpha value is the dtype's full opacity (255, 65535, 1.0, True)."""
+    if alpha.dtype == np.bool_:
+        return bool(alpha.all())
+    if np.issubdtype(alpha.dtype, np.integer):
+        return bool((alpha == np.iinfo(alpha.dtype).max).all())
+    return bool((alpha == 1).all())
 
 
 def _check_size(height: int, width: int, name: str) -> None:
@@ -139,7 +318,10 @@ def read_homography(path: Union[str, os.PathLike, np.ndarray]) -> np.ndarray:
         raise HomographyError(f"{src}: expected a 3x3 matrix, got shape {H.shape}")
     if not np.isfinite(H).all():
         raise HomographyError(f"{src}: contains NaN or inf")
-    norm = np.abs(H).max()
-    if norm == 0 or abs(np.linalg.det(H / norm)) < 1e-12:
-        raise HomographyError(f"{src}: singular homography (det = 0)")
+    # Rank test on the singular values, relative to the largest one (the matrix_rank tolerance):
+    # invariant to the overall scale of H, so large translations and strong zooms pass.
+    sv = np.linalg.svd(H, compute_uv=False)
+    if not sv[0] > 0 or sv[-1] <= sv[0] * 3 * np.finfo(np.float64).eps:
+        raise HomographyError(f"{src}: singular homography (rank < 3: smallest singular value "
+                              f"{sv[-1]:.3g}, largest {sv[0]:.3g})")
     return H

@@ -148,7 +148,7 @@ def main(argv=None) -> int:
         train_files, held_files = train_files[:args.limit_images], held_files[:max(1, args.limit_images // 4)]
     cache = out / f"patches_seed{args.seed}.pt"
     if cache.is_file():
-        data = torch.load(cache)
+        data = torch.load(cache, map_location="cpu", weights_only=True)   # tensors only, no code
     else:
         tr = build_patch_set(train_files, args.seed, args.pairs_per_image, args.per_pair, "train patches")
         ho = build_patch_set(held_files, args.seed + 10_000, 2, args.per_pair, "held-out patches")
@@ -164,7 +164,7 @@ def main(argv=None) -> int:
     step, elapsed_before = 0, 0.0
     last = out / "last.pt"
     if last.is_file():
-        ck = torch.load(last, weights_only=False)
+        ck = torch.load(last, map_location="cpu", weights_only=True)   # tensors and plain data only
         model.net.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before = ck["step"], ck.get("elapsed", 0.0)

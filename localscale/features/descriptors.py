@@ -21,6 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from kornia.feature import HardNet, SIFTDescriptor
 
+from ..checkpoint import check_format, check_state_dict, safe_load
 from ..errors import CheckpointError, LocalScaleError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -68,20 +69,23 @@ class HardNetDescriptor(PatchDescriptor):
     @classmethod
     def from_pretrained(cls, path: Optional[Union[str, Path]] = None, device: str = "cpu") -> "HardNetDescriptor":
         """Load weights: ``None`` = bundled ``weights/hardnet.pt``; also accepts kornia/official
-        HardNet checkpoints (``{"state_dict": ...}``) and plain state dicts."""
+        HardNet checkpoints (``{"state_dict": ...}``) and plain state dicts.
+
+        The file is read with ``weights_only=True``; one holding objects other than tensors
+        and plain data is refused with a :class:`CheckpointError`."""
         path = Path(path) if path is not None else DEFAULT_HARDNET
         if not path.is_file():
             raise CheckpointError(f"HardNet weights not found: {path}")
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:
-            raise CheckpointError(f"{path}: cannot read checkpoint ({type(e).__name__})") from None
+        ckpt = safe_load(path)   # tensors and plain data only (weights_only=True)
         if not isinstance(ckpt, dict):
             raise CheckpointError(f"{path}: not a HardNet checkpoint (got {type(ckpt).__name__})")
+        if "localscale_format" in ckpt:
+            check_format(ckpt, path)
         arch = ckpt.get("arch")
         if arch is not None and arch != "HardNet":
             raise CheckpointError(f"{path}: checkpoint is a {arch}, expected a HardNet")
         sd = ckpt.get("state_dict", ckpt)
+        check_state_dict(sd, path)
         sd = {k[len("net."):] if k.startswith("net.") else k: v for k, v in sd.items()}
         sd = {k: v.float() if torch.is_tensor(v) and v.is_floating_point() else v for k, v in sd.items()}
         model = cls()
