@@ -455,8 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
 def load_scale_models(methods: list, local_weights=None, global_weights=None,
                       device: str = "cpu") -> tuple[dict, list]:
     """Load the models the ``methods`` need (:func:`localscale.cli.load_scale_model`); a method whose
-    bundled weights cannot be loaded is removed from ``methods`` (in place) with a note; weights
-    given explicitly that cannot be loaded raise :class:`CheckpointError`.
+    weights cannot be loaded is removed from ``methods`` (in place) with a note.
     Returns ``({"local"|"global": model}, notes)``."""
     from ..cli import load_scale_model, resolve_device
     from ..errors import CheckpointError
@@ -472,8 +471,6 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
             if w:
                 notes.append(f"{m}: weights {w}")
         except CheckpointError as e:
-            if w:
-                raise
             removed = [x for x in needs[m] if x in methods]
             for x in removed:
                 methods.remove(x)
