@@ -558,6 +558,10 @@ def main(argv: list[str] | None = None) -> int:
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
+    except OSError as e:   # a file the command reads or writes (e.g. a full disk, no permission)
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

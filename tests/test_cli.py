@@ -87,8 +87,8 @@ def test_predict_same_stems_get_the_folder_name(models, seqs, tmp_path):
 
 def test_pairs_file_indices_are_positions_and_index_tsv_maps_outputs(models, seqs, tmp_path, capsys):
     pairs = tmp_path / "pairs.txt"
-    pairs.write_text(f"# header\nv_coffee/1.png v_coffee/2.png\nv_coffee/1.png v_coffee/missing.png\n\n"
-                     f"v_chelsea/1.png v_chelsea/2.png\n")
+    pairs.write_text("# header\nv_coffee/1.png v_coffee/2.png\nv_coffee/1.png v_coffee/missing.png\n\n"
+                     "v_chelsea/1.png v_chelsea/2.png\n")
     (seqs / "pairs.txt").write_text(pairs.read_text())
     out = tmp_path / "out"
     rc = main(["predict", "--pairs", str(seqs / "pairs.txt"), "-o", str(out), "--local-weights", str(models / "local.pt")])
@@ -214,6 +214,13 @@ def test_match_missing_weights_is_an_error(correction, flag, pair, tmp_path, cap
                  "--descriptor", "sift", "--num-features", "32", flag, str(tmp_path / "nope.pt")]) == 2
     one_line_error(capsys, "checkpoint not found", "nope.pt")
     assert not (tmp_path / "matches.npz").exists()
+
+
+def test_match_failed_write_is_an_error(pair, tmp_path, capsys):
+    (tmp_path / "matches.png").mkdir()   # cv2.imwrite cannot write there
+    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "none",
+                 "--descriptor", "sift", "--num-features", "32"]) == 2
+    one_line_error(capsys, "cannot write", "matches.png")
 
 
 # ---------------------------------------------------------------- shared options

@@ -172,7 +172,10 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
         cv2.circle(canvas, pb, 2 * lw, colour, -1)
     if path is not None:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
         if not cv2.imwrite(str(path), canvas[..., ::-1]):
             raise LocalScaleError(f"cannot write picture {path}")
     return canvas
@@ -182,7 +185,10 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
     """Write the result to ``.npz`` (keypoints_a/b, matches, distances, radii_a/b, correction,
     and errors / H when known)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
     data = dict(keypoints_a=result.keypoints_a, keypoints_b=result.keypoints_b, matches=result.matches,
                 distances=result.distances, radii_a=result.radii_a, radii_b=result.radii_b,
                 correction=np.array(result.correction))
@@ -190,7 +196,10 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         data["errors"] = result.errors
     if result.H is not None:
         data["H"] = result.H
-    np.savez(path, **data)
+    try:
+        np.savez(path, **data)
+    except OSError as e:
+        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
 
 
 def models_for_correction(correction: str, local_weights=None, global_weights=None, device: str = "cpu"):
