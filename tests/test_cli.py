@@ -369,3 +369,24 @@ def test_python_module_entry_is_the_same_cli(monkeypatch, capsys):
         match_main(["--help"])
     assert e.value.code == 0 and "--local-weights" in capsys.readouterr().out
     assert sys.modules["localscale.cli"] is cli
+
+
+def test_visible_map_is_written_when_the_model_predicts_it(tmp_path):
+    class Pred:
+        scale = np.full((6, 8), 2.0, np.float32)
+        confidence = np.ones((6, 8), np.float32)
+        visible = np.full((6, 8), 0.25, np.float32)
+
+    paths = cli.write_scale_map(Pred(), tmp_path, "x_y")
+    assert tmp_path / "x_y_visible.npy" in paths and np.allclose(np.load(tmp_path / "x_y_visible.npy"), 0.25)
+    del Pred.visible
+    assert all("visible" not in p.name for p in cli.write_scale_map(Pred(), tmp_path / "old", "x_y"))
+
+
+def test_correction_logic_is_importable_from_its_old_places():
+    import localscale.features as features
+    import localscale.features.correction as correction
+    import localscale.features.pipeline as pipeline
+
+    for name in ("CorrectionGate", "NO_GATE", "CORRECTIONS", "fuse_local_global", "scale_maps_for_pair"):
+        assert getattr(features, name) is getattr(correction, name) is getattr(pipeline, name)
