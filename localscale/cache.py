@@ -86,8 +86,11 @@ def encode_batch(model: ScaleModel, images: list, bf16: bool = False) -> list[En
 
 
 @torch.inference_mode()
-def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[EncodedImage], bf16: bool = False):
-    """Run the model's head on a batch of encoded pairs; returns one prediction per pair."""
+def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[EncodedImage], bf16: bool = False,
+                  hard: bool = False, planar: bool = False):
+    """Run the model's head on a batch of encoded pairs; returns one prediction per pair.
+
+    ``hard`` / ``planar``: read-out options of :meth:`LocalScaleNet.predict` (ignored for ScaleNet)."""
     fa = torch.cat([e.features for e in encs_a])
     fb = torch.cat([e.features for e in encs_b])
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -96,27 +99,36 @@ def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[En
         pa, pb = F.softmax(out[0].float(), 1), F.softmax(out[1].float(), 1)
         return [model._readout(pa[i], pb[i], a.letterbox, b.letterbox) for i, (a, b) in enumerate(zip(encs_a, encs_b))]
     probs = F.softmax(out.float(), 1)
-    return [model._readout(probs[i], a.letterbox, b.letterbox, False) for i, (a, b) in enumerate(zip(encs_a, encs_b))]
+    return [model._readout(probs[i], a.letterbox, b.letterbox, hard, planar)
+            for i, (a, b) in enumerate(zip(encs_a, encs_b))]
 
 
 def predict_pairs(model: ScaleModel, pairs: Iterable[tuple], cache: FeatureCache | None = None,
-                  batch_size: int = 8) -> Iterator[tuple[tuple, object]]:
-    """Yield ``(pair, prediction)`` for each ``(path_a, path_b)``; a bad pair yields ``(pair, LocalScaleError)``
-    and the others are still processed."""
-    cache = cache or FeatureCache(model)
+                  batch_size: int = 8, hard: bool = False, planar: bool = False) -> Iterator[tuple[tuple, object]]:
+    """Yield ``(pair, prediction)`` for each ``(path_a, path_b)``, in input order;
+    a bad pair yields ``(pair, LocalScaleError)`` and the others are still processed.
+
+    ``cache``: encodings to reuse (and its ``bf16`` setting); a new one when None.
+    ``hard`` / ``planar``: read-out options as in :meth:`LocalScaleNet.predict`.
+    """
+    if cache is None:   # an empty cache is falsy (it has __len__), so test for None
+        cache = FeatureCache(model)
     chunk: list[tuple] = []
 
     def flush():
+        results: list = [None] * len(chunk)
         good, encs = [], []
-        for pair in chunk:
+        for i, pair in enumerate(chunk):
             try:
                 encs.append(cache.get_many(list(pair)))
-                good.append(pair)
+                good.append(i)
             except LocalScaleError as e:
-                yield pair, e
+                results[i] = e
         if good:
-            preds = predict_batch(model, [e[0] for e in encs], [e[1] for e in encs], cache.bf16)
-            yield from zip(good, preds)
+            preds = predict_batch(model, [e[0] for e in encs], [e[1] for e in encs], cache.bf16, hard, planar)
+            for i, pred in zip(good, preds):
+                results[i] = pred
+        yield from zip(chunk, results)
 
     for pair in pairs:
         chunk.append(tuple(pair))

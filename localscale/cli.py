@@ -1,19 +1,24 @@
 """``localscale`` command line; every command mirrors a Python API call.
 
-    localscale predict A B -o out/              # LocalScaleNet.predict  -> .npy, float TIFF, colour PNG
-    localscale predict --pairs pairs.txt -o out/  # predict_pairs with the feature cache
-    localscale show A B -o fig.png [--H H_a_b]  # viz.plot_scale_prediction
-    localscale demo [-o out/]                   # show on the bundled example pair
-    localscale scale A B                        # ScaleNet.predict (global scale)
-    localscale rectify A B -o out/              # resize one image by the global scale
+    localscale predict A B -o out/                # LocalScaleNet.predict  -> .npy, float TIFF, colour PNG
+    localscale predict --pairs pairs.txt -o out/  # predict_pairs with the feature cache (+ out/index.tsv)
+    localscale show A B -o out/ [--H H_a_b]       # viz.plot_scale_prediction -> out/<A>_<B>_figure.png
+    localscale demo [-o out/]                     # show on the bundled example pair
+    localscale scale A B                          # ScaleNet.predict (global scale)
+    localscale rectify A B -o out/                # resize one image by the global scale (+ JSON sidecar)
     localscale match A B -o out/ --correction local
-    localscale eval-hpatches ROOT
+    localscale eval-hpatches ROOT -o out/
+
+Every command takes the same model options: ``--local-weights`` / ``--global-weights``
+(checkpoints; default: the bundled weights), ``--device`` and, where a network runs, ``--bf16``.
+``-o`` is always an output folder. Bad input is a one-line ``error: ...`` and exit code 2.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -21,40 +26,204 @@ import numpy as np
 from .errors import LocalScaleError
 
 ASSETS = Path(__file__).resolve().parent / "assets"   #: the example pair (also in examples/)
+MODEL_KINDS = ("local", "global")
 
 
-def _load_local(path: str | None, device: str):
-    from .models import LocalScaleNet
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the description/epilog layout and appends ``(default: ...)`` to options whose help
+    does not already state the default (flags, which default to off, are left alone)."""
 
-    return LocalScaleNet.from_pretrained(path, device=device)
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text.lower() or action.default in (None, argparse.SUPPRESS) or action.nargs == 0:
+            return text
+        if action.option_strings or action.nargs in ("?", "*"):
+            return text + " (default: %(default)s)"
+        return text
 
 
-def _load_global(path: str | None, device: str):
-    from .models import ScaleNet
+# ---------------------------------------------------------------- devices, models, paths
 
-    return ScaleNet.from_pretrained(path, device=device)
+def resolve_device(device) -> str:
+    """Check that ``device`` names a torch device this installation can use; returns its name.
+
+    Raises :class:`LocalScaleError` (one line) for unknown names (``banana``) and for devices
+    this torch build or machine lacks (``cuda`` on a CPU-only torch, ``cuda:3`` on a one-GPU machine).
+    """
+    import torch
+
+    try:
+        d = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise LocalScaleError(f"unknown device {device!r} (use cpu, cuda, cuda:N or mps)") from None
+    if d.type == "cpu":
+        return str(d)
+    if d.type == "cuda":
+        if not torch.cuda.is_available():
+            raise LocalScaleError(f"device {device!r}: no CUDA device available to this torch "
+                                  f"({torch.__version__}); use --device cpu")
+        if d.index is not None and d.index >= torch.cuda.device_count():
+            raise LocalScaleError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
+        return str(d)
+    if d.type == "mps":
+        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+            raise LocalScaleError(f"device {device!r}: MPS is not available; use --device cpu")
+        return str(d)
+    raise LocalScaleError(f"device {device!r} is not supported (use cpu, cuda, cuda:N or mps)")
 
 
-def write_scale_map(pred, out_dir: Path, stem: str) -> list[Path]:
-    """Write ``<stem>_scale.npy`` (float32), ``_scale.tif`` (float32 TIFF), ``_scale.png`` (colour),
-    ``_confidence.npy``."""
+def load_scale_model(kind: str, weights=None, device: str = "cpu"):
+    """The one model loader of the CLI: ``kind`` ``"local"`` (Local-ScaleNet) or ``"global"``
+    (ScaleNet), from ``weights`` (checkpoint path; None = the bundled weights) on ``device``."""
+    from .models import LocalScaleNet, ScaleNet
+
+    if kind not in MODEL_KINDS:
+        raise LocalScaleError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
+    cls = LocalScaleNet if kind == "local" else ScaleNet
+    return cls.from_pretrained(weights, device=resolve_device(device))
+
+
+def add_model_options(p: argparse.ArgumentParser, local: bool = True, global_: bool = True, bf16: bool = True,
+                      model_alias: str | None = None) -> argparse.ArgumentParser:
+    """Model options, spelled the same for every command: ``--local-weights``, ``--global-weights``,
+    ``--device`` and ``--bf16``. ``model_alias`` (``"local"``/``"global"``) adds the deprecated,
+    hidden ``--model`` for that checkpoint."""
+    g = p.add_argument_group("model options")
+    if local:
+        g.add_argument("--local-weights", metavar="CKPT", default=None,
+                       help="Local-ScaleNet checkpoint (default: the bundled weights)")
+    if global_:
+        g.add_argument("--global-weights", metavar="CKPT", default=None,
+                       help="global ScaleNet checkpoint (default: the bundled weights)")
+    if model_alias:
+        g.add_argument("--model", dest=f"{model_alias}_weights", metavar="CKPT", help=argparse.SUPPRESS)
+    g.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or mps")
+    if bf16:
+        g.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast "
+                                                           "(fast on CPUs with AMX and on recent GPUs)")
+    return p
+
+
+def _model(args, kind: str):
+    return load_scale_model(kind, getattr(args, f"{kind}_weights", None), args.device)
+
+
+def check_output_dir(path) -> Path:
+    """``-o``: a folder (created later, when writing); an existing file is an error."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise LocalScaleError(f"output {out} exists and is not a folder (-o names a folder)")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise LocalScaleError(f"output {out}: {parent} is a file, not a folder")
+            break
+    return out
+
+
+def ensure_not_input(path, inputs) -> Path:
+    """Refuse to write ``path`` when it is one of the command's ``inputs``."""
+    path = Path(path)
+    for i in inputs:
+        if i is not None and not hasattr(i, "shape") and Path(i).resolve() == path.resolve():
+            raise LocalScaleError(f"refusing to overwrite the input {i} with an output")
+    return path
+
+
+def _mkdir(path: Path) -> Path:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create output folder {path}: {e.strerror or e}") from None
+    return path
+
+
+def write_image(path, image_bgr: np.ndarray) -> Path:
+    """``cv2.imwrite`` that raises :class:`LocalScaleError` when nothing was written."""
     import cv2
 
+    try:
+        ok = cv2.imwrite(str(path), image_bgr)
+    except cv2.error as e:
+        raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
+    if not ok:
+        raise LocalScaleError(f"cannot write {path}")
+    return Path(path)
+
+
+def write_npy(path, array: np.ndarray) -> Path:
+    try:
+        np.save(path, array)
+    except OSError as e:
+        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
+    return Path(path)
+
+
+def write_text(path, text: str) -> Path:
+    try:
+        Path(path).write_text(text)
+    except OSError as e:
+        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
+    return Path(path)
+
+
+def image_labels(paths, always_parent: bool = False) -> dict:
+    """Short, distinct names of image files for output names: the stem, or ``<parent>-<stem>``
+    when another file among ``paths`` has the same stem (``v_churchill/1.ppm`` ->
+    ``v_churchill-1``) or when ``always_parent``. Keyed by the resolved path."""
+    uniq = list(dict.fromkeys(Path(p).resolve() for p in paths))
+    by_stem = defaultdict(list)
+    for p in uniq:
+        by_stem[p.stem].append(p)
+
+    def with_parent(p: Path, name: str) -> str:
+        return f"{p.parent.name}-{name}" if p.parent.name else name
+
+    labels = {p: with_parent(p, p.stem) if (always_parent or len(ps) > 1) else p.stem
+              for ps in by_stem.values() for p in ps}
+    counts = Counter(labels.values())
+    for p in uniq:   # same folder and stem, other extension
+        if counts[labels[p]] > 1:
+            labels[p] = with_parent(p, p.name.replace(".", "-"))
+    return labels
+
+
+def pair_name(image_a, image_b, always_parent: bool = False) -> str:
+    """``<A>_<B>`` from :func:`image_labels` (``A_B`` for arrays)."""
+    if hasattr(image_a, "shape") or hasattr(image_b, "shape"):
+        return "A_B"
+    labels = image_labels([image_a, image_b], always_parent)
+    return f"{labels[Path(image_a).resolve()]}_{labels[Path(image_b).resolve()]}"
+
+
+# ---------------------------------------------------------------- predict
+
+def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
+    """Write ``<stem>_scale.npy`` (float32), ``_scale.tif`` (float32 TIFF), ``_scale.png`` (colour),
+    ``_confidence.npy`` and, for models that predict it, ``_visible.npy``. ``inputs`` are never
+    overwritten."""
     from .viz import colorize_log2_scale
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = _mkdir(Path(out_dir))
+    visible = getattr(pred, "visible", None)
     paths = [out_dir / f"{stem}_scale.npy", out_dir / f"{stem}_scale.tif", out_dir / f"{stem}_scale.png",
-             out_dir / f"{stem}_confidence.npy"]
-    np.save(paths[0], pred.scale.astype(np.float32))
-    if not cv2.imwrite(str(paths[1]), pred.scale.astype(np.float32)):
-        raise LocalScaleError(f"cannot write {paths[1]}")
-    cv2.imwrite(str(paths[2]), colorize_log2_scale(pred.scale)[..., ::-1])
-    np.save(paths[3], pred.confidence.astype(np.float32))
+             out_dir / f"{stem}_confidence.npy"] + ([out_dir / f"{stem}_visible.npy"] if visible is not None else [])
+    for p in paths:
+        ensure_not_input(p, inputs)
+    write_npy(paths[0], pred.scale.astype(np.float32))
+    write_image(paths[1], pred.scale.astype(np.float32))
+    write_image(paths[2], colorize_log2_scale(pred.scale)[..., ::-1])
+    write_npy(paths[3], pred.confidence.astype(np.float32))
+    if visible is not None:
+        write_npy(paths[4], np.asarray(visible, np.float32))
     return paths
 
 
-def read_pairs_file(path: str | Path) -> list[tuple[Path, Path]]:
-    """``A B`` per line (paths relative to the file's folder or absolute); ``#`` starts a comment."""
+def read_pairs_file(path: str | Path, with_lines: bool = False) -> list[tuple]:
+    """``A B`` per line (paths relative to the file's folder or absolute); ``#`` starts a comment.
+
+    Returns ``[(A, B), ...]``, or ``[(line_number, A, B), ...]`` with ``with_lines``.
+    """
     path = Path(path)
     if not path.is_file():
         raise LocalScaleError(f"pairs file not found: {path}")
@@ -66,75 +235,115 @@ def read_pairs_file(path: str | Path) -> list[tuple[Path, Path]]:
         parts = line.split()
         if len(parts) != 2:
             raise LocalScaleError(f"{path}:{n}: expected two image paths, got {len(parts)} field(s)")
-        pairs.append(tuple((path.parent / p) if not Path(p).is_absolute() else Path(p) for p in parts))
+        pair = tuple((path.parent / p) if not Path(p).is_absolute() else Path(p) for p in parts)
+        pairs.append((n, *pair) if with_lines else pair)
     return pairs
 
 
+def pairs_output_names(pairs: list[tuple]) -> list[str]:
+    """``<index:05d>_<A>_<B>`` per pair: the index is the pair's position in the list (so it does
+    not depend on which pairs fail) and the names come from :func:`image_labels` over all images."""
+    labels = image_labels([p for pair in pairs for p in pair])
+    return [f"{i:05d}_{labels[Path(a).resolve()]}_{labels[Path(b).resolve()]}" for i, (a, b) in enumerate(pairs)]
+
+
 def cmd_predict(args) -> int:
-    model = _load_local(args.model, args.device)
-    out = Path(args.output)
+    out = check_output_dir(args.output)
     if args.pairs:
-        from tqdm import tqdm
-
-        from .cache import FeatureCache, predict_pairs
-
-        pairs = read_pairs_file(args.pairs)
-        cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
-        failed = 0
-        for i, (pair, pred) in enumerate(tqdm(predict_pairs(model, pairs, cache, args.batch_size),
-                                              total=len(pairs), desc="pairs", unit="pair")):
-            if isinstance(pred, Exception):
-                failed += 1
-                tqdm.write(f"error: pair {pair[0]} {pair[1]}: {pred}", file=sys.stderr)
-                continue
-            write_scale_map(pred, out, f"{i:05d}_{Path(pair[0]).stem}_{Path(pair[1]).stem}")
-        print(f"{len(pairs) - failed}/{len(pairs)} pairs written to {out} "
-              f"(cache: {cache.misses} images encoded, {cache.hits} reused)")
-        return 1 if failed else 0
+        if args.image_a or args.image_b:
+            raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
+        return _predict_pairs(args, out)
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
+    inputs = (args.image_a, args.image_b)
+    model = _model(args, "local")
     pred = model.predict(args.image_a, args.image_b, hard=args.hard, bf16=args.bf16, planar=args.planar)
-    stem = f"{Path(args.image_a).stem}_{Path(args.image_b).stem}"
-    for p in write_scale_map(pred, out, stem):
+    for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     s = pred.scale
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     return 0
 
 
-def show_pair(image_a, image_b, output, H=None, model=None, title=None) -> Path:
-    """Predict and write the figure (A, B, log2 scale, confidence, and GT/error when ``H`` is given)."""
+def _predict_pairs(args, out: Path) -> int:
+    from tqdm import tqdm
+
+    from .cache import FeatureCache, predict_pairs
+
+    rows = read_pairs_file(args.pairs, with_lines=True)
+    pairs = [(a, b) for _, a, b in rows]
+    names = pairs_output_names(pairs)
+    inputs = [Path(args.pairs)] + [p for pair in pairs for p in pair]
+    _mkdir(out)
+    index_path = ensure_not_input(out / "index.tsv", inputs)
+    model = _model(args, "local")
+    cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
+    failed = 0
+    lines = ["index\tline\timage_a\timage_b\tstatus\toutput"]
+    results = predict_pairs(model, pairs, cache, args.batch_size, hard=args.hard, planar=args.planar)
+    for i, ((line, a, b), name, (_, pred)) in enumerate(zip(rows, names, tqdm(results, total=len(pairs),
+                                                                               desc="pairs", unit="pair"))):
+        if isinstance(pred, Exception):
+            failed += 1
+            status, written = f"error: {' '.join(str(pred).split())}", ""
+            tqdm.write(f"error: pair {i} (line {line}) {a} {b}: {pred}", file=sys.stderr)
+        else:
+            write_scale_map(pred, out, name, inputs)
+            status, written = "ok", name
+        lines.append(f"{i}\t{line}\t{a}\t{b}\t{status}\t{written}")
+    write_text(index_path, "\n".join(lines) + "\n")
+    print(f"{len(pairs) - failed}/{len(pairs)} pairs written to {out} (index: {index_path}; "
+          f"cache: {cache.misses} images encoded, {cache.hits} reused)")
+    return 1 if failed else 0
+
+
+# ---------------------------------------------------------------- show, demo
+
+def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bool = False) -> Path:
+    """Predict and write the figure (A, B, scale factor map, confidence, and GT/error when ``H`` is
+    given) to the file ``output``; returns its path."""
     from .geometry import covisible_mask, homography_scale_map
     from .io import load_image, read_homography
     from .viz import plot_scale_prediction
 
-    model = model or _load_local(None, "cpu")
+    output = ensure_not_input(output, (image_a, image_b, H))
+    model = model or load_scale_model("local")
     a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
-    pred = model.predict(a, b)
+    pred = model.predict(a, b, bf16=bf16)
     gt = mask = None
     if H is not None:
         Hm = read_homography(H)
         gt = homography_scale_map(Hm, *a.shape[:2])
         mask = covisible_mask(Hm, a.shape[:2], b.shape[:2])
-    plot_scale_prediction(a, b, pred.scale, pred.confidence, gt, mask, output, title)
+    _mkdir(Path(output).parent)
+    try:
+        plot_scale_prediction(a, b, pred.scale, pred.confidence, gt, mask, output, title,
+                              visible=getattr(pred, "visible", None))
+    except (OSError, ValueError) as e:
+        raise LocalScaleError(f"cannot write figure {output}: {e}") from None
     return Path(output)
 
 
 def cmd_show(args) -> int:
-    print(show_pair(args.image_a, args.image_b, args.output, args.H, _load_local(args.model, args.device)))
+    out = check_output_dir(args.output)
+    fig = ensure_not_input(out / f"{pair_name(args.image_a, args.image_b)}_figure.png",
+                           (args.image_a, args.image_b, args.H))
+    print(show_pair(args.image_a, args.image_b, fig, args.H, _model(args, "local"), bf16=args.bf16))
     return 0
 
 
 def cmd_demo(args) -> int:
     a, b, H = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
-    out = Path(args.output) / "demo.png"
-    show_pair(a, b, out, H, _load_local(args.model, args.device), title="localscale demo: Local-ScaleNet")
+    out = check_output_dir(args.output) / "demo.png"
+    show_pair(a, b, out, H, _model(args, "local"), title="localscale demo: Local-ScaleNet", bf16=args.bf16)
     print(out)
     return 0
 
 
+# ---------------------------------------------------------------- scale, rectify
+
 def cmd_scale(args) -> int:
-    p = _load_global(args.model, args.device).predict(args.image_a, args.image_b)
+    p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
     if args.json:
         print(json.dumps({"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
                           "hard_scale": p.hard_scale, "probs_ab": p.probs_ab.round(4).tolist()}))
@@ -144,130 +353,214 @@ def cmd_scale(args) -> int:
     return 0
 
 
-def rectify_pair(image_a, image_b, output, model=None) -> dict:
-    """Downscale the image whose content is bigger by the global scale so the pair has scale ~1."""
+def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> dict:
+    """Downscale the image whose content is bigger by the global scale so the pair has scale ~1.
+
+    Writes ``<output>/<A>_<B>_rectified_<A|B>.png`` (``<A>``, ``<B>`` = ``<parent>-<stem>``, so pairs
+    of different sequences do not collide) and ``<A>_<B>_rectified.json`` (scale, which image was
+    resized, factor, sizes, paths); returns that record.
+    """
     import cv2
 
     from .io import load_image
 
-    model = model or _load_global(None, "cpu")
+    out = check_output_dir(output)
+    name = pair_name(image_a, image_b, always_parent=True)
+    inputs = (image_a, image_b)
+    model = model or load_scale_model("global")
     a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
-    s = model.predict(a, b).scale
-    out = Path(output)
-    out.mkdir(parents=True, exist_ok=True)
+    s = float(model.predict(a, b, bf16=bf16).scale)
     which, factor = ("B", 1 / s) if s > 1 else ("A", s)
     img = b if which == "B" else a
-    resized = cv2.resize(img, (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor))),
-                         interpolation=cv2.INTER_AREA)
-    src = Path(image_b if which == "B" else image_a) if not hasattr(image_a, "shape") else Path(which)
-    dst = out / f"{src.stem}_rectified.png"
-    cv2.imwrite(str(dst), resized[..., ::-1])
-    return {"scale": s, "resized": which, "factor": factor, "output": str(dst)}
+    size = (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor)))
+    resized = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    dst = ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
+    sidecar = ensure_not_input(out / f"{name}_rectified.json", inputs)
+    _mkdir(out)
+    write_image(dst, resized[..., ::-1])
+    src = image_b if which == "B" else image_a
+    record = {"image_a": "array" if hasattr(image_a, "shape") else str(image_a),
+              "image_b": "array" if hasattr(image_b, "shape") else str(image_b),
+              "scale": s, "resized": which, "resized_image": "array" if hasattr(src, "shape") else str(src),
+              "factor": factor, "size_before": [img.shape[1], img.shape[0]], "size_after": list(size),
+              "output": str(dst)}
+    write_text(sidecar, json.dumps(record, indent=1) + "\n")
+    record["sidecar"] = str(sidecar)
+    return record
 
 
 def cmd_rectify(args) -> int:
-    r = rectify_pair(args.image_a, args.image_b, args.output, _load_global(args.model, args.device))
-    print(f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']}")
+    check_output_dir(args.output)
+    r = rectify_pair(args.image_a, args.image_b, args.output, _model(args, "global"), bf16=args.bf16)
+    print(f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']} "
+          f"(record: {r['sidecar']})")
     return 0
 
 
+# ---------------------------------------------------------------- match
+
+def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Options of ``localscale match`` (the only definition; :mod:`localscale.features.pipeline` reuses it)."""
+    from .features.correction import CORRECTIONS
+
+    p.add_argument("image_a", help="image A (path)")
+    p.add_argument("image_b", help="image B (path)")
+    p.add_argument("-o", "--output", default="out", help="output folder (matches.npz, matches.png)")
+    p.add_argument("--correction", choices=CORRECTIONS, default="local",
+                   help="patch-size correction: none; global (ScaleNet); local (Local-ScaleNet, gated); "
+                        "fused (local map shape + global ScaleNet level); gt (map of --H)")
+    p.add_argument("--H", default=None,
+                   help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; "
+                        "colours inliers; default: none)")
+    p.add_argument("--descriptor", default="hardnet", help="hardnet | sift | path to HardNet weights")
+    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--ratio", type=float, default=None,
+                   help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
+    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
+                   help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
+    add_model_options(p, local=True, global_=True, bf16=True)
+    return p
+
+
 def cmd_match(args) -> int:
-    from .features.pipeline import run_match_cli
+    from .features.pipeline import models_for_correction, run_match
 
-    return run_match_cli(args) or 0
+    out = check_output_dir(args.output)
+    for f in ("matches.npz", "matches.png"):
+        ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
+    resolve_device(args.device)
+    uses = {"local": ("local", "fused"), "global": ("global", "fused")}
+    for kind in MODEL_KINDS:
+        w = getattr(args, f"{kind}_weights", None)
+        if w is not None and args.correction not in uses[kind]:
+            print(f"note: --{kind}-weights is not used by --correction {args.correction}", file=sys.stderr)
+    local_model, global_model = models_for_correction(args.correction, args.local_weights, args.global_weights,
+                                                      args.device)
+    run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
+              args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
+              local_model=local_model, global_model=global_model)
+    return 0
 
 
-def cmd_eval_hpatches(args, rest) -> int:
-    from .evaluation.hpatches import main as hp_main
+def cmd_eval_hpatches(args) -> int:
+    from .evaluation.hpatches import run
 
-    return hp_main(([args.root] if args.root else []) + rest) or 0
+    return run(args) or 0
+
+
+# ---------------------------------------------------------------- parser
+
+EXAMPLES = {
+    "predict": """examples:
+  localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/
+      -> out/kodim01_a_kodim01_b_scale.{npy,tif,png}, _confidence.npy
+  localscale predict --pairs pairs.txt -o out/ --batch-size 8
+      pairs.txt: one 'A B' per line (relative to the file's folder); '#' comments.
+      -> out/<index>_<A>_<B>_scale.* (index = the pair's position in the file; <A> is
+         <folder>-<stem> when stems collide) and out/index.tsv (index, line, A, B, status, output)""",
+    "show": """example:
+  localscale show seq/1.ppm seq/2.ppm --H seq/H_1_2 -o figures/
+      -> figures/1_2_figure.png""",
+    "demo": """example:
+  localscale demo -o out/      -> out/demo.png""",
+    "scale": """example:
+  localscale scale examples/kodim01_a.jpg examples/kodim01_b.jpg --json""",
+    "rectify": """example:
+  localscale rectify v_churchill/1.ppm v_churchill/2.ppm -o out/
+      -> out/v_churchill-1_v_churchill-2_rectified_B.png (the resized image) and
+         out/v_churchill-1_v_churchill-2_rectified.json (scale, resized image, factor, sizes)""",
+    "match": """example:
+  localscale match examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/ --correction fused \\
+      --H localscale/assets/H_a_b.txt --num-features 500
+      -> out/matches.npz, out/matches.png""",
+    "eval-hpatches": """example:
+  localscale eval-hpatches hpatches-sequences-release/ -o results/hpatches --methods none local gt
+      ROOT/<seq>/1.ppm .. 6.ppm and H_1_2 .. H_1_6; writes results_<descriptor>.{json,md},
+      splits.csv and mma_*.png into -o""",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="localscale", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
+    from .evaluation.hpatches import add_arguments as add_hpatches_arguments
 
-    def common(sp, model_help="checkpoint (default: the bundled model)"):
-        sp.add_argument("--model", default=None, help=model_help)
-        sp.add_argument("--device", default="cpu")
+    p = argparse.ArgumentParser(prog="localscale", description=__doc__, formatter_class=HelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    sp = sub.add_parser("predict", help="per-pixel scale map S(A->B) -> .npy/.tif/.png")
-    sp.add_argument("image_a", nargs="?")
-    sp.add_argument("image_b", nargs="?")
-    sp.add_argument("-o", "--output", default="out")
-    sp.add_argument("--pairs", help="text file with one 'A B' pair per line")
+    def command(name, summary, description):
+        return sub.add_parser(name, help=summary, description=description, epilog=EXAMPLES[name],
+                              formatter_class=HelpFormatter)
+
+    sp = command("predict", "per-pixel scale map S(A->B) -> .npy/.tif/.png",
+                 "Per-pixel scale map S(A->B) of Local-ScaleNet for one pair (A B) or for every pair of a\n"
+                 "pairs file (--pairs, with a feature cache: each image is encoded once).")
+    sp.add_argument("image_a", nargs="?", help="image A (omit with --pairs)")
+    sp.add_argument("image_b", nargs="?", help="image B (omit with --pairs)")
+    sp.add_argument("-o", "--output", default="out", help="output folder")
+    sp.add_argument("--pairs", help="text file with one 'A B' pair per line (default: none, predict A B)")
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
-    sp.add_argument("--bf16", action="store_true", help="bfloat16 autocast (fast on CPUs with AMX)")
-    sp.add_argument("--batch-size", type=int, default=8)
-    sp.add_argument("--cache-mb", type=float, default=256, help="feature cache bound for --pairs")
-    common(sp)
+    sp.add_argument("--batch-size", type=int, default=8, help="pairs per network batch with --pairs")
+    sp.add_argument("--cache-mb", type=float, default=256, help="feature cache bound (MiB) with --pairs")
+    add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 
-    sp = sub.add_parser("show", help="figure: A, B, predicted map, confidence (+ GT and error with --H)")
-    sp.add_argument("image_a")
-    sp.add_argument("image_b")
-    sp.add_argument("-o", "--output", default="out/scale.png")
-    sp.add_argument("--H", help="ground-truth homography A->B (3x3 text file)")
-    common(sp)
+    sp = command("show", "figure: A, B, predicted map, confidence (+ GT and error with --H)",
+                 "Figure of a pair: A, B, the predicted scale map S(A->B) (colours = factors), the\n"
+                 "confidence, and with --H the ground-truth map and the error.")
+    sp.add_argument("image_a", help="image A")
+    sp.add_argument("image_b", help="image B")
+    sp.add_argument("-o", "--output", default="out", help="output folder (figure <A>_<B>_figure.png)")
+    sp.add_argument("--H", help="ground-truth homography A->B (3x3 text file; default: none)")
+    add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_show)
 
-    sp = sub.add_parser("demo", help="run on the bundled example pair and write out/demo.png")
-    sp.add_argument("-o", "--output", default="out")
-    common(sp)
+    sp = command("demo", "run show on the bundled example pair and write out/demo.png",
+                 "The figure of 'show' on the bundled example pair (with its ground-truth homography).")
+    sp.add_argument("-o", "--output", default="out", help="output folder (demo.png)")
+    add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_demo)
 
-    sp = sub.add_parser("scale", help="global scale S(A->B) with ScaleNet")
-    sp.add_argument("image_a")
-    sp.add_argument("image_b")
-    sp.add_argument("--json", action="store_true")
-    common(sp)
+    sp = command("scale", "global scale S(A->B) with ScaleNet",
+                 "Global scale S(A->B) of ScaleNet: consistency-checked, both directions, D-ScaleNet.")
+    sp.add_argument("image_a", help="image A")
+    sp.add_argument("image_b", help="image B")
+    sp.add_argument("--json", action="store_true", help="print one JSON object")
+    add_model_options(sp, local=False, global_=True, model_alias="global")
     sp.set_defaults(func=cmd_scale)
 
-    sp = sub.add_parser("rectify", help="resize one image by the global scale so the pair has scale ~1")
-    sp.add_argument("image_a")
-    sp.add_argument("image_b")
-    sp.add_argument("-o", "--output", default="out")
-    common(sp)
+    sp = command("rectify", "resize one image by the global scale so the pair has scale ~1",
+                 "Downscale the image whose content is bigger by ScaleNet's global scale, so that the\n"
+                 "pair has scale ~1; writes the resized image and a JSON record of what was done.")
+    sp.add_argument("image_a", help="image A")
+    sp.add_argument("image_b", help="image B")
+    sp.add_argument("-o", "--output", default="out", help="output folder")
+    add_model_options(sp, local=False, global_=True, model_alias="global")
     sp.set_defaults(func=cmd_rectify)
 
-    sp = sub.add_parser("match", help="keypoints + scale-corrected patches + descriptors + mutual NN")
-    sp.add_argument("image_a")
-    sp.add_argument("image_b")
-    sp.add_argument("-o", "--output", default="out")
-    sp.add_argument("--correction", choices=["none", "global", "local", "fused", "gt"], default="local",
-                    help="patch-size correction: fused = local map shape + global ScaleNet level")
-    sp.add_argument("--H", help="ground-truth homography A->B (needed for --correction gt; colours inliers)")
-    sp.add_argument("--descriptor", choices=["hardnet", "sift"], default="hardnet")
-    sp.add_argument("--num-features", type=int, default=1000)
-    sp.add_argument("--ratio", type=float, default=None, help="ratio test threshold (default: mutual NN only)")
-    sp.add_argument("--orientation", choices=["upright", "gradient"], default="upright",
-                    help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
-    sp.add_argument("--local-model", default=None)
-    sp.add_argument("--global-model", default=None)
-    sp.add_argument("--device", default="cpu")
+    sp = command("match", "keypoints + scale-corrected patches + descriptors + mutual NN",
+                 "Detect keypoints, extract patches whose size is corrected by a scale map, describe them\n"
+                 "and match them (mutual nearest neighbours).")
+    add_match_options(sp)
     sp.set_defaults(func=cmd_match)
 
-    sp = sub.add_parser("eval-hpatches", add_help=False,
-                        help="HPatches-style MMA evaluation (localscale eval-hpatches --help for its options)")
-    sp.add_argument("root", nargs="?")
-    sp.set_defaults(func=None)
+    sp = command("eval-hpatches", "HPatches-style MMA evaluation",
+                 "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.")
+    add_hpatches_arguments(sp)
+    sp.set_defaults(func=cmd_eval_hpatches)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = build_parser()
-    args, rest = parser.parse_known_args(argv)
+    args = build_parser().parse_args(argv)
     try:
-        if args.command == "eval-hpatches":
-            return cmd_eval_hpatches(args, rest)
-        if rest:
-            parser.error(f"unrecognized arguments: {' '.join(rest)}")
         return args.func(args)
     except LocalScaleError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
+    except OSError as e:   # a file the command reads or writes (e.g. a full disk, no permission)
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -1,7 +1,8 @@
 """Small plotting helpers (LightGlue ``viz2d`` style) for scale maps.
 
 Scale maps are shown as ``log2 S`` with a diverging colormap centred on 0 (no scale
-change): red = content bigger in B, blue = smaller in B.
+change): red = content bigger in B, blue = smaller in B. Figures fit the colour range to the map
+and label the colourbar in factors (x0.5, x1, x2).
 """
 from __future__ import annotations
 
@@ -23,12 +24,44 @@ def colorize_log2_scale(scale: np.ndarray, vmax: float = LOG2_RANGE) -> np.ndarr
     return (rgb * 255).round().astype(np.uint8)
 
 
+def fitted_log2_range(*maps, percentile: float = 99.0, cap: float = LOG2_RANGE) -> float:
+    """Symmetric colour range (in ``log2 S``) that fits the maps: the ``percentile`` of
+    ``|log2 S|`` over the finite values, rounded up to 0.5, at least 0.5 and at most ``cap``."""
+    vals = [np.abs(np.log2(np.asarray(m, np.float64)))[np.isfinite(np.log2(np.asarray(m, np.float64)))]
+            for m in maps if m is not None]
+    vals = np.concatenate([v.ravel() for v in vals]) if vals else np.zeros(0)
+    if not vals.size:
+        return 1.0
+    v = float(np.percentile(vals, percentile))
+    return float(min(cap, max(0.5, np.ceil(v * 2) / 2)))
+
+
+def factor_ticks(vmax: float) -> tuple[list[float], list[str]]:
+    """Colourbar ticks on a ``log2 S`` axis of range ``[-vmax, vmax]``, labelled as factors
+    (``x0.5``, ``x1``, ``x2``; half steps ``x0.71``, ``x1.41`` for ranges below 1.5)."""
+    step = 1.0 if vmax >= 1.5 else 0.5
+    n = int(np.floor(vmax / step + 1e-9))
+    ticks = [k * step for k in range(-n, n + 1)]
+    return ticks, [f"x{2.0 ** t:.3g}" for t in ticks]
+
+
+def _factor_colorbar(fig, im, ax, vmax: float):
+    ticks, labels = factor_ticks(vmax)
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, ticks=ticks)
+    cb.ax.set_yticklabels(labels)
+    cb.set_label("scale factor (log axis)")
+    return cb
+
+
 def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.ndarray,
                           confidence: np.ndarray | None = None, gt_scale: np.ndarray | None = None,
                           gt_mask: np.ndarray | None = None, path: str | Path | None = None,
-                          title: str | None = None):
-    """Figure: A, B, predicted log2 scale (+ colorbar), confidence, and GT + error if given.
+                          title: str | None = None, visible: np.ndarray | None = None):
+    """Figure: A, B, predicted scale map (+ colourbar in factors), confidence, co-visibility
+    (when ``visible`` is given), and GT + error if given.
 
+    The scale maps share one symmetric colour range on ``log2 S`` fitted to the maps
+    (:func:`fitted_log2_range`); the colourbar is labelled in factors (x0.5, x1, x2).
     Returns the matplotlib figure; saves it to ``path`` when given.
     """
     import matplotlib
@@ -36,27 +69,35 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    panels = 3 + (confidence is not None) + 2 * (gt_scale is not None)
+    g = None
+    if gt_scale is not None:
+        g = np.where(gt_mask, gt_scale, np.nan) if gt_mask is not None else gt_scale
+    vmax = fitted_log2_range(scale, g)
+    panels = 3 + (confidence is not None) + (visible is not None) + 2 * (gt_scale is not None)
     fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.4), constrained_layout=True)
     axes = list(np.atleast_1d(axes))
     axes[0].imshow(image_a)
     axes[0].set_title("A")
     axes[1].imshow(image_b)
     axes[1].set_title("B")
-    im = axes[2].imshow(np.log2(scale), cmap=CMAP, vmin=-LOG2_RANGE, vmax=LOG2_RANGE)
-    axes[2].set_title("predicted log2 S(A→B)")
-    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02)
+    im = axes[2].imshow(np.log2(scale), cmap=CMAP, vmin=-vmax, vmax=vmax)
+    axes[2].set_title("predicted scale S(A→B)")
+    _factor_colorbar(fig, im, axes[2], vmax)
     k = 3
     if confidence is not None:
         ic = axes[k].imshow(confidence, cmap="viridis", vmin=0, vmax=1)
         axes[k].set_title("confidence")
         fig.colorbar(ic, ax=axes[k], fraction=0.046, pad=0.02)
         k += 1
+    if visible is not None:
+        iv = axes[k].imshow(visible, cmap="gray", vmin=0, vmax=1)
+        axes[k].set_title("co-visible in B (probability)")
+        fig.colorbar(iv, ax=axes[k], fraction=0.046, pad=0.02)
+        k += 1
     if gt_scale is not None:
-        g = np.where(gt_mask, gt_scale, np.nan) if gt_mask is not None else gt_scale
-        ig = axes[k].imshow(np.log2(g), cmap=CMAP, vmin=-LOG2_RANGE, vmax=LOG2_RANGE)
-        axes[k].set_title("ground truth log2 S")
-        fig.colorbar(ig, ax=axes[k], fraction=0.046, pad=0.02)
+        ig = axes[k].imshow(np.log2(g), cmap=CMAP, vmin=-vmax, vmax=vmax)
+        axes[k].set_title("ground-truth scale S")
+        _factor_colorbar(fig, ig, axes[k], vmax)
         err = np.abs(np.log2(scale) - np.log2(g))
         ie = axes[k + 1].imshow(err, cmap="magma", vmin=0, vmax=1.5)
         axes[k + 1].set_title(f"|log2 error| (mean r {np.nanmean(np.exp2(err)):.2f})")
@@ -68,6 +109,8 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
         fig.suptitle(title)
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        try:
+            fig.savefig(path, dpi=110)
+        finally:
+            plt.close(fig)
     return fig

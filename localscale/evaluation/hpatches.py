@@ -414,43 +414,60 @@ def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=
     return doc
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="localscale eval-hpatches", description="HPatches-style MMA evaluation")
+def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``localscale eval-hpatches`` (model options shared with the other commands)."""
+    from ..cli import add_model_options
+
     p.add_argument("root", help="folder of sequences (HPatches layout)")
-    p.add_argument("-o", "--out", default="hpatches_eval")
-    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"], choices=METHODS)
+    p.add_argument("-o", "--output", "--out", dest="out", default="hpatches_eval",
+                   help="output folder (results*.json, results*.md, splits.csv, mma_*.png)")
+    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"], choices=METHODS,
+                   help="correction methods to compare")
     p.add_argument("--descriptor", nargs="+", default=["hardnet"], help="hardnet | sift | weights path (several ok)")
-    p.add_argument("--num-features", type=int, default=1000)
-    p.add_argument("--local-weights", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
-    p.add_argument("--global-weights", default=None, help="ScaleNet checkpoint (default: bundled)")
+    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    add_model_options(p, local=True, global_=True, bf16=False)
     p.add_argument("--include-illumination", action="store_true", help="also evaluate i_* sequences")
     p.add_argument("--exclude-hires", action="store_true", help=f"skip {', '.join(HIGH_RES)}")
     p.add_argument("--exclude", nargs="*", default=[], help="sequence names to skip")
-    p.add_argument("--sequences", nargs="*", default=None, help="only these sequences")
-    p.add_argument("--max-side", type=int, default=None, help="downscale images (and H) to this longer side")
+    p.add_argument("--sequences", nargs="*", default=None, help="only these sequences (default: all)")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="downscale images (and H) to this longer side (default: full size)")
     p.add_argument("--gate-pair", type=float, default=None,
-                   help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this (default: CorrectionGate)")
-    p.add_argument("--gate-deadzone", type=float, default=None, help="per pixel: |log2 S| below this -> 1")
+                   help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this "
+                        "(default: CorrectionGate's)")
+    p.add_argument("--gate-deadzone", type=float, default=None,
+                   help="per pixel: |log2 S| below this -> 1 (default: CorrectionGate's)")
     p.add_argument("--no-consistency", action="store_true", help="gate: skip the A<->B median consistency shift")
-    p.add_argument("--gate-min-confidence", type=float, default=None)
-    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
-    p.add_argument("--base-radius", type=float, default=16.0)
+    p.add_argument("--gate-min-confidence", type=float, default=None,
+                   help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
+    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright", help="patch orientation")
+    p.add_argument("--base-radius", type=float, default=16.0, help="patch radius (px) at scale 1")
     return p
 
 
-def load_scale_models(methods: list, local_weights=None, global_weights=None) -> tuple[dict, list]:
-    """Load the models the ``methods`` need; a method whose weights cannot be loaded is removed
-    from ``methods`` (in place) with a note. Returns ``({"local"|"global": model}, notes)``."""
+def build_parser() -> argparse.ArgumentParser:
+    from ..cli import HelpFormatter
+
+    return add_arguments(argparse.ArgumentParser(prog="localscale eval-hpatches", formatter_class=HelpFormatter,
+                                                 description="HPatches-style MMA evaluation"))
+
+
+def load_scale_models(methods: list, local_weights=None, global_weights=None,
+                      device: str = "cpu") -> tuple[dict, list]:
+    """Load the models the ``methods`` need (:func:`localscale.cli.load_scale_model`); a method whose
+    weights cannot be loaded is removed from ``methods`` (in place) with a note.
+    Returns ``({"local"|"global": model}, notes)``."""
+    from ..cli import load_scale_model, resolve_device
     from ..errors import CheckpointError
-    from ..models import LocalScaleNet, ScaleNet
 
     models, notes = {}, []
     needs = {"local": ("local", "fused"), "global": ("global", "fused")}
-    for m, cls, w in (("local", LocalScaleNet, local_weights), ("global", ScaleNet, global_weights)):
+    device = resolve_device(device)
+    for m, w in (("local", local_weights), ("global", global_weights)):
         if not any(x in methods for x in needs[m]):
             continue
         try:
-            models[m] = cls.from_pretrained(w)
+            models[m] = load_scale_model(m, w, device)
             if w:
                 notes.append(f"{m}: weights {w}")
         except CheckpointError as e:
@@ -479,11 +496,18 @@ def gate_from_args(args):
 def main(argv=None) -> int:
     """Entry of ``localscale eval-hpatches ROOT [options]``; methods whose default weights are
     missing are skipped with a note."""
-    args = build_parser().parse_args(argv)
+    return run(build_parser().parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Body of ``localscale eval-hpatches`` for parsed :func:`add_arguments` options."""
+    from ..cli import check_output_dir
+
+    check_output_dir(args.out)
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
     pairs = make_pairs(seqs)
     methods = list(args.methods)
-    models, notes = load_scale_models(methods, args.local_weights, args.global_weights)
+    models, notes = load_scale_models(methods, args.local_weights, args.global_weights, args.device)
     local_model, global_model = models.get("local"), models.get("global")
     gate = gate_from_args(args)
     for n in notes:
@@ -494,7 +518,8 @@ def main(argv=None) -> int:
                        args.orientation, args.max_side)
         tag = Path(d).stem if d not in ("hardnet", "sift") else d
         write_outputs(res, pairs, methods, args.out, tag=tag,
-                      extra={"notes": notes, "gate": vars(gate), "descriptor": d, "args": vars(args)})
+                      extra={"notes": notes, "gate": vars(gate), "descriptor": d,
+                             "args": {k: v for k, v in vars(args).items() if not callable(v)}})
         print(markdown_table(res["summary"], methods, list(THRESHOLDS), f"{args.root} / {tag}"))
     print(f"wrote {args.out}/")
     return 0

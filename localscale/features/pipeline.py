@@ -1,19 +1,7 @@
 """Detect -> scale-corrected patches -> describe -> match, for one image or a pair.
 
-``correction`` selects the scale map each image gets (see :mod:`.patches` for the
-convention ``scale_map = S_{this->other}``):
-
-* ``"none"``: no map (base radius everywhere);
-* ``"global"``: ``S = global_model.predict(A, B).scale``; A gets ``S``, B gets ``1 / S``;
-* ``"local"``: A gets ``local_model.predict(A, B).scale``, B gets
-  ``local_model.predict(B, A).scale`` (each image encoded once); gated by
-  :class:`CorrectionGate`;
-* ``"fused"``: the local maps' *shape* with the global ScaleNet's *level*: each map's median
-  ``log2 S`` is replaced by ``log2 S_global`` (A) / ``-log2 S_global`` (B)
-  (:func:`fuse_local_global`); gated like ``"local"``. The local map is weakest at its level
-  under strong zoom, ScaleNet has no spatial variation; together they do better than either
-  on held-out synthetic pairs (README, Results);
-* ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``.
+The scale map each image gets for a ``correction`` method (``none``, ``global``, ``local``,
+``fused``, ``gt``) comes from :mod:`.correction` (:func:`scale_maps_for_pair`).
 
 Example::
 
@@ -24,7 +12,7 @@ Example::
 from __future__ import annotations
 
 import argparse
-import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
@@ -34,91 +22,13 @@ import numpy as np
 import torch
 
 from ..errors import LocalScaleError
-from ..geometry import homography_scale_map
 from ..io import load_image, read_homography
+from .correction import (CORRECTIONS, NO_GATE, CorrectionGate, _global_scale, fuse_local_global,  # noqa: F401
+                         scale_maps_for_pair)
 from .descriptors import PatchDescriptor, get_descriptor
 from .detector import HessianDetector, image_to_gray_tensor
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
-
-CORRECTIONS = ("none", "global", "local", "fused", "gt")
-
-
-@dataclass
-class CorrectionGate:
-    """Gating of *predicted* scale maps so that a correction cannot hurt easy pairs.
-
-    * ``consistency`` (pair level, first): the two maps of a pair must agree,
-      ``median log2 S_{A->B} = -median log2 S_{B->A}``; the disagreement
-      ``c = median(log2 S_A) + median(log2 S_B)`` is removed half from each map
-      (``log2 S -= c / 2``), the dense analogue of ScaleNet's consistency check
-      ``ln S = (ln S_AB - ln S_BA) / 2``. It cancels a bias shared by both directions
-      (e.g. a network that predicts "B is smaller" for both A->B and B->A).
-    * ``min_pair_log2`` (pair level): the correction is used only when the predicted scale
-      change is large somewhere: the 90th percentile of ``|log2 S|`` over A's map or over
-      B's map (or ``|log2 S|`` of a global scale) must reach this; otherwise both images
-      get no correction. A noisy map around 1 (pairs without scale change) is ignored as
-      a whole, which keeps the two sides consistent.
-    * ``deadzone_log2`` (per pixel): ``S`` with ``|log2 S| < deadzone_log2`` set to 1.
-    * ``min_confidence`` (per pixel): ``S`` set to 1 where the network's confidence
-      (``1 - entropy / ln 13``) is below this.
-
-    Defaults: consistency on, pair-level 0.25 (a ~1.2x scale change), no per-pixel rules.
-    The pair level was chosen with the stage-1 (GPU) Local-ScaleNet of 2026-11-30 on a
-    *selection* set of held-out synthetic pairs (``eval/matching_accuracy.py --seed 1 --sequences ""``,
-    HardNet, hard split, local MMA@5: 0.656 at 0.5, 0.677 at 0.25, 0.677 at 0.0); 0.25 keeps a
-    guard for near-identity pairs at no cost there. Re-checked for the fine-tuned model shipped
-    now, same set: 0.668 at 0.5, 0.690 at 0.25, 0.690 at 0.0, so 0.25 stays. Earlier measurements (older model) are in
-    ``localscale/evaluation/hpatches.py``'s docstring (the per-pixel deadzone made things
-    worse: it gates the two sides of a match independently). ``NO_GATE`` disables everything.
-    """
-
-    min_pair_log2: float = 0.25
-    deadzone_log2: float = 0.0
-    min_confidence: float = 0.0
-    consistency: bool = True
-
-    def apply(self, scale_map, confidence=None):
-        """Per-pixel rules (deadzone, confidence) on one map or float."""
-        if scale_map is None:
-            return None
-        if np.isscalar(scale_map):
-            return 1.0 if abs(math.log2(float(scale_map))) < self.deadzone_log2 else float(scale_map)
-        s = np.asarray(scale_map, np.float32).copy()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s[np.abs(np.log2(s)) < self.deadzone_log2] = 1.0
-        if confidence is not None and self.min_confidence > 0:
-            s[np.asarray(confidence) < self.min_confidence] = 1.0
-        return s
-
-    @staticmethod
-    def magnitude(scale_map) -> float:
-        """Robust size of a map's scale change: 90th percentile of ``|log2 S|`` (``|log2 S|`` for a float)."""
-        if scale_map is None:
-            return 0.0
-        if np.isscalar(scale_map):
-            return abs(math.log2(float(scale_map)))
-        v = np.abs(np.log2(np.asarray(scale_map, np.float64)))
-        v = v[np.isfinite(v)]
-        return float(np.percentile(v, 90)) if v.size else 0.0
-
-    def apply_pair(self, scale_a, scale_b, confidence_a=None, confidence_b=None):
-        """Gate the two maps of a pair: ``(None, None)`` when the pair-level rule says no correction."""
-        if self.consistency and scale_a is not None and scale_b is not None \
-                and not np.isscalar(scale_a) and not np.isscalar(scale_b):
-            la = np.log2(np.asarray(scale_a, np.float64))
-            lb = np.log2(np.asarray(scale_b, np.float64))
-            fa, fb = la[np.isfinite(la)], lb[np.isfinite(lb)]
-            if fa.size and fb.size:
-                c = float(np.median(fa) + np.median(fb))
-                scale_a = np.exp2(la - c / 2).astype(np.float32)
-                scale_b = np.exp2(lb - c / 2).astype(np.float32)
-        if self.min_pair_log2 > 0 and max(self.magnitude(scale_a), self.magnitude(scale_b)) < self.min_pair_log2:
-            return None, None
-        return self.apply(scale_a, confidence_a), self.apply(scale_b, confidence_b)
-
-
-NO_GATE = CorrectionGate(0.0, 0.0, 0.0, consistency=False)
 
 
 @dataclass
@@ -196,67 +106,6 @@ class MatchResult:
         return float(matching_accuracy(self.errors, [threshold])[0])
 
 
-def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: str, H=None, local_model=None,
-                        global_model=None, gate: CorrectionGate = CorrectionGate(), encodings=None):
-    """The maps ``(for A, for B)`` of a correction method (see module docstring).
-
-    ``encodings``: optional cached ``(EncodedImage of A, of B)`` for the local model.
-    """
-    if correction not in CORRECTIONS:
-        raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
-    if correction == "none":
-        return None, None
-    if correction == "gt":
-        if H is None:
-            raise LocalScaleError("correction='gt' needs the homography H (A -> B)")
-        H = read_homography(H)   # homography_scale_map orients the sign of H itself
-        return (homography_scale_map(H, *image_a.shape[:2]).astype(np.float32),
-                homography_scale_map(np.linalg.inv(H), *image_b.shape[:2]).astype(np.float32))
-    if correction == "global":
-        s = _global_scale(image_a, image_b, global_model)
-        return gate.apply_pair(s, 1.0 / s)
-    if local_model is None:
-        from ..models import LocalScaleNet
-        local_model = LocalScaleNet.from_pretrained()
-    ea, eb = encodings or (local_model.encode_image(image_a, "image A"), local_model.encode_image(image_b, "image B"))
-    pa = local_model.predict_from_features(ea, eb)
-    pb = local_model.predict_from_features(eb, ea)
-    if correction == "fused":
-        s = _global_scale(image_a, image_b, global_model)
-        return gate.apply_pair(*fuse_local_global(pa.scale, pb.scale, s), pa.confidence, pb.confidence)
-    return gate.apply_pair(pa.scale, pb.scale, pa.confidence, pb.confidence)
-
-
-def _global_scale(image_a: np.ndarray, image_b: np.ndarray, global_model=None) -> float:
-    """Consistency-checked ``S_{A->B}`` of ScaleNet (bundled weights when ``global_model`` is None)."""
-    if global_model is None:
-        from ..models import ScaleNet
-        global_model = ScaleNet.from_pretrained()
-    return float(global_model.predict(image_a, image_b).scale)
-
-
-def fuse_local_global(scale_a: np.ndarray, scale_b: np.ndarray, global_scale: float):
-    """Shift two local maps (``S_{A->B}`` on A, ``S_{B->A}`` on B) in log space so that their
-    medians become ``global_scale`` and ``1 / global_scale``; the spatial variation is kept.
-
-    Args:
-        scale_a: ``H_A x W_A``; scale_b: ``H_B x W_B`` (positive floats); global_scale: ``S_{A->B}``.
-    Returns:
-        ``(scale_a', scale_b')`` float32, same shapes.
-    """
-    if not (np.isfinite(global_scale) and global_scale > 0):
-        raise LocalScaleError(f"global scale must be a positive finite number, got {global_scale}")
-    g = math.log2(global_scale)
-    out = []
-    for m, level in ((scale_a, g), (scale_b, -g)):
-        lm = np.log2(np.asarray(m, np.float64))
-        finite = lm[np.isfinite(lm)]
-        if not finite.size:
-            raise LocalScaleError("local scale map has no finite positive value")
-        out.append(np.exp2(lm - np.median(finite) + level).astype(np.float32))
-    return out[0], out[1]
-
-
 def match_features(fa: Features, fb: Features, H=None, ratio: Optional[float] = None,
                    correction: str = "none") -> MatchResult:
     d, idx = match_descriptors(fa.descriptors, fb.descriptors, ratio)
@@ -271,7 +120,7 @@ def match_features(fa: Features, fb: Features, H=None, ratio: Optional[float] = 
 def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=None, global_model=None,
                descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
                ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
-               base_radius: float = 16.0, orientation: str = "upright") -> MatchResult:
+               base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False) -> MatchResult:
     """Detect, correct, describe and mutually match two images.
 
     Args:
@@ -280,11 +129,12 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
         H: homography A -> B (array or file); needed for ``"gt"``, gives reprojection errors.
         local_model, global_model: models for ``"local"`` / ``"global"`` / ``"fused"`` (default: bundled weights).
         gate: gating of predicted maps (``NO_GATE`` to disable; not applied to ``"gt"``).
+        bf16: run the scale networks under bfloat16 autocast.
     """
     a = load_image(image_a, "image A")
     b = load_image(image_b, "image B")
     desc = get_descriptor(descriptor)
-    sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate)
+    sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate, bf16=bf16)
     fa = extract(a, sa, num_features, desc, base_radius, orientation)
     fb = extract(b, sb, num_features, desc, base_radius, orientation)
     res = match_features(fa, fb, H, ratio, correction)
@@ -322,7 +172,10 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
         cv2.circle(canvas, pb, 2 * lw, colour, -1)
     if path is not None:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
         if not cv2.imwrite(str(path), canvas[..., ::-1]):
             raise LocalScaleError(f"cannot write picture {path}")
     return canvas
@@ -332,7 +185,10 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
     """Write the result to ``.npz`` (keypoints_a/b, matches, distances, radii_a/b, correction,
     and errors / H when known)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
     data = dict(keypoints_a=result.keypoints_a, keypoints_b=result.keypoints_b, matches=result.matches,
                 distances=result.distances, radii_a=result.radii_a, radii_b=result.radii_b,
                 correction=np.array(result.correction))
@@ -340,40 +196,38 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         data["errors"] = result.errors
     if result.H is not None:
         data["H"] = result.H
-    np.savez(path, **data)
+    try:
+        np.savez(path, **data)
+    except OSError as e:
+        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
 
 
-def add_match_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Arguments of ``localscale match A B -o OUT ...`` (for the package CLI)."""
-    parser.add_argument("image_a")
-    parser.add_argument("image_b")
-    parser.add_argument("-o", "--out", required=True, help="output folder (matches.npz, matches.png)")
-    parser.add_argument("--correction", choices=CORRECTIONS, default="local")
-    parser.add_argument("--H", default=None, help="homography file A->B (needed for gt; gives inliers)")
-    parser.add_argument("--descriptor", default="hardnet", help="hardnet | sift | path to HardNet weights")
-    parser.add_argument("--num-features", type=int, default=1000)
-    parser.add_argument("--ratio", type=float, default=None, help="Lowe ratio test on top of mutual NN")
-    parser.add_argument("--local-weights", default=None)
-    parser.add_argument("--global-weights", default=None)
-    parser.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
-                        help="gradient: dominant-gradient orientation (for in-plane rotations)")
-    return parser
+def models_for_correction(correction: str, local_weights=None, global_weights=None, device: str = "cpu"):
+    """``(local_model, global_model)`` that ``correction`` needs (None for the other), loaded with
+    :func:`localscale.cli.load_scale_model` (``weights`` None = bundled)."""
+    from ..cli import load_scale_model
+
+    if correction not in CORRECTIONS:
+        raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
+    local_model = load_scale_model("local", local_weights, device) if correction in ("local", "fused") else None
+    global_model = load_scale_model("global", global_weights, device) if correction in ("global", "fused") else None
+    return local_model, global_model
 
 
 def run_match(image_a, image_b, out, correction: str = "local", H=None, descriptor: str = "hardnet",
               num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
-              device: str = "cpu", verbose: bool = True, orientation: str = "upright") -> MatchResult:
-    """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result."""
-    local_model = global_model = None
-    if correction == "local":
-        from ..models import LocalScaleNet
-        local_model = LocalScaleNet.from_pretrained(local_weights, device=device)
-    elif correction == "global":
-        from ..models import ScaleNet
-        global_model = ScaleNet.from_pretrained(global_weights, device=device)
+              device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
+              local_model=None, global_model=None) -> MatchResult:
+    """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
+
+    The models ``correction`` needs are ``local_model`` / ``global_model`` when given, else loaded
+    from ``local_weights`` / ``global_weights`` (None = bundled) on ``device``.
+    """
+    if local_model is None and global_model is None:
+        local_model, global_model = models_for_correction(correction, local_weights, global_weights, device)
     H = read_homography(H) if H is not None else None
     res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
-                     orientation=orientation)
+                     orientation=orientation, bf16=bf16)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
@@ -385,30 +239,33 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
     return res
 
 
-def run_match_cli(args: argparse.Namespace) -> int:
-    """Body of ``localscale match``; returns the exit code 0.
+def add_match_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Deprecated: the options of ``localscale match`` (defined once, in :mod:`localscale.cli`)."""
+    from ..cli import add_match_options
 
-    Reads from ``args``: ``image_a``, ``image_b``, ``out`` or ``output``, ``correction``,
-    ``H`` (file or None), ``descriptor``, ``num_features``, and optionally ``ratio``,
-    ``local_weights``/``local_model``, ``global_weights``/``global_model`` (checkpoint
-    paths, None = bundled), ``device``, ``orientation`` (``upright``/``gradient``).
-    Writes ``OUT/matches.npz`` and ``OUT/matches.png``.
-    """
-    g = lambda *names, default=None: next((getattr(args, n) for n in names if getattr(args, n, None) is not None),
-                                          default)
-    out = g("out", "output", default="out")
-    run_match(args.image_a, args.image_b, out, g("correction", default="local"), g("H"),
-              g("descriptor", default="hardnet"), g("num_features", default=1000), g("ratio"),
-              g("local_weights", "local_model"), g("global_weights", "global_model"), g("device", default="cpu"),
-              orientation=g("orientation", default="upright"))
-    return 0
+    return add_match_options(parser)
+
+
+def run_match_cli(args: argparse.Namespace) -> int:
+    """Deprecated: body of ``localscale match`` (:func:`localscale.cli.cmd_match`) for a namespace
+    built by :func:`add_match_arguments`; options it lacks take the parser's defaults."""
+    from ..cli import add_match_options, cmd_match
+
+    ns = add_match_options(argparse.ArgumentParser()).parse_args([str(args.image_a), str(args.image_b)])
+    for old, new in (("out", "output"), ("local_model", "local_weights"), ("global_model", "global_weights")):
+        if getattr(args, old, None) is not None:
+            setattr(ns, new, getattr(args, old))
+    for k, v in vars(args).items():
+        if hasattr(ns, k) and v is not None:
+            setattr(ns, k, v)
+    return cmd_match(ns)
 
 
 def match_main(argv=None) -> int:
-    """Stand-alone entry: ``python -m localscale.features.pipeline A B -o OUT ...``."""
-    parser = add_match_arguments(argparse.ArgumentParser(description="match two images"))
-    run_match_cli(parser.parse_args(argv))
-    return 0
+    """Stand-alone entry: ``python -m localscale.features.pipeline A B -o OUT ...`` (same as ``localscale match``)."""
+    from ..cli import main
+
+    return main(["match"] + list(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":
