@@ -93,13 +93,16 @@ def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[En
     ``hard`` / ``planar``: read-out options of :meth:`LocalScaleNet.predict` (ignored for ScaleNet)."""
     fa = torch.cat([e.features for e in encs_a])
     fb = torch.cat([e.features for e in encs_b])
+    local = hasattr(model, "forward_features_all")
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
-        out = model.forward_features(fa, fb)
-    if isinstance(out, tuple):   # global ScaleNet: both directions
+        out = model.forward_features_all(fa, fb) if local else model.forward_features(fa, fb)
+    if not local:   # global ScaleNet: both directions
         pa, pb = F.softmax(out[0].float(), 1), F.softmax(out[1].float(), 1)
         return [model._readout(pa[i], pb[i], a.letterbox, b.letterbox) for i, (a, b) in enumerate(zip(encs_a, encs_b))]
-    probs = F.softmax(out.float(), 1)
-    return [model._readout(probs[i], a.letterbox, b.letterbox, hard, planar)
+    probs = F.softmax(out[0].float(), 1)
+    visible = torch.sigmoid(out[1].float())[:, 0] if out[1] is not None else None
+    return [model._readout(probs[i], a.letterbox, b.letterbox, hard, planar,
+                           visible[i] if visible is not None else None)
             for i, (a, b) in enumerate(zip(encs_a, encs_b))]
 
 
