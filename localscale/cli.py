@@ -256,12 +256,17 @@ def cmd_predict(args) -> int:
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)
+    from .reliability import check_pair
+
     model = _model(args, "local")
-    pred = model.predict(args.image_a, args.image_b, hard=args.hard, bf16=args.bf16, planar=args.planar)
+    check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
+    pred = check.forward
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     s = pred.scale
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
+    if not check.reliable:
+        print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
     return 0
 
 
@@ -344,9 +349,13 @@ def cmd_demo(args) -> int:
 
 def cmd_scale(args) -> int:
     p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
+    if not p.reliable:
+        print(f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
+              f"disagree by x{2 ** p.inconsistency_log2:.2f}", file=sys.stderr)
     if args.json:
         print(json.dumps({"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
-                          "hard_scale": p.hard_scale, "probs_ab": p.probs_ab.round(4).tolist()}))
+                          "hard_scale": p.hard_scale, "reliable": p.reliable,
+                          "inconsistency_log2": p.inconsistency_log2, "probs_ab": p.probs_ab.round(4).tolist()}))
     else:
         print(f"S(A->B) = {p.scale:.4f}  (A->B {p.scale_ab:.4f}, 1/(B->A) {1 / p.scale_ba:.4f}, "
               f"D-ScaleNet {p.hard_scale:.4f})")

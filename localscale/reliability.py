@@ -98,11 +98,14 @@ def flag_reasons(stats: dict, cfg: PairCheckConfig = PairCheckConfig()) -> list[
 
 
 def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConfig = PairCheckConfig(),
-               bf16: bool = False) -> PairCheck:
-    """Predict ``A->B`` and ``B->A`` with a Local-ScaleNet and decide whether to trust the pair."""
+               bf16: bool = False, **readout) -> PairCheck:
+    """Predict ``A->B`` and ``B->A`` with a Local-ScaleNet and decide whether to trust the pair.
+
+    ``readout``: options of :meth:`LocalScaleNet.predict_from_features` for the forward map
+    (``hard``, ``planar``); the backward map, used only for the check, is the soft one."""
     ea = model.encode_image(image_a, "image A", bf16)
     eb = model.encode_image(image_b, "image B", bf16)
-    fwd = model.predict_from_features(ea, eb, bf16=bf16)
+    fwd = model.predict_from_features(ea, eb, bf16=bf16, **readout)
     bwd = model.predict_from_features(eb, ea, bf16=bf16)
     stats = pair_statistics(fwd, bwd, cfg)
     reasons = flag_reasons(stats, cfg)

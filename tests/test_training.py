@@ -170,3 +170,32 @@ def test_ctrl_c_finishes_the_step_saves_and_resumes(image_dir, tmp_path):
 def test_bad_crop_min_is_a_clear_error(crop_min):
     with pytest.raises(LocalScaleError, match="crop_min must be in"):
         TrainConfig(crop_min=crop_min).pair_config()
+
+
+def test_visibility_head_is_added_to_a_model_trained_without_it(image_dir, tmp_path):
+    """A fine-tune with --visibility starts from a model without the output: only that layer is new."""
+    train(tiny_cfg(image_dir, tmp_path / "base", steps=2))
+    res = train(tiny_cfg(image_dir, tmp_path / "vis", steps=3, val_every=3, visibility=True, unrelated_probability=0.3,
+                         identity_probability=0.3, init_weights=str(tmp_path / "base" / "model.pt")))
+    assert 0 <= res["visibility_iou"] <= 1
+    sd = read_checkpoint(tmp_path / "vis" / "last.pt")["state_dict"]
+    assert "head.visible.weight" in sd
+    with pytest.raises(LocalScaleError, match="do not fit"):   # other mismatches are still refused
+        train(tiny_cfg(image_dir, tmp_path / "wide", steps=1, feature_dim=32, init_weights=str(tmp_path / "base" / "model.pt")))
+
+
+def test_non_finite_gradients_skip_the_update(image_dir, tmp_path, monkeypatch):
+    monkeypatch.setattr(training, "_grads_finite", lambda model: False)
+    cfg = tiny_cfg(image_dir, tmp_path / "g", steps=3)
+    train(cfg)
+    torch.manual_seed(cfg.seed)
+    init = cfg.build_model().state_dict()
+    after = read_checkpoint(tmp_path / "g" / "last.pt")["state_dict"]
+    conv = [k for k in init if k.endswith("weight") and init[k].dim() == 4]
+    assert conv and all(torch.equal(init[k], after[k]) for k in conv)     # no update was applied
+
+
+def test_persistent_non_finite_gradients_stop_the_run(image_dir, tmp_path, monkeypatch):
+    monkeypatch.setattr(training, "_grads_finite", lambda model: False)
+    with pytest.raises(TrainingDiverged, match="non-finite gradients"):
+        train(tiny_cfg(image_dir, tmp_path / "g", steps=30, ckpt_every=10, val_every=100))

@@ -56,6 +56,7 @@ class GlobalScalePrediction:
         scale_ab, scale_ba: soft scales of each direction (``scale_ba`` is ``S_{B->A}``).
         hard_scale: D-ScaleNet read-out (arg-max bin of ``probs_ab``).
         probs_ab, probs_ba: the two 13-bin distributions.
+        reliable: False when the two directions disagree (see ``inconsistency_log2``).
     """
 
     scale: float
@@ -64,6 +65,19 @@ class GlobalScalePrediction:
     hard_scale: float
     probs_ab: np.ndarray
     probs_ba: np.ndarray
+
+    #: the two directions may disagree by at most this factor (log2) for a reliable estimate
+    MAX_INCONSISTENCY_LOG2 = 0.5
+
+    @property
+    def inconsistency_log2(self) -> float:
+        """``|log2 S_AB + log2 S_BA|``: 0 when the two directions agree exactly."""
+        return abs(math.log2(self.scale_ab) + math.log2(self.scale_ba))
+
+    @property
+    def reliable(self) -> bool:
+        """False when A->B and the inverse of B->A disagree by more than x1.41: do not trust ``scale``."""
+        return math.isfinite(self.scale) and self.inconsistency_log2 <= self.MAX_INCONSISTENCY_LOG2
 
 
 @register
