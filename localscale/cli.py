@@ -493,6 +493,8 @@ def build_parser() -> argparse.ArgumentParser:
     from .evaluation.hpatches import add_arguments as add_hpatches_arguments
 
     p = argparse.ArgumentParser(prog="localscale", description=__doc__, formatter_class=HelpFormatter)
+    from . import __version__
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name, summary, description):

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from ..errors import ImageError
 from ..io import ImageLike, load_image
 from ..preprocess import Letterbox, letterbox, to_tensor
 from .common import FeatureExtractor
@@ -80,6 +81,26 @@ class ScaleModel(nn.Module):
         boxed, lb = letterbox(rgb, self.config.image_size)
         return to_tensor(boxed)[None].to(self.device), lb
 
+    def prepare_batch(self, images, name: str = "images") -> tuple[torch.Tensor, Letterbox, "BatchFormat"]:
+        """Letterbox a batch of same-size images: ``B x 3 x P x P`` on the model's device.
+
+        ``images``: ``B x 3 x H x W`` (or ``B x 1 x H x W`` gray, or one ``3 x H x W`` image)
+        torch tensor or numpy array, float in [0, 1] or uint8, on any device. Each image goes
+        through exactly what :meth:`prepare` does to a single image (8-bit quantisation, the same
+        resize), so batched predictions equal per-pair ones. All images share one placement.
+        """
+        fmt = BatchFormat.of(images, name)
+        t = torch.from_numpy(np.asarray(images)) if fmt.numpy else images.detach()
+        t = t[None] if fmt.single else t
+        if t.dim() != 4 or t.shape[1] not in (1, 3):
+            raise ImageError(f"{name}: expected a B x 3 x H x W batch (or one 3 x H x W image), "
+                             f"got shape {tuple(np.shape(images))}")
+        if t.shape[0] == 0:
+            raise ImageError(f"{name}: empty batch")
+        hwc = t.cpu().permute(0, 2, 3, 1).numpy()
+        boxed = [self.prepare(hwc[i], f"{name}[{i}]") for i in range(hwc.shape[0])]
+        return torch.cat([x for x, _ in boxed]), boxed[0][1], fmt
+
     @torch.inference_mode()
     def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False) -> EncodedImage:
         """Encode one image for later pairing (the feature cache's unit)."""
@@ -99,17 +120,47 @@ class ScaleModel(nn.Module):
 
 
 def upsample_to_original(grid: torch.Tensor, lb: Letterbox) -> torch.Tensor:
-    """Resize a ``C x h x w`` map on the processing grid to the original image (``C x H x W``).
+    """Resize a ``C x h x w`` map on the processing grid to the original image (``C x H x W``;
+    a ``B x C x h x w`` batch gives ``B x C x H x W``).
 
     The grid covers the full ``P x P`` frame; it is upsampled to ``P x P``, the image's
     region cropped out of the padding, and resized to the original resolution.
     """
     import torch.nn.functional as F
 
-    x = F.interpolate(grid[None].float(), size=(lb.size, lb.size), mode="bilinear", align_corners=False)
+    batched = grid.dim() == 4
+    x = grid.float() if batched else grid[None].float()
+    x = F.interpolate(x, size=(lb.size, lb.size), mode="bilinear", align_corners=False)
     x = x[..., lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width]
-    return F.interpolate(x, size=(lb.height, lb.width), mode="bilinear", align_corners=False)[0]
+    x = F.interpolate(x, size=(lb.height, lb.width), mode="bilinear", align_corners=False)
+    return x if batched else x[0]
 
 
 def as_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().float().numpy()
+
+
+@dataclass(frozen=True)
+class BatchFormat:
+    """How a batch came in, so that outputs go back in the same form: numpy in -> numpy out,
+    a tensor in -> tensors on its device; one unbatched image -> unbatched outputs."""
+
+    numpy: bool
+    single: bool
+    device: torch.device
+
+    @classmethod
+    def of(cls, images, name: str = "images") -> "BatchFormat":
+        if isinstance(images, torch.Tensor):
+            return cls(False, images.dim() == 3, images.device)
+        if isinstance(images, np.ndarray):
+            return cls(True, images.ndim == 3, torch.device("cpu"))
+        raise ImageError(f"{name}: expected a torch tensor or a numpy array (B x 3 x H x W), "
+                         f"got {type(images).__name__}")
+
+    def out(self, t: torch.Tensor | None):
+        """A ``B x ...`` result in this format (None passes through)."""
+        if t is None:
+            return None
+        t = t[0] if self.single else t
+        return as_numpy(t) if self.numpy else t.to(self.device)

@@ -129,6 +129,29 @@ class LocalScalePrediction:
         return as_numpy(upsample_to_original(self.probs, self.letterbox_a))
 
 
+@dataclass
+class LocalScaleBatch:
+    """Output of :meth:`LocalScaleNet.predict_batch`: ``B x H_A x W_A`` maps (tensors on the
+    input's device, or numpy arrays for numpy input; no batch axis for one unbatched pair).
+
+    Attributes:
+        scale: ``S_{A->B}`` per pixel of each A.
+        confidence: ``1 - entropy / ln 13``, in [0, 1].
+        visible: visibility probability of each pixel of A in B (None without that output).
+        reliability: calibrated ``P(r < 1.25)`` (None for an uncalibrated model).
+        probs: ``B x 13 x h x w`` distributions on the processing grid of A.
+    """
+
+    scale: torch.Tensor | np.ndarray
+    confidence: torch.Tensor | np.ndarray
+    visible: torch.Tensor | np.ndarray | None = None
+    reliability: torch.Tensor | np.ndarray | None = None
+    probs: torch.Tensor | np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.scale)
+
+
 @register
 class LocalScaleNet(ScaleModel):
     """Dense Local-ScaleNet. See the module docstring for the pipeline."""
@@ -191,6 +214,48 @@ class LocalScaleNet(ScaleModel):
         ea = self.encode_image(image_a, "image A", bf16)
         eb = self.encode_image(image_b, "image B", bf16)
         return self.predict_from_features(ea, eb, hard, bf16, planar)
+
+    @torch.inference_mode()
+    def predict_batch(self, images_a, images_b, hard: bool = False, bf16: bool = False,
+                      batch_size: int | None = None) -> LocalScaleBatch:
+        """Per-pixel ``S_{A->B}`` for a batch of pairs, in one network pass per ``batch_size`` pairs.
+
+        Args:
+            images_a, images_b: ``B x 3 x H x W`` batches (torch tensors on any device or numpy
+                arrays; float in [0, 1] or uint8). A and B may have different sizes; all A share one
+                size, all B another. One ``3 x H x W`` image each is one pair (no batch axis out).
+            hard, bf16: as in :meth:`predict`.
+            batch_size: pairs per network pass (default: all at once).
+
+        Returns:
+            :class:`LocalScaleBatch` of ``B x H_A x W_A`` maps; tensors on the device of
+            ``images_a`` for tensor input, numpy arrays for numpy input. Equal (to float
+            precision) to :meth:`predict` on each pair.
+        """
+        xa, lb_a, fmt = self.prepare_batch(images_a, "images A")
+        xb, lb_b, _ = self.prepare_batch(images_b, "images B")
+        if xa.shape[0] != xb.shape[0]:
+            raise ValueError(f"predict_batch: {xa.shape[0]} images A but {xb.shape[0]} images B")
+        step = batch_size or xa.shape[0]
+        logits, vis = [], []
+        for i in range(0, xa.shape[0], step):
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+                lg, v = self.forward_features_all(self.encode(xa[i:i + step]), self.encode(xb[i:i + step]))
+            logits.append(lg.float())
+            vis.append(v.float() if v is not None else None)
+        probs = F.softmax(torch.cat(logits), 1)
+        visible = torch.sigmoid(torch.cat(vis))[:, 0] if vis[0] is not None else None
+        log_s = torch.log(scales.hard_scale(probs, 1)) if hard else scales.soft_log_scale(probs, 1)
+        log_s = log_s + math.log(lb_a.factor / lb_b.factor)
+        grids = [log_s, scales.confidence(probs, 1)] + ([visible] if visible is not None else [])
+        if self.config.calibration:
+            grids.append(reliability(probs, visible, self.config.calibration, 1))
+        maps = upsample_to_original(torch.stack(grids, 1), lb_a)
+        return LocalScaleBatch(
+            scale=fmt.out(torch.exp(maps[:, 0])), confidence=fmt.out(maps[:, 1].clamp(0, 1)),
+            visible=fmt.out(maps[:, 2].clamp(0, 1)) if visible is not None else None,
+            reliability=fmt.out(maps[:, -1].clamp(0, 1)) if self.config.calibration else None,
+            probs=fmt.out(probs))
 
     def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool,
                  planar: bool = False, visible: torch.Tensor | None = None) -> LocalScalePrediction:
