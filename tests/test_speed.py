@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from localscale.features import (NO_GATE, HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor,
-                                 image_to_gray_tensor, match_descriptors, match_pair, patch_radii,
+                                 image_to_gray_tensor, match_descriptors, match_pair, reprojection_errors,
                                  scale_maps_for_pair)
 from localscale.features.descriptors import default_batch_size
 from localscale.features.detector import HessianDetector
@@ -104,8 +104,6 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
             da = desc.describe(cutter(ga, ka, sa)[0])
             db = desc.describe(cutter(gb, kb, sb)[0])
             _, idx = match_descriptors(da, db)
-            from localscale.features.matching import reprojection_errors
-
             err = reprojection_errors(ka.numpy(), kb.numpy(), idx.numpy(), p.H)
             r = recs[(p.name, m)]
             assert r["num_matches"] == len(idx), (p.name, m)
