@@ -1,153 +1,275 @@
-"""Speed of the scale models on CPU (or --device cuda): prints a table and writes JSON.
+"""Speed of the whole user path on CPU (or --device cuda): prints a markdown table and writes JSON.
 
-Measures, for 640x480 inputs at the model's processing size:
-* model load time (bundled checkpoint),
-* ms per pair (median, p90): full pair (load-free: arrays in memory, letterbox + 2 encodes + head)
-  and cached pair (features of both images already encoded: head only), fp32 and bf16,
-* throughput (pairs/s) of one reference image against N others (N = 1, 10, 100) uncached vs
-  with the feature cache, and all pairs among N images (every image in N-1 pairs),
-* peak RSS.
+Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homography) and
+``--num-features`` keypoints per image:
 
-    python eval/benchmark.py --out results/benchmark.json
+* CLI start-up (``python -m localscale --help`` in a subprocess) and one ``localscale match``
+  run end to end (subprocess: imports, model loads, matching, writing the picture);
+* model load (Local-ScaleNet, ScaleNet, HardNet);
+* scale map: Local-ScaleNet ``predict`` (both images encoded) and from cached features (head
+  only), ScaleNet ``predict``;
+* keypoint detection, patch extraction (local correction), description (HardNet at the default
+  chunk size and at 512 patches per call, the former default; RootSIFT), mutual-NN matching;
+* ``match_pair`` end to end per correction (models and descriptor loaded once);
+* one ``eval-hpatches`` pair per method: the methods in a row on one evaluator (shared work, as in
+  ``localscale eval-hpatches``) and each method alone;
+* OpenCV's SIFT pipeline on the same images (``cv2.SIFT_create(nfeatures)`` detect + compute
+  on both, ``BFMatcher(NORM_L2, crossCheck=True)``) as the reference: every stage is also given
+  as a ratio to it;
+* peak RSS (``resource.getrusage``).
+
+Times are medians over ``--repeat`` runs (after one warm-up), wall clock and process CPU time;
+on a loaded machine the CPU time is the steadier number. Scale-model throughput with the feature
+cache (1 vs N images, all pairs) is measured with ``--throughput``.
+
+    python eval/benchmark.py --repeat 3 --threads 2 --out results/benchmark.json
+
+Only the public API (and the evaluation's per-pair runner) is used, so the same script times an
+older checkout: ``PYTHONPATH=/path/to/old/checkout python eval/benchmark.py``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
-from localscale import LocalScaleNet, ScaleNet
-from localscale.cache import encode_batch, predict_batch
+import localscale
+from localscale.features import (HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, get_descriptor,
+                                 image_to_gray_tensor, match_descriptors, match_pair)
+from localscale.features.correction import CORRECTIONS, scale_maps_for_pair
+from localscale.features.detector import HessianDetector
+from localscale.io import load_image, read_homography
+from localscale.models import LocalScaleNet, ScaleNet
+
+ASSETS = Path(localscale.__file__).resolve().parent / "assets"
 
 
-def timeit(fn, repeat: int, warmup: int = 2) -> np.ndarray:
+def timeit(fn, repeat: int, warmup: int = 1) -> dict:
+    """Median / p90 wall ms and median CPU ms (this process, all threads) of ``fn()``."""
     for _ in range(warmup):
         fn()
-    out = []
+    wall, cpu = [], []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
-        out.append(time.perf_counter() - t)
-    return np.array(out) * 1000
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    wall, cpu = np.array(wall) * 1000, np.array(cpu) * 1000
+    return {"ms": float(np.median(wall)), "ms_p90": float(np.percentile(wall, 90)), "cpu_ms": float(np.median(cpu))}
 
 
-def images(n: int, rng) -> list[np.ndarray]:
-    from skimage import data
+def subprocess_ms(cmd: list, repeat: int, cwd: str, env=None) -> dict:
+    """Median wall ms and median child CPU ms of running ``cmd`` ``repeat`` times."""
+    wall, cpu = [], []
+    for _ in range(repeat):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t = time.perf_counter()
+        subprocess.run(cmd, cwd=cwd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wall.append(time.perf_counter() - t)
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime)
+    return {"ms": float(np.median(wall) * 1000), "ms_p90": float(np.percentile(wall, 90) * 1000),
+            "cpu_ms": float(np.median(cpu) * 1000)}
 
-    base = [data.astronaut(), data.coffee(), data.chelsea(), data.rocket()]
-    import cv2
 
-    out = []
-    for i in range(n):
-        im = cv2.resize(base[i % len(base)], (640, 480))
-        out.append(np.clip(im.astype(np.int16) + rng.integers(-8, 8, im.shape), 0, 255).astype(np.uint8))
+def test_pair(size=(640, 480)):
+    """The bundled pair resized to ``size`` (w, h) and its homography in the resized frames."""
+    a, b = load_image(ASSETS / "kodim01_a.jpg"), load_image(ASSETS / "kodim01_b.jpg")
+    H = read_homography(ASSETS / "H_a_b.txt")
+    sa = np.diag([size[0] / a.shape[1], size[1] / a.shape[0], 1.0])
+    sb = np.diag([size[0] / b.shape[1], size[1] / b.shape[0], 1.0])
+    a = cv2.resize(a, size, interpolation=cv2.INTER_AREA)
+    b = cv2.resize(b, size, interpolation=cv2.INTER_AREA)
+    return a, b, sb @ H @ np.linalg.inv(sa)
+
+
+def opencv_sift(a: np.ndarray, b: np.ndarray, n: int):
+    sift = cv2.SIFT_create(nfeatures=n)
+    ga, gb = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY), cv2.cvtColor(b, cv2.COLOR_RGB2GRAY)
+    ka, da = sift.detectAndCompute(ga, None)
+    kb, db = sift.detectAndCompute(gb, None)
+    return cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(da, db)
+
+
+def eval_pair_times(a, b, H, methods, descriptor, local, glob, n, repeat, tmp) -> dict:
+    """One eval-hpatches pair: all methods in a row on one evaluator, and each method alone."""
+    from localscale.evaluation.hpatches import PairInfo, _Evaluator
+    from localscale.features.correction import CorrectionGate
+
+    pa, pb = Path(tmp) / "a.png", Path(tmp) / "b.png"
+    cv2.imwrite(str(pa), a[..., ::-1])
+    cv2.imwrite(str(pb), b[..., ::-1])
+    pair = PairInfo("bench", 2, pa, pb, H)
+    desc = get_descriptor(descriptor)
+
+    def run(ms):
+        ev = _Evaluator(desc, n, local, glob, CorrectionGate(), 16.0, "upright", None)
+        ev._keep = set()
+        return ev.run_pair(pair, ms, [5.0])
+
+    out = {"all_methods": timeit(lambda: run(methods), repeat)}
+    recs = run(methods)
+    out["mma5"] = {r["method"]: r["mma"][0] for r in recs}
+    out["alone"] = {m: timeit(lambda m=m: run([m]), repeat) for m in methods}
+    out["alone_sum_ms"] = sum(v["ms"] for v in out["alone"].values())
+    out["alone_sum_cpu_ms"] = sum(v["cpu_ms"] for v in out["alone"].values())
     return out
 
 
-def bench_model(cls, path, device, repeat, rng) -> dict:
-    t = time.perf_counter()
-    model = cls.from_pretrained(path, device=device)
-    load_ms = (time.perf_counter() - t) * 1000
-    a, b = images(2, rng)
-    res = {"load_ms": load_ms}
-    for bf16 in (False, True):
-        tag = "bf16" if bf16 else "fp32"
-        full = timeit(lambda: model.predict(a, b, bf16=bf16), repeat)
-        ea, eb = model.encode_image(a, bf16=bf16), model.encode_image(b, bf16=bf16)
-        cached = timeit(lambda: model.predict_from_features(ea, eb, bf16=bf16), repeat)
-        enc = timeit(lambda: model.encode_image(a, bf16=bf16), repeat)
-        res[tag] = {"pair_ms_median": float(np.median(full)), "pair_ms_p90": float(np.percentile(full, 90)),
-                    "cached_pair_ms_median": float(np.median(cached)), "cached_pair_ms_p90": float(np.percentile(cached, 90)),
-                    "encode_ms_median": float(np.median(enc))}
-    return res, model
+def throughput_sections(model, rng) -> dict:
+    """Scale-model pairs/s uncached vs with the feature cache (1 vs N, all pairs of N images)."""
+    from localscale.cache import encode_batch, predict_batch
+    from skimage import data
 
+    base = [data.astronaut(), data.coffee(), data.chelsea(), data.rocket()]
 
-def throughput(model, n: int, rng, batch: int = 8) -> dict:
-    ims = images(n + 1, rng)
-    ref, others = ims[0], ims[1:]
-    t = time.perf_counter()
-    for o in others:
-        model.predict(ref, o)
-    unc = n / (time.perf_counter() - t)
-    t = time.perf_counter()
-    e_ref = encode_batch(model, [ref])[0]
-    for i in range(0, n, batch):
-        encs = encode_batch(model, others[i:i + batch])
+    def images(k):
+        return [np.clip(cv2.resize(base[i % 4], (640, 480)).astype(np.int16) + rng.integers(-8, 8, (480, 640, 3)),
+                        0, 255).astype(np.uint8) for i in range(k)]
+
+    res = {}
+    for n in (1, 10):
+        ims = images(n + 1)
+        t = time.perf_counter()
+        for o in ims[1:]:
+            model.predict(ims[0], o)
+        unc = n / (time.perf_counter() - t)
+        t = time.perf_counter()
+        e_ref = encode_batch(model, [ims[0]])[0]
+        encs = encode_batch(model, ims[1:])
         predict_batch(model, [e_ref] * len(encs), encs)
-    cached = n / (time.perf_counter() - t)
-    return {"n": n, "uncached_pairs_per_s": unc, "cached_pairs_per_s": cached, "speedup": cached / unc}
-
-
-def all_pairs(model, n: int, rng, batch: int = 16) -> dict:
-    ims = images(n, rng)
-    pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
+        res[f"1_vs_{n}"] = {"uncached_pairs_per_s": unc, "cached_pairs_per_s": n / (time.perf_counter() - t)}
+    ims = images(8)
+    pairs = [(i, j) for i in range(8) for j in range(8) if i != j]
     t = time.perf_counter()
-    for i, j in pairs[:min(len(pairs), 40)]:
-        model.predict(ims[i], ims[j])
-    unc = min(len(pairs), 40) / (time.perf_counter() - t)
-    t = time.perf_counter()
-    encs = [e for k in range(0, n, batch) for e in encode_batch(model, ims[k:k + batch])]
-    for k in range(0, len(pairs), batch):
-        chunk = pairs[k:k + batch]
+    encs = encode_batch(model, ims)
+    for k in range(0, len(pairs), 16):
+        chunk = pairs[k:k + 16]
         predict_batch(model, [encs[i] for i, _ in chunk], [encs[j] for _, j in chunk])
-    cached = len(pairs) / (time.perf_counter() - t)
-    return {"images": n, "pairs": len(pairs), "uncached_pairs_per_s": unc, "cached_pairs_per_s": cached,
-            "speedup": cached / unc}
+    res["all_pairs_8_images"] = {"pairs": len(pairs), "cached_pairs_per_s": len(pairs) / (time.perf_counter() - t)}
+    return res
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--local-model", default=None)
-    p.add_argument("--global-model", default=None)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--repeat", type=int, default=5, help="timed runs per stage (after one warm-up)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--repeat", type=int, default=20)
-    p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--out", default=None)
+    p.add_argument("--methods", nargs="+", default=["none", "local", "gt"], help="eval-hpatches methods timed")
+    p.add_argument("--no-cli", action="store_true", help="skip the subprocess timings (--help, match)")
+    p.add_argument("--throughput", action="store_true", help="also time scale-model throughput with the cache")
+    p.add_argument("--out", default=None, help="JSON file")
     a = p.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     rng = np.random.default_rng(0)
-    res = {"device": a.device, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
-           "torch": torch.__version__, "input": "640x480 RGB arrays"}
-    for name, cls, path in (("local", LocalScaleNet, a.local_model), ("global", ScaleNet, a.global_model)):
-        try:
-            r, model = bench_model(cls, path, a.device, a.repeat, rng)
-        except Exception as e:  # a missing default model should not hide the other one
-            print(f"skipping {name}: {e}", file=sys.stderr)
-            continue
-        r["processing_size"] = model.config.image_size
-        if name == "local":
-            r["one_vs_n"] = [throughput(model, n, rng) for n in (1, 10, 100)]
-            r["all_pairs"] = all_pairs(model, 20, rng)
-        res[name] = r
-    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    n, rep = a.num_features, a.repeat
+    img_a, img_b, H = test_pair()
+    res = {"device": a.device, "threads": torch.get_num_threads(), "torch": torch.__version__,
+           "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+           "load_average_start": os.getloadavg(), "localscale": str(Path(localscale.__file__).parent),
+           "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep}
+    st = {}   # stage -> timing dict
 
-    print(f"\n### benchmark ({a.device}, {res['threads']} threads, torch {torch.__version__}, 640x480 inputs)\n")
-    print("| model | load ms | precision | pair ms (median / p90) | cached pair ms (median / p90) | encode ms |")
+    with tempfile.TemporaryDirectory() as tmp:
+        if not a.no_cli:
+            env = dict(os.environ, OMP_NUM_THREADS=str(a.threads)) if a.threads else None
+            st["cli: localscale --help"] = subprocess_ms([sys.executable, "-m", "localscale", "--help"], rep, tmp, env)
+            pa, pb, ph = Path(tmp) / "a.png", Path(tmp) / "b.png", Path(tmp) / "H.txt"
+            cv2.imwrite(str(pa), img_a[..., ::-1])
+            cv2.imwrite(str(pb), img_b[..., ::-1])
+            np.savetxt(ph, H)
+            cmd = [sys.executable, "-m", "localscale", "match", str(pa), str(pb), "-o", str(Path(tmp) / "m"),
+                   "--correction", "local", "--H", str(ph), "--num-features", str(n)]
+            st["cli: localscale match (local)"] = subprocess_ms(cmd, max(1, min(rep, 3)), tmp, env)
+
+        st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(device=a.device), rep)
+        st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(device=a.device), rep)
+        st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(device=a.device), rep)
+        local = LocalScaleNet.from_pretrained(device=a.device)
+        glob = ScaleNet.from_pretrained(device=a.device)
+        hardnet = HardNetDescriptor.from_pretrained(device=a.device)
+        sift = SIFTPatchDescriptor().to(a.device).eval()
+
+        st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), rep)
+        ea, eb = local.encode_image(img_a), local.encode_image(img_b)
+        st["scale map: local, cached features (head)"] = timeit(lambda: local.predict_from_features(ea, eb), rep)
+        st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), rep)
+
+        ga, gb = image_to_gray_tensor(img_a), image_to_gray_tensor(img_b)
+        det = HessianDetector(n)
+        st["detect: 2 images"] = timeit(lambda: (det(ga), det(gb)), rep)
+        ka, kb = det(ga)[0], det(gb)[0]
+        sa, sb = scale_maps_for_pair(img_a, img_b, "local", None, local, glob)
+        cutter = ScaleCorrectedPatches()
+        st["patches: 2 images (local correction)"] = timeit(lambda: (cutter(ga, ka, sa), cutter(gb, kb, sb)), rep)
+        pa_, pb_ = cutter(ga, ka, sa)[0], cutter(gb, kb, sb)[0]
+        patches = torch.cat([pa_, pb_])
+        st[f"describe: HardNet, {len(patches)} patches"] = timeit(lambda: hardnet.describe(patches), rep)
+        st[f"describe: HardNet, {len(patches)} patches, 512 per call"] = \
+            timeit(lambda: hardnet.describe(patches, batch_size=512), rep)
+        st[f"describe: RootSIFT, {len(patches)} patches"] = timeit(lambda: sift.describe(patches), rep)
+        da, db = hardnet.describe(pa_), hardnet.describe(pb_)
+        st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
+
+        res["matches"] = {}
+        for corr in CORRECTIONS:
+            lm = local if corr in ("local", "fused") else None
+            gm = glob if corr in ("global", "fused") else None
+            st[f"match_pair: {corr}"] = timeit(
+                lambda corr=corr, lm=lm, gm=gm: match_pair(img_a, img_b, corr, H, lm, gm, hardnet, n), rep)
+            r = match_pair(img_a, img_b, corr, H, lm, gm, hardnet, n)
+            res["matches"][corr] = {"matches": int(len(r.matches)), "mma5": r.accuracy(5.0)}
+
+        ev = eval_pair_times(img_a, img_b, H, list(a.methods), hardnet, local, glob, n, rep, tmp)
+        st[f"eval pair: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
+        for m, t in ev["alone"].items():
+            st[f"eval pair: {m} alone"] = t
+        res["eval_pair_mma5"] = ev["mma5"]
+        res["eval_pair_alone_sum"] = {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]}
+
+        st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(lambda: opencv_sift(img_a, img_b, n), rep)
+        res["opencv_sift_matches"] = len(opencv_sift(img_a, img_b, n))
+
+    if a.throughput:
+        res["throughput_local"] = throughput_sections(local, rng)
+    ref = st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"]
+    for t in st.values():
+        t["x_opencv_sift"] = t["ms"] / ref["ms"]
+        t["x_opencv_sift_cpu"] = t["cpu_ms"] / max(ref["cpu_ms"], 1e-9)
+    res["stages"] = st
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    res["load_average_end"] = os.getloadavg()
+
+    print(f"\n### localscale user path ({a.device}, {res['threads']} threads, torch {torch.__version__}, "
+          f"{res['input']}; load average {res['load_average_start'][0]:.1f} -> {res['load_average_end'][0]:.1f})\n")
+    print("| stage | ms (median) | ms p90 | CPU ms | x OpenCV SIFT (wall) | x OpenCV SIFT (CPU) |")
     print("|---|---|---|---|---|---|")
-    for name in ("local", "global"):
-        if name not in res:
-            continue
-        for tag in ("fp32", "bf16"):
-            r = res[name][tag]
-            print(f"| {name} ({res[name]['processing_size']} px) | {res[name]['load_ms']:.0f} | {tag} | "
-                  f"{r['pair_ms_median']:.1f} / {r['pair_ms_p90']:.1f} | {r['cached_pair_ms_median']:.2f} / "
-                  f"{r['cached_pair_ms_p90']:.2f} | {r['encode_ms_median']:.1f} |")
-    if "local" in res:
-        print("\n| local, fp32 | pairs/s uncached | pairs/s cached | speed-up |\n|---|---|---|---|")
-        for t in res["local"]["one_vs_n"]:
-            print(f"| 1 vs {t['n']} | {t['uncached_pairs_per_s']:.1f} | {t['cached_pairs_per_s']:.1f} | {t['speedup']:.1f}x |")
-        t = res["local"]["all_pairs"]
-        print(f"| all {t['pairs']} pairs of {t['images']} images | {t['uncached_pairs_per_s']:.1f} | "
-              f"{t['cached_pairs_per_s']:.1f} | {t['speedup']:.1f}x |")
-    print(f"\npeak RSS: {res['peak_rss_mb']:.0f} MB")
+    for name, t in st.items():
+        print(f"| {name} | {t['ms']:.1f} | {t['ms_p90']:.1f} | {t['cpu_ms']:.1f} | {t['x_opencv_sift']:.2f} | "
+              f"{t['x_opencv_sift_cpu']:.2f} |")
+    s = res["eval_pair_alone_sum"]
+    print(f"\neval pair, methods alone summed: {s['ms']:.0f} ms ({s['cpu_ms']:.0f} CPU ms); "
+          f"MMA@5 {', '.join(f'{k} {v:.3f}' for k, v in res['eval_pair_mma5'].items())}")
+    print("matches: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in res["matches"].items())
+          + f"; OpenCV SIFT {res['opencv_sift_matches']}")
+    if "throughput_local" in res:
+        for k, v in res["throughput_local"].items():
+            print(f"local model {k}: " + ", ".join(f"{kk} {vv:.1f}" for kk, vv in v.items()))
+    print(f"peak RSS: {res['peak_rss_mb']:.0f} MB")
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(res, indent=1))

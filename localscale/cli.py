@@ -20,10 +20,15 @@ import json
 import sys
 from collections import Counter, defaultdict
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from .errors import LocalScaleError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+# numpy, torch, OpenCV and the models are imported inside the commands that use them, so that
+# ``localscale --help`` (and argument errors) return without loading them.
 
 ASSETS = Path(__file__).resolve().parent / "assets"   #: the example pair (also in examples/)
 MODEL_KINDS = ("local", "global")
@@ -152,6 +157,8 @@ def write_image(path, image_bgr: np.ndarray) -> Path:
 
 
 def write_npy(path, array: np.ndarray) -> Path:
+    import numpy as np
+
     try:
         np.save(path, array)
     except OSError as e:
@@ -202,6 +209,8 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
     """Write ``<stem>_scale.npy`` (float32), ``_scale.tif`` (float32 TIFF), ``_scale.png`` (colour),
     ``_confidence.npy`` and, for models that predict it, ``_visible.npy``. ``inputs`` are never
     overwritten."""
+    import numpy as np
+
     from .viz import colorize_log2_scale
 
     out_dir = _mkdir(Path(out_dir))
@@ -264,6 +273,8 @@ def cmd_predict(args) -> int:
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     s = pred.scale
+    import numpy as np
+
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     if not check.reliable:
         print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
@@ -489,17 +500,63 @@ EXAMPLES = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from .evaluation.hpatches import add_arguments as add_hpatches_arguments
+class _LazyArgumentParser(argparse.ArgumentParser):
+    """A sub-command parser whose options are added on first use (parsing or help).
 
+    ``match`` and ``eval-hpatches`` take their choices from modules that import torch and
+    OpenCV; adding their options only when that command is used keeps ``localscale --help``
+    and the other commands free of those imports."""
+
+    def __init__(self, *args, add_options=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._add_options = add_options
+
+    def _populate(self) -> None:
+        add, self._add_options = self._add_options, None
+        if add is not None:
+            add(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._populate()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self):
+        self._populate()
+        return super().format_help()
+
+    def format_usage(self):
+        self._populate()
+        return super().format_usage()
+
+    def set_defaults(self, **kwargs):
+        if self.__dict__.get("_add_options") is None:
+            return super().set_defaults(**kwargs)
+        self.__dict__["_defaults"].update(kwargs)   # options added later take these defaults
+
+    def __getattribute__(self, name):
+        # code that inspects the options (``parser._actions``, ``get_default``) sees them all
+        if name in ("_actions", "_option_string_actions", "_action_groups", "_defaults"):
+            add = object.__getattribute__(self, "__dict__").get("_add_options")
+            if add is not None:
+                object.__getattribute__(self, "_populate")()
+        return super().__getattribute__(name)
+
+
+def _add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    from .evaluation.hpatches import add_arguments
+
+    return add_arguments(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="localscale", description=__doc__, formatter_class=HelpFormatter)
     from . import __version__
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_LazyArgumentParser)
 
-    def command(name, summary, description):
+    def command(name, summary, description, add_options=None):
         return sub.add_parser(name, help=summary, description=description, epilog=EXAMPLES[name],
-                              formatter_class=HelpFormatter)
+                              formatter_class=HelpFormatter, add_options=add_options)
 
     sp = command("predict", "per-pixel scale map S(A->B) -> .npy/.tif/.png",
                  "Per-pixel scale map S(A->B) of Local-ScaleNet for one pair (A B) or for every pair of a\n"
@@ -550,13 +607,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = command("match", "keypoints + scale-corrected patches + descriptors + mutual NN",
                  "Detect keypoints, extract patches whose size is corrected by a scale map, describe them\n"
-                 "and match them (mutual nearest neighbours).")
-    add_match_options(sp)
+                 "and match them (mutual nearest neighbours).", add_options=add_match_options)
     sp.set_defaults(func=cmd_match)
 
     sp = command("eval-hpatches", "HPatches-style MMA evaluation",
-                 "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.")
-    add_hpatches_arguments(sp)
+                 "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.",
+                 add_options=_add_hpatches_options)
     sp.set_defaults(func=cmd_eval_hpatches)
     return p
 

@@ -63,3 +63,61 @@ def test_default_global_model(photos):
         errs.append(abs(math.log(model.predict(a, b).scale / g)))
         base.append(abs(math.log(g)))
     assert np.exp(errs).mean() < 0.8 * np.exp(base).mean()
+
+
+def _gray3(img):
+    import cv2
+
+    return np.repeat(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[..., None], 3, 2)
+
+
+@pytest.mark.parametrize("name", ["astronaut", "coffee", "chelsea", "rocket"])
+def test_an_image_paired_with_itself_has_scale_one(local, photos, name):
+    assert abs(float(np.median(local.predict(photos[name], photos[name]).scale)) - 1) < 0.03
+
+
+@pytest.mark.parametrize("name", ["astronaut", "coffee", "rocket"])
+def test_a_gray_copy_against_its_colour_original_has_scale_one(local, photos, name):
+    assert abs(float(np.median(local.predict(_gray3(photos[name]), photos[name]).scale)) - 1) < 0.05
+
+
+def test_swapping_a_and_b_inverts_the_global_scale_of_the_default_model(photos):
+    model = ScaleNet.from_pretrained()
+    for a, b, _ in held_out_pairs(photos, 3, 2, 0.2):
+        assert model.predict(a, b).scale * model.predict(b, a).scale == pytest.approx(1, rel=1e-3)
+
+
+def test_forward_and_backward_maps_agree_through_the_homography(local, photos):
+    """S_{A->B}(x) * S_{B->A}(H x) = 1: the median log-ratio over co-visible pixels is small."""
+    from localscale.geometry import project
+
+    ratios = []
+    for a, b, H in held_out_pairs(photos, 6, 3, 0.3):
+        fwd, bwd = local.predict(a, b).scale, local.predict(b, a).scale
+        ys, xs = np.mgrid[0:a.shape[0]:8, 0:a.shape[1]:8]
+        q = np.round(project(H, np.stack([xs, ys], -1).astype(float))).astype(int)
+        m = covisible_mask(H, a.shape[:2], b.shape[:2], 8)[:ys.shape[0], :ys.shape[1]]
+        m &= (q[..., 0] >= 0) & (q[..., 0] < b.shape[1]) & (q[..., 1] >= 0) & (q[..., 1] < b.shape[0])
+        if m.sum() > 20:
+            ratios.append(np.median(np.log2(fwd[ys[m], xs[m]] * bwd[q[m][:, 1], q[m][:, 0]])))
+    assert len(ratios) >= 3 and abs(float(np.median(ratios))) < 0.35, ratios
+
+
+def test_default_model_sees_what_is_visible(local, photos):
+    """The visibility output is high on a pair's overlap and low against an unrelated image."""
+    a, b, H = next(held_out_pairs(photos, 1, 4, 0.2))
+    pred = local.predict(a, b)
+    cov = covisible_mask(H, a.shape[:2], b.shape[:2])
+    iou = ((pred.visible > 0.5) & cov).sum() / max(1, ((pred.visible > 0.5) | cov).sum())
+    assert iou > 0.5, iou
+    noise = np.random.default_rng(0).integers(0, 256, photos["coffee"].shape, dtype=np.uint8)
+    assert float(local.predict(photos["astronaut"], noise).visible.mean()) < 0.3
+
+
+def test_pair_check_flags_unrelated_images_and_passes_an_easy_pair(local, photos):
+    from localscale.reliability import check_pair
+
+    a, b, _ = next(held_out_pairs(photos, 1, 5, 0.1))
+    assert check_pair(local, a, a).reliable
+    black = np.zeros_like(photos["coffee"])
+    assert not check_pair(local, photos["astronaut"], black).reliable

@@ -211,7 +211,19 @@ def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float
 
 
 class _Evaluator:
-    """Caches images, keypoints and network encodings across the pairs of a run."""
+    """Caches images, keypoints, network encodings and descriptors across the methods and pairs of a run.
+
+    Work shared between methods (results are the same as computing each method on its own):
+
+    * keypoints and the local / global networks' encodings of an image are computed once
+      (image 1 of a sequence is in every pair of it);
+    * the global scale of a pair is predicted once (``global`` and ``fused``), and so are the
+      two local maps (``local`` and ``fused``);
+    * descriptors: a keypoint's patch depends only on the image, the keypoint and its radius,
+      so a keypoint whose corrected radius equals one already described for this image
+      (e.g. the base radius of ``none``, kept wherever ``S >= 1``) reuses that descriptor;
+      only the keypoints with a new radius are cut and described.
+    """
 
     def __init__(self, descriptor, num_features, local_model, global_model, gate, base_radius, orientation,
                  max_side, levels=4):
@@ -220,7 +232,10 @@ class _Evaluator:
         self.num_features, self.local_model, self.global_model = num_features, local_model, global_model
         self.gate, self.base_radius, self.orientation, self.max_side = gate, base_radius, orientation, max_side
         self.levels = levels
-        self._img, self._kps, self._enc, self._none = {}, {}, {}, {}
+        self._keep = set()
+        self._img, self._kps, self._enc, self._genc, self._desc = {}, {}, {}, {}, {}
+        self._memo = {}
+        self.described = 0    #: patches described so far (the rest were reused)
 
     def image(self, path):
         if path not in self._img:
@@ -242,11 +257,31 @@ class _Evaluator:
             self._enc[path] = self.local_model.encode_image(self.image(path)[0])
         return self._enc[path]
 
+    def global_encoding(self, path, bf16=False):
+        if (path, bf16) not in self._genc:
+            self._genc[(path, bf16)] = self.global_model.encode_image(self.image(path)[0], "image", bf16)
+        return self._genc[(path, bf16)]
+
     def describe(self, path, scale_map):
-        from ..features.patches import ScaleCorrectedPatches
+        """``(keypoints N x 2, descriptors N x D)`` of an image with the patch radii of ``scale_map``."""
+        from ..features.patches import ScaleCorrectedPatches, patch_radii
         g, kps = self.keypoints(path)
-        patches, _, radii = ScaleCorrectedPatches(self.base_radius, 32, self.orientation)(g, kps, scale_map)
-        return kps.numpy(), self.desc.describe(patches)
+        cutter = ScaleCorrectedPatches(self.base_radius, self.desc.patch_size, self.orientation)
+        radii = patch_radii(kps, scale_map, self.base_radius, tuple(g.shape[-2:]), cutter.deadzone_log2)
+        known = self._desc.setdefault(path, [])
+        desc = torch.zeros(len(kps), self.desc.dim)
+        todo = torch.ones(len(kps), dtype=torch.bool)
+        for r, d in known:
+            same = todo & (r == radii)
+            desc[same] = d[same]
+            todo &= ~same
+        if todo.any():
+            idx = torch.nonzero(todo).flatten()
+            patches, _ = cutter.patches_from_radii(g, kps[idx], radii[idx])
+            desc[idx] = self.desc.describe(patches)
+            self.described += len(idx)
+            known.append((radii, desc))
+        return kps.numpy(), desc
 
     def pyramid(self, path):
         """Keypoints + descriptors on a sqrt(2)-step pyramid, coordinates in level 0."""
@@ -267,10 +302,31 @@ class _Evaluator:
             desc_all.append(self.desc.describe(p))
         return np.concatenate(kps_all), torch.cat(desc_all)
 
+    def _once(self, key, fn):
+        if key not in self._memo:
+            self._memo[key] = fn()
+        return self._memo[key]
+
+    def scale_maps(self, pair: PairInfo, m: str, a, b, H):
+        """The maps of method ``m`` for the pair (:func:`scale_maps_for_pair` with shared work)."""
+        from ..features.correction import CORRECTIONS, scale_maps_for_pair
+        if m == "gt_gated":
+            return self.gate.apply_pair(*scale_maps_for_pair(a, b, "gt", H))
+        if m not in CORRECTIONS:
+            raise LocalScaleError(f"unknown method {m!r}; choose from {METHODS}")
+        enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if m in ("local", "fused") else None
+        local = _SharedLocal(self, self.local_model) if self.local_model is not None else None
+        glob = _SharedGlobal(self, self.global_model, pair) if self.global_model is not None else None
+        return scale_maps_for_pair(a, b, m, H, local, glob, self.gate, enc)
+
     def run_pair(self, pair: PairInfo, methods, thresholds) -> list[dict]:
         from ..features.matching import match_descriptors, matching_accuracy, reprojection_errors
-        from ..features.pipeline import CORRECTIONS, scale_maps_for_pair
         self._keep = {pair.image_a, pair.image_b}
+        self._memo = {}
+        for cache in (self._kps, self._enc, self._desc):
+            for p in [p for p in cache if p not in self._keep]:
+                del cache[p]
+        self._genc = {k: v for k, v in self._genc.items() if k[0] in self._keep}
         a, fa = self.image(pair.image_a)
         b, fb = self.image(pair.image_b)
         H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
@@ -281,19 +337,8 @@ class _Evaluator:
                 ka, da = self.pyramid(pair.image_a)
                 kb, db = self.pyramid(pair.image_b)
             else:
-                if m == "gt_gated":
-                    sa, sb = self.gate.apply_pair(*scale_maps_for_pair(a, b, "gt", H))
-                elif m in CORRECTIONS:
-                    enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if m in ("local", "fused") else None
-                    sa, sb = scale_maps_for_pair(a, b, m, H, self.local_model, self.global_model, self.gate, enc)
-                else:
-                    raise LocalScaleError(f"unknown method {m!r}; choose from {METHODS}")
-                if sa is None and pair.image_a in self._none:
-                    ka, da = self._none[pair.image_a]
-                else:
-                    ka, da = self.describe(pair.image_a, sa)
-                    if sa is None:
-                        self._none = {pair.image_a: (ka, da)}
+                sa, sb = self.scale_maps(pair, m, a, b, H)
+                ka, da = self.describe(pair.image_a, sa)
                 kb, db = self.describe(pair.image_b, sb)
             _, idx = match_descriptors(da, db)
             idx = idx.numpy()
@@ -303,10 +348,40 @@ class _Evaluator:
                          "num_matches": int(len(idx)), "num_correct_5px": int((err < 5).sum()),
                          "mma": [float(v) for v in mma], "seconds": round(time.time() - t0, 2),
                          "perspective_split": pair.perspective_split, "scale_split": pair.scale_split})
-        for p in list(self._enc):
-            if p not in self._keep:
-                del self._enc[p]
         return recs
+
+
+class _SharedLocal:
+    """The local model for one pair: ``predict_from_features`` of an ordered pair of encodings runs once."""
+
+    def __init__(self, ev: _Evaluator, model):
+        self._ev, self._model = ev, model
+
+    def predict_from_features(self, ea, eb, **kw):
+        key = ("local", id(ea), id(eb), tuple(sorted(kw.items())))
+        return self._ev._once(key, lambda: self._model.predict_from_features(ea, eb, **kw))
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+
+class _SharedGlobal:
+    """The global model for one pair: each image is encoded once per run (while it is in the current
+    pair), the pair's prediction is made once. ``predict(a, b)`` is ``predict_from_features`` of the
+    two encodings, as in :meth:`ScaleNet.predict`."""
+
+    def __init__(self, ev: _Evaluator, model, pair: PairInfo):
+        self._ev, self._model, self._pair = ev, model, pair
+
+    def predict(self, image_a, image_b, bf16: bool = False):
+        ev, pair = self._ev, self._pair
+        if image_a is not ev.image(pair.image_a)[0] or image_b is not ev.image(pair.image_b)[0]:
+            return self._model.predict(image_a, image_b, bf16=bf16)
+        return ev._once(("global", bf16), lambda: self._model.predict_from_features(
+            ev.global_encoding(pair.image_a, bf16), ev.global_encoding(pair.image_b, bf16), bf16))
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
 
 
 def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -> dict:
@@ -385,7 +460,6 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", n
         raise LocalScaleError("method 'global' needs a global model")
     gate = gate if gate is not None else CorrectionGate()
     ev = _Evaluator(descriptor, num_features, local_model, global_model, gate, base_radius, orientation, max_side)
-    ev._keep = set()
     records = []
     for p in tqdm(pairs, desc=f"eval {ev.desc.name}", disable=not progress, mininterval=5):
         records += ev.run_pair(p, methods, list(thresholds))

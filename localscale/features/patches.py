@@ -185,7 +185,16 @@ class ScaleCorrectedPatches(nn.Module):
     def forward(self, gray: torch.Tensor, keypoints, scale_map: ScaleMapLike = None):
         shape = tuple(gray.shape[-2:])
         radii = patch_radii(keypoints, scale_map, self.base_radius, shape, self.deadzone_log2)
+        patches, lafs = self.patches_from_radii(gray, keypoints, radii)
+        return patches, lafs, radii
+
+    @torch.no_grad()
+    def patches_from_radii(self, gray: torch.Tensor, keypoints, radii: torch.Tensor):
+        """``(patches N x 1 x PS x PS, lafs 1 x N x 2 x 3)`` for given radii (e.g. of :func:`patch_radii`).
+
+        A keypoint's patch depends only on the image, its centre and its radius (not on the
+        other keypoints), so patches of a subset of keypoints equal the same rows of the full set."""
         lafs = make_lafs(keypoints, radii)
         if self.orienter is not None and lafs.shape[1] > 0:
             lafs = self.orienter(lafs, gray)
-        return extract_patches(gray, lafs, self.patch_size), lafs, radii
+        return extract_patches(gray, lafs, self.patch_size), lafs
