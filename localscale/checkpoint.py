@@ -143,6 +143,8 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
     found = ckpt.get("arch")
     if arch is not None and found != arch:
         raise CheckpointError(f"{path}: checkpoint is a {found}, expected a {arch}")
+    from . import models  # noqa: F401  (registers the architectures; the package imports it lazily)
+
     if found not in _REGISTRY:
         raise CheckpointError(f"{path}: unknown architecture {found!r}")
     cls = _REGISTRY[found]

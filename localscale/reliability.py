@@ -37,9 +37,9 @@ from .io import ImageLike
 class PairCheckConfig:
     """Thresholds of the pair-level flag (chosen on held-out synthetic pairs)."""
 
-    max_inconsistency_log2: float = 0.5   #: |median log2 S_AB + median log2 S_BA| above this fires
+    max_inconsistency_log2: float = 1.0   #: |median log2 S_AB + median log2 S_BA| above this fires (x2)
     min_visible_fraction: float = 0.05    #: less of A predicted visible in B fires
-    min_reliability: float = 0.35         #: lower mean reliability over A's visible part fires
+    min_reliability: float = 0.2          #: lower mean reliability over A's visible part fires
     visible_threshold: float = 0.5        #: a pixel counts as visible above this probability
 
 
@@ -103,8 +103,7 @@ def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConf
 
     ``readout``: options of :meth:`LocalScaleNet.predict_from_features` for the forward map
     (``hard``, ``planar``); the backward map, used only for the check, is the soft one."""
-    ea = model.encode_image(image_a, "image A", bf16)
-    eb = model.encode_image(image_b, "image B", bf16)
+    ea, eb = model.encode_pair(image_a, image_b, bf16)
     fwd = model.predict_from_features(ea, eb, bf16=bf16, **readout)
     bwd = model.predict_from_features(eb, ea, bf16=bf16)
     stats = pair_statistics(fwd, bwd, cfg)

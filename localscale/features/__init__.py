@@ -11,7 +11,7 @@ _EXPORTS = {
     ".matching": ("MutualNNMatcher", "match_descriptors", "matching_accuracy", "orient_homography",
                   "reprojection_errors"),
     ".correction": ("CORRECTIONS", "NO_GATE", "CorrectionGate", "fuse_local_global", "scale_maps_for_pair"),
-    ".keypoint_scales": ("correction_factors", "describe_lafs", "keypoint_scales", "keypoints_to_xy",
+    ".keypoint_scaling": ("correction_factors", "describe_lafs", "keypoint_scales", "keypoints_to_xy",
                          "laf_from_opencv", "opencv_from_laf", "rescale_keypoint_pair", "rescale_keypoints"),
     ".pipeline": ("Features", "MatchResult", "add_match_arguments", "draw_matches", "extract", "match_pair",
                   "models_for_correction", "run_match", "run_match_cli", "save_matches"),

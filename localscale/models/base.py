@@ -109,6 +109,14 @@ class ScaleModel(nn.Module):
             f = self.encode(x)
         return EncodedImage(f.float(), lb)
 
+    def encode_pair(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> tuple[EncodedImage, EncodedImage]:
+        """Encode both images of a pair; when exactly one of them is gray, the other is turned
+        gray too, so that a colour difference is not read as a scale change."""
+        a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
+        if is_gray(a) != is_gray(b):
+            a, b = to_gray3(a), to_gray3(b)
+        return self.encode_image(a, "image A", bf16), self.encode_image(b, "image B", bf16)
+
     @classmethod
     def from_pretrained(cls, path: str | Path | None = None, device: str | torch.device = "cpu"):
         """Load weights; ``path=None`` loads the default model bundled with the package."""
@@ -117,6 +125,20 @@ class ScaleModel(nn.Module):
         if path is None:
             path = WEIGHTS_DIR / cls.default_weights
         return load_model(path, arch=cls.arch, device=device)
+
+
+def is_gray(rgb: np.ndarray) -> bool:
+    """True when the three channels of an ``H x W x 3`` image are equal."""
+    return bool(np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]))
+
+
+def to_gray3(rgb: np.ndarray) -> np.ndarray:
+    """Luminance replicated to three channels (unchanged if already gray)."""
+    if is_gray(rgb):
+        return rgb
+    import cv2
+
+    return np.repeat(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[..., None], 3, 2)
 
 
 def upsample_to_original(grid: torch.Tensor, lb: Letterbox) -> torch.Tensor:

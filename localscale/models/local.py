@@ -210,9 +210,10 @@ class LocalScaleNet(ScaleModel):
             bf16: run the network under bfloat16 autocast (faster on CPUs with AMX).
             planar: replace the map by the best scale field of a homography (planar scenes
                 only; see :mod:`localscale.planar`).
+
+        When exactly one image is gray, the other is turned gray before encoding.
         """
-        ea = self.encode_image(image_a, "image A", bf16)
-        eb = self.encode_image(image_b, "image B", bf16)
+        ea, eb = self.encode_pair(image_a, image_b, bf16)
         return self.predict_from_features(ea, eb, hard, bf16, planar)
 
     @torch.inference_mode()

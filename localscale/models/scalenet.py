@@ -161,9 +161,9 @@ class ScaleNet(ScaleModel):
 
     @torch.inference_mode()
     def predict(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> GlobalScalePrediction:
-        """Global ``S_{A->B}`` between two images (paths or arrays, any size)."""
-        return self.predict_from_features(self.encode_image(image_a, "image A", bf16),
-                                          self.encode_image(image_b, "image B", bf16), bf16)
+        """Global ``S_{A->B}`` between two images (paths or arrays, any size); when exactly one
+        image is gray, the other is turned gray before encoding."""
+        return self.predict_from_features(*self.encode_pair(image_a, image_b, bf16), bf16)
 
 
 def estimate_scale(image_a: ImageLike, image_b: ImageLike, model: ScaleNet | None = None) -> float:
