@@ -1,4 +1,4 @@
-"""Evaluation protocols (issue 6): HPatches-style MMA with patch-size correction."""
+"""Evaluation protocols: HPatches-style MMA with patch-size correction."""
 from .hpatches import (HIGH_RES, METHODS, PairInfo, evaluate, load_hpatches, main, make_pairs, markdown_table,
                        perspective_split, scale_split, summarise, write_outputs)
 from .synthetic import STRONG, make_sequences, random_pair

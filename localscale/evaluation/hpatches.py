@@ -25,44 +25,9 @@ Splits, from the GT homography of each pair:
 * global scale: ``g = |log2 global_scale|`` (geometric mean of the map over the co-visible
   region): ``scale<1.4x`` for g < 0.5, ``scale1.4-2.8x`` for 0.5 <= g < 1.5, ``scale>2.8x``.
 
-Gating of the local correction (:class:`localscale.features.pipeline.CorrectionGate`).
-With the stage-1 (GPU) Local-ScaleNet of 2026-11-30, HardNet, MMA@5 (none -> local), pair level with
-consistency on:
-
-=====================================  ===================  ==================  ===================
-pair level                             synthetic selection  real seqs, easy     real seqs, hard
-                                       set, hard (15)       (30)                (4)
-=====================================  ===================  ==================  ===================
-0.5 (old default)                      0.555 -> 0.656       0.607 -> 0.604      0.696 -> 0.707
-0.25 (default)                         0.555 -> 0.677       (see README)        (see README)
-0.0                                    0.555 -> 0.677       0.607 -> 0.605      0.696 -> 0.727
-=====================================  ===================  ==================  ===================
-
-The default was chosen on the synthetic selection set only (``eval/matching_accuracy.py
---seed 1 --sequences ""``), not on the real sequences.
-
-Earlier measurement, with SIFT descriptors, 1000 keypoints, a Local-ScaleNet checkpoint from early in
-training (step 1000 of the default run; it predicts ``S ~ 0.5`` in *both* directions on
-most pairs), MMA@5 (none -> local):
-
-=====================================  ==================  ================  ===============
-gate                                   real seqs, all (35)  real, easy (30)   synthetic held-out (60)
-=====================================  ==================  ================  ===============
-no gate                                (same as next row)   (same)            0.497 -> 0.617
-per-pixel deadzone 0.5                 --                   --                0.497 -> 0.611
-pair-level 0.5 (no consistency)        0.658 -> 0.616       0.632 -> 0.609    0.497 -> 0.617
-consistency + pair-level 0.25          0.658 -> 0.657       0.632 -> 0.631    0.497 -> 0.547
-consistency + pair-level 0.5 (then)   0.658 -> 0.657       0.632 -> 0.632    0.497 -> 0.533
-=====================================  ==================  ================  ===============
-
-(On the real sequences the pair-level rule without consistency never fires, since the 90th
-percentile of ``|log2 S|`` is >= 0.83 on every pair, so it equals no gate there.)
-Without the consistency shift the biased maps pass every magnitude rule and local loses
-4 points on the real (mostly scale-free) sequences; with it, local is within 0.001-0.002
-of ``none`` on easy / ``scale<1.4x`` pairs and still gains on the synthetic perspective
-pairs. (Part of the ungated gain on synthetic pairs comes from the bias itself: it enlarges
-both patches ~1.8x, and larger patches help there.) Re-measure with the final weights:
-``eval/hpatches.py ROOT --methods none local --gate-pair 0.25/0.5 [--no-consistency]``.
+Predicted maps go through :class:`localscale.features.CorrectionGate` (default pair level 0.25,
+chosen on a synthetic selection set; the measurements are in ``docs/RESULTS.md``). Compare gates
+with ``--gate-pair X [--no-consistency]``.
 
 Outputs in ``--out``: ``results.json`` (per-pair records, summaries, splits), ``splits.csv``
 (the split of every pair), ``results.md`` (tables) and ``mma_<split>.png`` plots.

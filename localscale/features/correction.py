@@ -54,13 +54,10 @@ class CorrectionGate:
       (``1 - entropy / ln 13``) is below this.
 
     Defaults: consistency on, pair-level 0.25 (a ~1.2x scale change), no per-pixel rules.
-    The pair level was chosen with the stage-1 (GPU) Local-ScaleNet of 2026-11-30 on a
-    *selection* set of held-out synthetic pairs (``eval/matching_accuracy.py --seed 1 --sequences ""``,
-    HardNet, hard split, local MMA@5: 0.656 at 0.5, 0.677 at 0.25, 0.677 at 0.0); 0.25 keeps a
-    guard for near-identity pairs at no cost there. Re-checked for the fine-tuned model shipped
-    now, same set: 0.668 at 0.5, 0.690 at 0.25, 0.690 at 0.0, so 0.25 stays. Earlier measurements (older model) are in
-    ``localscale/evaluation/hpatches.py``'s docstring (the per-pixel deadzone made things
-    worse: it gates the two sides of a match independently). ``NO_GATE`` disables everything.
+    The pair level was chosen on a selection set of held-out synthetic pairs
+    (``eval/matching_accuracy.py --seed 1 --sequences ""``; numbers in ``docs/RESULTS.md``); a
+    per-pixel deadzone made matching worse, since it gates the two sides of a match
+    independently. ``NO_GATE`` disables everything.
     """
 
     min_pair_log2: float = 0.25
