@@ -81,14 +81,9 @@ class ScaleModel(nn.Module):
         boxed, lb = letterbox(rgb, self.config.image_size)
         return to_tensor(boxed)[None].to(self.device), lb
 
-    def prepare_batch(self, images, name: str = "images") -> tuple[torch.Tensor, Letterbox, "BatchFormat"]:
-        """Letterbox a batch of same-size images: ``B x 3 x P x P`` on the model's device.
-
-        ``images``: ``B x 3 x H x W`` (or ``B x 1 x H x W`` gray, or one ``3 x H x W`` image)
-        torch tensor or numpy array, float in [0, 1] or uint8, on any device. Each image goes
-        through exactly what :meth:`prepare` does to a single image (8-bit quantisation, the same
-        resize), so batched predictions equal per-pair ones. All images share one placement.
-        """
+    def _batch_images(self, images, name: str) -> tuple[list[np.ndarray], "BatchFormat"]:
+        """A batch (``B x 3 x H x W`` or ``B x 1 x H x W`` tensor/array, or one ``3 x H x W``
+        image; float in [0, 1] or uint8, any device) as ``H x W x 3`` uint8 images via :func:`load_image`."""
         fmt = BatchFormat.of(images, name)
         t = torch.from_numpy(np.asarray(images)) if fmt.numpy else images.detach()
         t = t[None] if fmt.single else t
@@ -98,8 +93,45 @@ class ScaleModel(nn.Module):
         if t.shape[0] == 0:
             raise ImageError(f"{name}: empty batch")
         hwc = t.cpu().permute(0, 2, 3, 1).numpy()
-        boxed = [self.prepare(hwc[i], f"{name}[{i}]") for i in range(hwc.shape[0])]
-        return torch.cat([x for x, _ in boxed]), boxed[0][1], fmt
+        return [load_image(hwc[i], f"{name}[{i}]") for i in range(hwc.shape[0])], fmt
+
+    def _letterbox_batch(self, rgbs: list[np.ndarray]) -> tuple[torch.Tensor, Letterbox]:
+        boxed = [self.prepare(rgb) for rgb in rgbs]
+        return torch.cat([x for x, _ in boxed]), boxed[0][1]
+
+    def prepare_batch(self, images, name: str = "images") -> tuple[torch.Tensor, Letterbox, "BatchFormat"]:
+        """Letterbox a batch of same-size images: ``B x 3 x P x P`` on the model's device.
+
+        ``images``: ``B x 3 x H x W`` (or ``B x 1 x H x W`` gray, or one ``3 x H x W`` image)
+        torch tensor or numpy array, float in [0, 1] or uint8, on any device. Each image goes
+        through exactly what :meth:`prepare` does to a single image (8-bit quantisation, the same
+        resize), so batched predictions equal per-pair ones. All images share one placement.
+        """
+        rgbs, fmt = self._batch_images(images, name)
+        return (*self._letterbox_batch(rgbs), fmt)
+
+    def _forward_batch(self, images_a, images_b, head, bf16: bool, batch_size: int | None):
+        """Run ``head(f_A, f_B)`` on batches of pairs, ``batch_size`` pairs per pass.
+
+        Pairs are prepared as :meth:`encode_pair` does (a pair with exactly one gray image is
+        compared in gray). Returns the two letterboxes, the output format and the head's outputs
+        concatenated over the batch, as float (an output that is None stays None).
+        """
+        rgb_a, fmt = self._batch_images(images_a, "images A")
+        rgb_b, _ = self._batch_images(images_b, "images B")
+        if len(rgb_a) != len(rgb_b):
+            raise ValueError(f"predict_batch: {len(rgb_a)} images A but {len(rgb_b)} images B")
+        for i, (a, b) in enumerate(zip(rgb_a, rgb_b)):
+            if is_gray(a) != is_gray(b):
+                rgb_a[i], rgb_b[i] = to_gray3(a), to_gray3(b)
+        (xa, lb_a), (xb, lb_b) = self._letterbox_batch(rgb_a), self._letterbox_batch(rgb_b)
+        step = batch_size or xa.shape[0]
+        chunks = []
+        for i in range(0, xa.shape[0], step):
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+                chunks.append(head(self.encode(xa[i:i + step]), self.encode(xb[i:i + step])))
+        outs = tuple(None if parts[0] is None else torch.cat(parts).float() for parts in zip(*chunks))
+        return lb_a, lb_b, fmt, outs
 
     @torch.inference_mode()
     def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False) -> EncodedImage:

@@ -233,19 +233,10 @@ class LocalScaleNet(ScaleModel):
             ``images_a`` for tensor input, numpy arrays for numpy input. Equal (to float
             precision) to :meth:`predict` on each pair.
         """
-        xa, lb_a, fmt = self.prepare_batch(images_a, "images A")
-        xb, lb_b, _ = self.prepare_batch(images_b, "images B")
-        if xa.shape[0] != xb.shape[0]:
-            raise ValueError(f"predict_batch: {xa.shape[0]} images A but {xb.shape[0]} images B")
-        step = batch_size or xa.shape[0]
-        logits, vis = [], []
-        for i in range(0, xa.shape[0], step):
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
-                lg, v = self.forward_features_all(self.encode(xa[i:i + step]), self.encode(xb[i:i + step]))
-            logits.append(lg.float())
-            vis.append(v.float() if v is not None else None)
-        probs = F.softmax(torch.cat(logits), 1)
-        visible = torch.sigmoid(torch.cat(vis))[:, 0] if vis[0] is not None else None
+        lb_a, lb_b, fmt, (logits, vis) = self._forward_batch(images_a, images_b, self.forward_features_all,
+                                                             bf16, batch_size)
+        probs = F.softmax(logits, 1)
+        visible = torch.sigmoid(vis)[:, 0] if vis is not None else None
         log_s = torch.log(scales.hard_scale(probs, 1)) if hard else scales.soft_log_scale(probs, 1)
         log_s = log_s + math.log(lb_a.factor / lb_b.factor)
         grids = [log_s, scales.confidence(probs, 1)] + ([visible] if visible is not None else [])

@@ -143,20 +143,10 @@ class ScaleNet(ScaleModel):
         for a batch of pairs: ``B x 3 x H x W`` tensors (any device) or numpy arrays, float in
         [0, 1] or uint8 -> ``B`` scales (a tensor on the device of ``images_a``, or numpy for numpy
         input; a 0-d value for one unbatched pair). Equal to :meth:`predict` on each pair."""
-        xa, lb_a, fmt = self.prepare_batch(images_a, "images A")
-        xb, lb_b, _ = self.prepare_batch(images_b, "images B")
-        if xa.shape[0] != xb.shape[0]:
-            raise ValueError(f"predict_batch: {xa.shape[0]} images A but {xb.shape[0]} images B")
-        step = batch_size or xa.shape[0]
-        l_ab, l_ba = [], []
-        for i in range(0, xa.shape[0], step):
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
-                ab, ba = self.forward_features(self.encode(xa[i:i + step]), self.encode(xb[i:i + step]))
-            l_ab.append(ab.float())
-            l_ba.append(ba.float())
+        lb_a, lb_b, fmt, (l_ab, l_ba) = self._forward_batch(images_a, images_b, self.forward_features, bf16, batch_size)
         corr = math.log(lb_a.factor / lb_b.factor)
-        ls_ab = scales.soft_log_scale(F.softmax(torch.cat(l_ab), 1), 1) + corr
-        ls_ba = scales.soft_log_scale(F.softmax(torch.cat(l_ba), 1), 1) - corr
+        ls_ab = scales.soft_log_scale(F.softmax(l_ab, 1), 1) + corr
+        ls_ba = scales.soft_log_scale(F.softmax(l_ba, 1), 1) - corr
         return fmt.out(torch.exp(scales.consistent_log_scale(ls_ab, ls_ba)))
 
     @torch.inference_mode()
