@@ -19,6 +19,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -28,7 +29,7 @@ from localscale import scales
 from localscale.checkpoint import load_model, read_checkpoint, save_model
 from localscale.data import SyntheticPairs, collate, list_images, split_images
 from localscale.models.local import reliability_features
-from localscale.reliability import auroc, fit_calibration
+from localscale.reliability import auroc, fit_calibration, pair_statistics
 from localscale.training import TrainConfig
 
 GOOD_RATIO = 1.25
@@ -55,15 +56,18 @@ def collect(model, dataset, batch_size: int = 16):
         ls_ba = scales.soft_log_scale(probs_ba, 1)
         for k in range(len(probs)):
             m, v = batch["mask"][k], valid[k]
-            va = (visible[k] > 0.5) & v if visible is not None else v
-            vb = (visible_ba[k] > 0.5) & v if visible_ba is not None else v
-            med = lambda x, mm: float(x[mm].median()) if mm.any() else float(x[v].median())  # noqa: E731
+            rows, cols = v.any(1).nonzero()[:, 0], v.any(0).nonzero()[:, 0]   # A's image region (a rectangle)
+            crop = lambda x: x[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].numpy()  # noqa: E731
+            grid = lambda ls, vis: SimpleNamespace(  # noqa: E731
+                scale=np.exp(crop(ls)), visible=crop(vis) if vis is not None else None, reliability=None)
+            fwd, bwd = grid(log_s[k], visible[k] if visible is not None else None), \
+                grid(ls_ba[k], visible_ba[k] if visible_ba is not None else None)
+            va = fwd.visible > 0.5 if fwd.visible is not None else np.ones(fwd.scale.shape, bool)
             pairs.append({
                 "mean_r": float(torch.exp(err[k][m]).mean()) if m.any() else float("inf"),
                 "related": bool(batch["related"][k]),
-                "inconsistency_log2": abs(med(log_s[k], va) + med(ls_ba[k], vb)) / math.log(2),
-                "visible_fraction": float(va.sum() / v.sum()),
-                "features": f[k].permute(1, 2, 0)[va].numpy() if va.any() else np.zeros((0, 3), np.float32),
+                **pair_statistics(fwd, bwd),
+                "features": crop(f[k].permute(1, 2, 0))[va],
             })
     return np.concatenate(feats), np.concatenate(labels), pairs
 
@@ -98,7 +102,7 @@ def main(argv=None) -> int:
         if sel.any():
             print(f"  predicted {lo:.1f}-{lo + 0.1:.1f}: {sel.sum():7d} cells, observed {y[sel].mean():.3f}", file=sys.stderr)
     stats = []
-    for pr in pairs:
+    for pr in pairs:   # the mean reliability over A's visible part, now that the calibration is known
         f = pr.pop("features")
         pr["mean_reliability"] = float((1 / (1 + np.exp(-(coef[0] + f @ np.asarray(coef[1:]))))).mean()) if len(f) else 0.0
         stats.append(pr)
