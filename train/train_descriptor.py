@@ -1,13 +1,19 @@
 """Train the HardNet descriptor on scale-corrected patches of synthetic homography pairs.
 
 Data: for every training photo (the ``train`` part of ``localscale.data.split_images``),
-random moderate homographies ``A -> B`` (``localscale.geometry.sample_homography``),
-B = A warped (+ photometric jitter + noise). Keypoints are detected in A with the
-single-scale Hessian detector, their exact correspondences in B come from ``H`` (plus
-up to +-1 px jitter, as a detector would re-detect them), and both patches get the
-ground-truth patch-size correction (``r_A = r0 max(1, 1/S)``, ``r_B = r0 max(1, S)``,
-``S = S_{A->B}(x)``), so the descriptor learns to match scale-normalised, upright patches.
+random moderate homographies ``A -> B`` (``localscale.geometry.sample_homography``, rotation
+up to +-15 deg), B = A warped. Both images get independent photometric changes (gain, gamma,
+colour, blur, noise, JPEG), as two photos of a scene do. Keypoints are detected in A with the
+single-scale Hessian detector, their correspondences in B come from ``H`` plus up to
++-``--jitter`` px (a detector re-detects them only approximately). Both patches get the
+patch-size correction of the matcher (``r_A = r0 max(1, 1/S)``, ``r_B = r0 max(1, S)``) with
+``S`` the true ``S_{A->B}(x)`` times a log-normal error of ``--scale-error`` (the residual error
+of a predicted scale map), so the descriptor learns the imperfect patches it will be given.
 Patch pairs are generated once (deterministic in ``--seed``) and cached in ``--out``.
+
+Batches: ``--images-per-batch`` synthetic pairs contribute ``batch / images-per-batch`` patch
+pairs each, so the hardest negatives come from the same image, as in matching; negatives whose
+keypoints lie within ``--min-negative-distance`` px in A (overlapping patches) are not used.
 
 Loss: HardNet hardest-in-batch triplet margin loss (margin 1). Adam with linear decay.
 Checkpoints (``--out/last.pt``) resume automatically. ``--max-minutes`` bounds wall time.
@@ -38,33 +44,49 @@ from localscale.features.patches import extract_patches, make_lafs
 from localscale.geometry import HomographyConfig, homography_scale_at, project, sample_homography, warp_image
 from localscale.io import load_image
 
-MODERATE = HomographyConfig(scale_range=(0.35, 2.8), rotation_deg=10.0, skew=0.1, perspective=0.3, translation=0.15)
+MODERATE = HomographyConfig(scale_range=(0.3, 3.2), rotation_deg=15.0, skew=0.1, perspective=0.35, translation=0.15)
 
 
-def _jitter(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
+def _photometric(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
+    """Gain, gamma, colour cast, then (each sometimes) blur, sensor noise and JPEG."""
     x = img.astype(np.float32) / 255.0
-    x = np.clip(x * rng.uniform(0.7, 1.3) + rng.uniform(-0.15, 0.15), 0, 1) ** rng.uniform(0.7, 1.4)
-    x = x + rng.normal(0, rng.uniform(0, 0.02), x.shape)
-    return (np.clip(x, 0, 1) * 255).round().astype(np.uint8)
+    cast = np.exp(rng.uniform(-0.1, 0.1, 3)).astype(np.float32) if x.ndim == 3 else 1.0
+    gain = np.exp(rng.uniform(np.log(0.35), np.log(1.6)))
+    x = np.clip(x * gain * cast + rng.uniform(-0.08, 0.08), 0, 1) ** np.exp(rng.uniform(-0.4, 0.4))
+    out = (x * 255).round().astype(np.uint8)
+    if rng.random() < 0.3:
+        out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.4, 1.3))
+    if rng.random() < 0.4:
+        out = (out + rng.normal(0, rng.uniform(1, 6), out.shape)).round().clip(0, 255).astype(np.uint8)
+    if rng.random() < 0.3:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(30, 90))])
+        if ok:
+            out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED).reshape(img.shape)
+    return out
 
 
 def patch_pairs_from_image(rng: np.random.Generator, img: np.ndarray, per_pair: int = 150, base_radius: float = 16.0,
-                           max_side: int = 480, cfg: HomographyConfig = MODERATE) -> tuple[torch.Tensor, torch.Tensor]:
-    """One synthetic pair from a photo -> ``(patches_A, patches_B)`` uint8 ``N x 1 x 32 x 32``."""
+                           max_side: int = 480, cfg: HomographyConfig = MODERATE, scale_error: float = 0.25,
+                           jitter: float = 1.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One synthetic pair from a photo -> ``(patches_A, patches_B, keypoints_A)``: uint8
+    ``N x 1 x 32 x 32`` patches and ``N x 2`` float keypoints of A (pixels of the resized photo)."""
     s = max_side / max(img.shape[:2])
     if s < 1:
         img = cv2.resize(img, (round(img.shape[1] * s), round(img.shape[0] * s)), interpolation=cv2.INTER_AREA)
     h, w = img.shape[:2]
     H = sample_homography(rng, (h, w), (h, w), cfg)
     b, valid = warp_image(img, H, (h, w))
-    b = _jitter(rng, b)
-    ka, _ = detect_keypoints(img, 3 * per_pair)
+    a, b = _photometric(rng, img), _photometric(rng, b)
+    empty = (torch.zeros(0, 1, 32, 32, dtype=torch.uint8),) * 2 + (torch.zeros(0, 2),)
+    ka, _ = detect_keypoints(a, 3 * per_pair)
     if len(ka) == 0:
-        return torch.zeros(0, 1, 32, 32, dtype=torch.uint8), torch.zeros(0, 1, 32, 32, dtype=torch.uint8)
+        return empty
     kb = project(H, ka.astype(np.float64))
     sab = homography_scale_at(H, ka.astype(np.float64))
-    ra = base_radius * np.maximum(1, 1 / np.clip(sab, 0.125, 8))
-    rb = base_radius * np.maximum(1, np.clip(sab, 0.125, 8))
+    s_used = np.clip(sab * np.exp(rng.normal(0, scale_error, len(sab))), 0.125, 8) if scale_error > 0 \
+        else np.clip(sab, 0.125, 8)
+    ra = base_radius * np.maximum(1, 1 / s_used)
+    rb = base_radius * np.maximum(1, s_used)
     ok = np.isfinite(kb).all(1) & np.isfinite(sab)
     ok &= (kb[:, 0] >= rb) & (kb[:, 0] <= w - 1 - rb) & (kb[:, 1] >= rb) & (kb[:, 1] <= h - 1 - rb)
     ok &= (ra < min(h, w) / 2) & (rb < min(h, w) / 2)
@@ -74,33 +96,57 @@ def patch_pairs_from_image(rng: np.random.Generator, img: np.ndarray, per_pair: 
         idx = idx[valid[kbi[:, 1], kbi[:, 0]] > 0.99]
     idx = idx[:per_pair]
     if len(idx) == 0:
-        return torch.zeros(0, 1, 32, 32, dtype=torch.uint8), torch.zeros(0, 1, 32, 32, dtype=torch.uint8)
-    kb_j = kb[idx] + rng.uniform(-1, 1, (len(idx), 2))
-    pa = extract_patches(image_to_gray_tensor(img), make_lafs(ka[idx], torch.tensor(ra[idx])))
+        return empty
+    kb_j = kb[idx] + rng.uniform(-jitter, jitter, (len(idx), 2))
+    pa = extract_patches(image_to_gray_tensor(a), make_lafs(ka[idx], torch.tensor(ra[idx])))
     pb = extract_patches(image_to_gray_tensor(b), make_lafs(kb_j.astype(np.float32), torch.tensor(rb[idx])))
     to8 = lambda p: (p * 255).round().clamp(0, 255).to(torch.uint8)
-    return to8(pa), to8(pb)
+    return to8(pa), to8(pb), torch.from_numpy(ka[idx].astype(np.float32))
 
 
-def build_patch_set(files, seed: int, pairs_per_image: int, per_pair: int, desc: str = "patches"):
+def build_patch_set(files, seed: int, pairs_per_image: int, per_pair: int, desc: str = "patches",
+                    scale_error: float = 0.25, jitter: float = 1.5):
+    """Patch pairs of all photos -> ``(patches_A, patches_B, pair_id, keypoints_A)``."""
     rng = np.random.default_rng(seed)
-    pa, pb, gid = [], [], []
+    pa, pb, gid, kp = [], [], [], []
     for i, f in enumerate(tqdm(files, desc=desc, mininterval=5)):
         img = load_image(f)
         for j in range(pairs_per_image):
-            a, b = patch_pairs_from_image(rng, img, per_pair)
+            a, b, k = patch_pairs_from_image(rng, img, per_pair, scale_error=scale_error, jitter=jitter)
             pa.append(a)
             pb.append(b)
+            kp.append(k)
             gid.append(torch.full((len(a),), i * pairs_per_image + j))
-    return torch.cat(pa), torch.cat(pb), torch.cat(gid)
+    return torch.cat(pa), torch.cat(pb), torch.cat(gid), torch.cat(kp)
 
 
-def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0) -> torch.Tensor:
-    """HardNet loss: for each pair, the hardest negative in the batch (row and column)."""
+def group_batch(gid: torch.Tensor, groups: list[torch.Tensor], batch: int, images_per_batch: int,
+                generator: torch.Generator) -> torch.Tensor:
+    """Indices of a batch: ``images_per_batch`` random pairs, ``batch / images_per_batch`` patches each
+    (all of them when a pair has fewer), topped up with random patches."""
+    per = max(1, batch // max(1, images_per_batch))
+    chosen = torch.randperm(len(groups), generator=generator)[:images_per_batch]
+    parts = []
+    for g in chosen.tolist():
+        members = groups[g]
+        parts.append(members[torch.randperm(len(members), generator=generator)[:per]])
+    idx = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long)
+    if len(idx) < batch:
+        extra = torch.randperm(len(gid), generator=generator)[:batch - len(idx)]
+        idx = torch.cat([idx, extra])
+    return idx[:batch]
+
+
+def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0,
+                         not_negative: torch.Tensor | None = None) -> torch.Tensor:
+    """HardNet loss: for each pair, the hardest negative in the batch (row and column).
+    ``not_negative``: ``B x B`` bool, pairs that must not be used as negatives (overlapping patches)."""
     d = torch.cdist(da, db).clamp_min(1e-8)
     pos = d.diag()
     eye = torch.eye(len(d), dtype=torch.bool)
     dn = d.masked_fill(eye, 10.0)
+    if not_negative is not None:
+        dn = dn.masked_fill(not_negative, 10.0)
     dn = dn.masked_fill(dn < 0.008, 10.0)  # near-duplicate patches are not negatives
     neg = torch.minimum(dn.min(1).values, dn.min(0).values)
     return F.relu(margin + pos - neg).mean()
@@ -108,19 +154,24 @@ def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0
 
 @torch.no_grad()
 def evaluate(desc, pa: torch.Tensor, pb: torch.Tensor, chunk: int = 1000) -> dict:
-    """FPR95 (positives: corresponding pairs; negatives: shifted pairs) and NN matching accuracy
-    within chunks of ``chunk`` pairs."""
+    """FPR95 (positives: corresponding pairs; negatives: shifted pairs), and within chunks of
+    ``chunk`` pairs (a few synthetic pairs each): nearest-neighbour accuracy and mAP (the mean
+    over A's patches of the average precision of ranking B's patches, one positive each)."""
     da = desc.describe(pa.float() / 255)
     db = desc.describe(pb.float() / 255)
     pos = (da - db).norm(dim=1)
     neg = (da - db.roll(7, 0)).norm(dim=1)
     thr = torch.quantile(pos, 0.95)
     fpr95 = float((neg <= thr).float().mean())
-    accs = []
+    accs, aps = [], []
     for i in range(0, len(da) - chunk + 1, chunk):
         d = torch.cdist(da[i:i + chunk], db[i:i + chunk])
         accs.append(float((d.argmin(1) == torch.arange(chunk)).float().mean()))
-    return {"fpr95": fpr95, "nn_accuracy_1000": float(np.mean(accs)) if accs else float("nan"), "pairs": len(da)}
+        rank = (d < d.diag()[:, None]).sum(1) + 1
+        aps.append(float((1.0 / rank.float()).mean()))
+    nan = float("nan")
+    return {"fpr95": fpr95, "nn_accuracy_1000": float(np.mean(accs)) if accs else nan,
+            "map_1000": float(np.mean(aps)) if aps else nan, "pairs": len(da)}
 
 
 def main(argv=None) -> int:
@@ -132,6 +183,16 @@ def main(argv=None) -> int:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--pairs-per-image", type=int, default=3)
     p.add_argument("--per-pair", type=int, default=150)
+    p.add_argument("--scale-error", type=float, default=0.25,
+                   help="std of the log error applied to the true scale before cutting patches")
+    p.add_argument("--jitter", type=float, default=1.5, help="max keypoint re-detection error in B, px")
+    p.add_argument("--images-per-batch", type=int, default=16,
+                   help="synthetic pairs per batch (0: patches drawn uniformly)")
+    p.add_argument("--min-negative-distance", type=float, default=8.0,
+                   help="keypoints of one pair closer than this (px in A) are not negatives")
+    p.add_argument("--evaluate-only", default=None, metavar="WEIGHTS",
+                   help="score these descriptor weights (and SIFT) on the held-out patches of --out, no training")
+    p.add_argument("--init", default=None, help="start from these descriptor weights (localscale/kornia format)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-minutes", type=float, default=float("inf"), help="stop (and save) after this wall time")
     p.add_argument("--ckpt-every", type=int, default=50)
@@ -146,20 +207,30 @@ def main(argv=None) -> int:
     train_files, held_files = split_images(list_images(args.data))
     if args.limit_images:
         train_files, held_files = train_files[:args.limit_images], held_files[:max(1, args.limit_images // 4)]
-    cache = out / f"patches_seed{args.seed}.pt"
+    cache = out / f"patches_v2_seed{args.seed}_e{args.scale_error:g}_j{args.jitter:g}_p{args.pairs_per_image}.pt"
     if cache.is_file():
         data = torch.load(cache, map_location="cpu", weights_only=True)   # tensors only, no code
     else:
-        tr = build_patch_set(train_files, args.seed, args.pairs_per_image, args.per_pair, "train patches")
-        ho = build_patch_set(held_files, args.seed + 10_000, 2, args.per_pair, "held-out patches")
+        tr = build_patch_set(train_files, args.seed, args.pairs_per_image, args.per_pair, "train patches",
+                             args.scale_error, args.jitter)
+        ho = build_patch_set(held_files, args.seed + 10_000, 2, args.per_pair, "held-out patches",
+                             args.scale_error, args.jitter)
         data = {"train": tr, "held": ho}
         torch.save(data, cache)
-    pa, pb, _ = data["train"]
-    ha, hb, _ = data["held"]
+    pa, pb, gid, kpa = data["train"]
+    ha, hb = data["held"][:2]
+    groups = [g for g in torch.split(torch.argsort(gid, stable=True), torch.bincount(gid).tolist()) if len(g)]
     print(f"patch pairs: train {len(pa)} (from {len(train_files)} photos), held-out {len(ha)} "
           f"(from {len(held_files)} photos); data ready in {time.time() - t0:.0f}s", flush=True)
 
-    model = HardNetDescriptor()
+    if args.evaluate_only:
+        report = {"weights": args.evaluate_only,
+                  "held_out": evaluate(HardNetDescriptor.from_pretrained(args.evaluate_only), ha, hb),
+                  "held_out_sift_baseline": evaluate(SIFTPatchDescriptor(), ha, hb)}
+        print(json.dumps(report, indent=1), flush=True)
+        return 0
+    model = HardNetDescriptor.from_pretrained(args.init) if args.init else HardNetDescriptor()
+    model.net.float()
     opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-4)
     step, elapsed_before = 0, 0.0
     last = out / "last.pt"
@@ -182,11 +253,14 @@ def main(argv=None) -> int:
     stopped_early = False
     while step < args.steps:
         g = torch.Generator().manual_seed(args.seed * 1_000_003 + step)
-        idx = torch.randperm(len(pa), generator=g)[:args.batch]
+        idx = group_batch(gid, groups, args.batch, args.images_per_batch, g) if args.images_per_batch \
+            else torch.randperm(len(pa), generator=g)[:args.batch]
         a, b = pa[idx].float() / 255, pb[idx].float() / 255
         if step % 2:  # joint flip augmentation
             a, b = a.flip(-1), b.flip(-1)
-        loss = hardest_triplet_loss(model(a), model(b))
+        same = gid[idx][:, None] == gid[idx][None, :]
+        close = torch.cdist(kpa[idx], kpa[idx]) < args.min_negative_distance
+        loss = hardest_triplet_loss(model(a), model(b), not_negative=same & close)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -204,7 +278,7 @@ def main(argv=None) -> int:
     model.eval()
     score = evaluate(model, ha, hb)
     sift = evaluate(SIFTPatchDescriptor(), ha, hb)
-    report = {"steps": step, "batch": args.batch, "train_pairs": len(pa), "held_out": score,
+    report = {"steps": step, "batch": args.batch, "images_per_batch": args.images_per_batch, "train_pairs": len(pa), "held_out": score,
               "held_out_sift_baseline": sift, "stopped_by_time_limit": stopped_early,
               "train_wall_minutes": round((elapsed_before + time.time() - t_start) / 60, 1)}
     print(json.dumps(report, indent=1), flush=True)
