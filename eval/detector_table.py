@@ -96,6 +96,9 @@ def main(argv=None) -> int:
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not args.table_only:
+            unknown = [d for d in args.detectors if d not in DETECTORS]
+            if unknown:
+                raise LocalScaleError(f"unknown detector {unknown[0]!r}; choose from {', '.join(DETECTORS)}")
             pairs = make_pairs(load_hpatches(args.root))
             methods = list(args.methods)
             models, notes = load_scale_models(methods, args.local_weights, args.global_weights)

@@ -500,7 +500,9 @@ EXAMPLES = {
     "eval-hpatches": """example:
   localscale eval-hpatches hpatches-sequences-release/ -o results/hpatches --methods none local gt
       ROOT/<seq>/1.ppm .. 6.ppm and H_1_2 .. H_1_6; writes results_<descriptor>.{json,md},
-      splits.csv and mma_*.png into -o""",
+      splits.csv and mma_*.png into -o
+  localscale eval-hpatches ROOT -o out/ --methods none local --detector orb
+      -> out/results_orb_<descriptor>.{json,md}: the same with one-level ORB keypoints""",
 }
 
 

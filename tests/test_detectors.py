@@ -105,3 +105,26 @@ def test_match_with_another_detector(tiny_root, tmp_path):
     assert cli_main(["match", str(seq / "1.png"), str(seq / "2.png"), "-o", str(tmp_path / "m"), "--detector", "orb",
                      "--correction", "none", "--descriptor", "sift", "--num-features", "80"]) == 0
     assert (tmp_path / "m" / "matches.npz").is_file()
+
+
+def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, capsys):
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "eval" / "detector_table.py"
+    spec = importlib.util.spec_from_file_location("detector_table", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "t"
+    args = [str(tiny_root), "-o", str(out), "--detectors", "orb", "gftt", "--descriptors", "sift",
+            "--num-features", "60", "--quiet"]
+    assert mod.main(args) == 0
+    rows = json.loads((out / "table.json").read_text())["rows"]
+    assert [(r["detector"], r["descriptor"]) for r in rows] == [("gftt", "sift"), ("orb", "sift")]
+    assert all(0 <= r["mma5_none"] <= 1 and 0 <= r["mma5_local"] <= 1 for r in rows)
+    md = (out / "table.md").read_text()
+    assert "| orb + sift |" in md and "MMA@5 local" in md and "matches none" in md
+    capsys.readouterr()
+    assert mod.main(args) == 0                                       # kept, not run again
+    assert capsys.readouterr().out.count("exists, kept") == 2
+    assert mod.main(args + ["--detectors", "nope"]) == 2
+    assert capsys.readouterr().err.startswith("error: unknown detector 'nope'")
