@@ -434,6 +434,8 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "colours inliers; default: none)")
     p.add_argument("--descriptor", default="hardnet", help="hardnet | sift | path to HardNet weights")
     p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--detector", default="hessian", metavar="NAME",
+                   help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze")
     p.add_argument("--ratio", type=float, default=None,
                    help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
@@ -443,12 +445,14 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def cmd_match(args) -> int:
+    from .features.detector import get_detector
     from .features.pipeline import models_for_correction, run_match
 
     out = check_output_dir(args.output)
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
+    get_detector(args.detector, max(1, args.num_features))
     uses = {"local": ("local", "fused"), "global": ("global", "fused")}
     for kind in MODEL_KINDS:
         w = getattr(args, f"{kind}_weights", None)
@@ -458,7 +462,7 @@ def cmd_match(args) -> int:
                                                       args.device)
     run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
               args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
-              local_model=local_model, global_model=global_model)
+              local_model=local_model, global_model=global_model, detector=args.detector)
     return 0
 
 
@@ -496,7 +500,9 @@ EXAMPLES = {
     "eval-hpatches": """example:
   localscale eval-hpatches hpatches-sequences-release/ -o results/hpatches --methods none local gt
       ROOT/<seq>/1.ppm .. 6.ppm and H_1_2 .. H_1_6; writes results_<descriptor>.{json,md},
-      splits.csv and mma_*.png into -o""",
+      splits.csv and mma_*.png into -o
+  localscale eval-hpatches ROOT -o out/ --methods none local --detector orb
+      -> out/results_orb_<descriptor>.{json,md}: the same with one-level ORB keypoints""",
 }
 
 

@@ -7,7 +7,8 @@ default (``--include-illumination``); ``--exclude-hires`` drops the usual high-r
 sequences :data:`HIGH_RES`.
 
 Protocol (D2-Net's MMA): for each pair ``(1, k)``: the single-scale Hessian detector's
-top-K keypoints (default 1000) in both images, 32x32 patches with the patch-size
+top-K keypoints (default 1000; ``--detector`` swaps in another single-scale detector of
+:data:`localscale.features.detector.DETECTORS`) in both images, 32x32 patches with the patch-size
 correction of each method, descriptors, mutual nearest neighbours, and the
 mean matching accuracy MMA@t = fraction of matches with ``|H x_A - x_B| < t`` px
 (t = 1..10), averaged over pairs; plus mean numbers of matches and features.
@@ -191,9 +192,12 @@ class _Evaluator:
     """
 
     def __init__(self, descriptor, num_features, local_model, global_model, gate, base_radius, orientation,
-                 max_side, levels=4):
+                 max_side, levels=4, detector="hessian"):
         from ..features.descriptors import get_descriptor
+        from ..features.detector import get_detector
         self.desc = get_descriptor(descriptor)
+        get_detector(detector)                      # an unknown name fails before the first pair
+        self.detector = detector
         self.num_features, self.local_model, self.global_model = num_features, local_model, global_model
         self.gate, self.base_radius, self.orientation, self.max_side = gate, base_radius, orientation, max_side
         self.levels = levels
@@ -209,11 +213,11 @@ class _Evaluator:
         return self._img[path]
 
     def keypoints(self, path):
-        from ..features.detector import HessianDetector, image_to_gray_tensor
+        from ..features.detector import get_detector, image_to_gray_tensor
         if path not in self._kps:
             img, _ = self.image(path)
             g = image_to_gray_tensor(img)
-            kps, _ = HessianDetector(self.num_features)(g)
+            kps, _ = get_detector(self.detector, self.num_features)(g)
             self._kps[path] = (g, kps)
         return self._kps[path]
 
@@ -250,7 +254,7 @@ class _Evaluator:
 
     def pyramid(self, path):
         """Keypoints + descriptors on a sqrt(2)-step pyramid, coordinates in level 0."""
-        from ..features.detector import HessianDetector, image_to_gray_tensor
+        from ..features.detector import get_detector, image_to_gray_tensor
         from ..features.patches import ScaleCorrectedPatches
         img, _ = self.image(path)
         kps_all, desc_all = [], []
@@ -260,7 +264,7 @@ class _Evaluator:
             im = img if lvl == 0 else cv2.resize(img, (max(16, round(img.shape[1] * f)), max(16, round(img.shape[0] * f))),
                                                  interpolation=cv2.INTER_AREA)
             g = image_to_gray_tensor(im)
-            k, _ = HessianDetector(per)(g)
+            k, _ = get_detector(self.detector, per)(g)
             p, _, _ = ScaleCorrectedPatches(self.base_radius, 32, self.orientation)(g, k, None)
             fx, fy = img.shape[1] / im.shape[1], img.shape[0] / im.shape[0]
             kps_all.append(k.numpy() * np.array([fx, fy], np.float32) + np.array([(fx - 1) / 2, (fy - 1) / 2], np.float32))
@@ -415,8 +419,12 @@ def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> li
 
 def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", num_features: int = 1000,
              local_model=None, global_model=None, gate=None, base_radius: float = 16.0, orientation: str = "upright",
-             max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True) -> dict:
-    """Run the protocol on ``pairs``; returns ``{"records": [...], "summary": {...}}``."""
+             max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True,
+             detector: str = "hessian") -> dict:
+    """Run the protocol on ``pairs``; returns ``{"records": [...], "summary": {...}}``.
+
+    ``detector`` is one of :data:`localscale.features.detector.DETECTORS` (default: the single-scale
+    Hessian); patch sizes come from ``base_radius`` and each method's maps whatever the detector."""
     from ..features.pipeline import CorrectionGate
     from tqdm import tqdm
     if "local" in methods and local_model is None:
@@ -424,7 +432,8 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", n
     if "global" in methods and global_model is None:
         raise LocalScaleError("method 'global' needs a global model")
     gate = gate if gate is not None else CorrectionGate()
-    ev = _Evaluator(descriptor, num_features, local_model, global_model, gate, base_radius, orientation, max_side)
+    ev = _Evaluator(descriptor, num_features, local_model, global_model, gate, base_radius, orientation, max_side,
+                    detector=detector)
     records = []
     for p in tqdm(pairs, desc=f"eval {ev.desc.name}", disable=not progress, mininterval=5):
         records += ev.run_pair(p, methods, list(thresholds))
@@ -464,6 +473,9 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="correction methods to compare")
     p.add_argument("--descriptor", nargs="+", default=["hardnet"], help="hardnet | sift | weights path (several ok)")
     p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--detector", default="hessian", metavar="NAME",
+                   help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze "
+                        "(results files get a NAME_ prefix unless hessian)")
     add_model_options(p, local=True, global_=True, bf16=False)
     p.add_argument("--include-illumination", action="store_true", help="also evaluate i_* sequences")
     p.add_argument("--exclude-hires", action="store_true", help=f"skip {', '.join(HIGH_RES)}")
@@ -541,8 +553,11 @@ def main(argv=None) -> int:
 def run(args: argparse.Namespace) -> int:
     """Body of ``localscale eval-hpatches`` for parsed :func:`add_arguments` options."""
     from ..cli import check_output_dir
+    from ..features.detector import get_detector
 
     check_output_dir(args.out)
+    detector = getattr(args, "detector", "hessian")
+    get_detector(detector, max(1, args.num_features))
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
     pairs = make_pairs(seqs)
     methods = list(args.methods)
@@ -554,10 +569,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(seqs)} sequences, {len(pairs)} pairs; methods {methods}")
     for d in args.descriptor:
         res = evaluate(pairs, methods, d, args.num_features, local_model, global_model, gate, args.base_radius,
-                       args.orientation, args.max_side)
+                       args.orientation, args.max_side, detector=detector)
         tag = Path(d).stem if d not in ("hardnet", "sift") else d
+        tag = tag if detector == "hessian" else f"{detector}_{tag}"
         write_outputs(res, pairs, methods, args.out, tag=tag,
-                      extra={"notes": notes, "gate": vars(gate), "descriptor": d,
+                      extra={"notes": notes, "gate": vars(gate), "descriptor": d, "detector": detector,
                              "args": {k: v for k, v in vars(args).items() if not callable(v)}})
         print(markdown_table(res["summary"], methods, list(THRESHOLDS), f"{args.root} / {tag}"))
     print(f"wrote {args.out}/")

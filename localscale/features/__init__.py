@@ -6,7 +6,8 @@ import importlib
 
 _EXPORTS = {
     ".descriptors": ("HardNetDescriptor", "PatchDescriptor", "SIFTPatchDescriptor", "get_descriptor"),
-    ".detector": ("HessianDetector", "detect_keypoints", "image_to_gray_tensor"),
+    ".detector": ("DETECTORS", "HessianDetector", "OpenCVDetector", "ResponseDetector", "detect", "detect_keypoints",
+                  "get_detector", "image_to_gray_tensor"),
     ".patches": ("ScaleCorrectedPatches", "extract_patches", "make_lafs", "patch_radii", "sample_scale_map"),
     ".matching": ("MutualNNMatcher", "match_descriptors", "matching_accuracy", "orient_homography",
                   "reprojection_errors"),
@@ -18,7 +19,8 @@ _EXPORTS = {
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 
-__all__ = ["detect_keypoints", "HessianDetector", "image_to_gray_tensor", "patch_radii", "sample_scale_map",
+__all__ = ["detect_keypoints", "detect", "get_detector", "DETECTORS", "ResponseDetector", "OpenCVDetector",
+           "HessianDetector", "image_to_gray_tensor", "patch_radii", "sample_scale_map",
            "make_lafs", "extract_patches", "ScaleCorrectedPatches", "PatchDescriptor", "HardNetDescriptor",
            "SIFTPatchDescriptor", "get_descriptor", "keypoint_scales", "correction_factors", "rescale_keypoints",
            "rescale_keypoint_pair", "laf_from_opencv", "opencv_from_laf", "keypoints_to_xy", "describe_lafs"]

@@ -26,7 +26,7 @@ from ..io import load_image, read_homography
 from .correction import (CORRECTIONS, NO_GATE, CorrectionGate, _global_scale, fuse_local_global,  # noqa: F401
                          scale_maps_for_pair)
 from .descriptors import PatchDescriptor, get_descriptor
-from .detector import HessianDetector, image_to_gray_tensor
+from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
 
@@ -55,17 +55,23 @@ class Features:
 
 
 def extract(image, scale_map=None, num_features: int = 1000, descriptor: Union[str, PatchDescriptor] = "hardnet",
-            base_radius: float = 16.0, orientation: str = "upright", detector_sigma: float = 2.0) -> Features:
+            base_radius: float = 16.0, orientation: str = "upright", detector_sigma: float = 2.0,
+            detector: str = "hessian") -> Features:
     """Detect up to ``num_features`` keypoints and describe scale-corrected patches.
 
     Args:
         image: path, ``H x W x 3`` uint8 array or ``1 x H x W`` float tensor.
         scale_map: ``S_{this->other}`` (``H x W``), a float, or ``None``.
         descriptor: ``"hardnet"``, ``"sift"``, a weights path or a :class:`PatchDescriptor`.
+        detector_sigma: detection scale of the ``hessian`` detector.
+        detector: a single-scale detector of :data:`localscale.features.detector.DETECTORS`; its
+            keypoint positions are used, the patch radii come from ``base_radius`` and ``scale_map``.
     """
     gray = image_to_gray_tensor(image)
     desc = get_descriptor(descriptor)
-    kps, resp = HessianDetector(num_features, detector_sigma)(gray)
+    det = (HessianDetector(num_features, detector_sigma) if detector == "hessian"
+           else get_detector(detector, num_features))
+    kps, resp = det(gray)
     patches, lafs, radii = ScaleCorrectedPatches(base_radius, desc.patch_size, orientation)(gray, kps, scale_map)
     return Features(kps.numpy(), resp.numpy(), lafs, desc.describe(patches), radii.numpy(), tuple(gray.shape[-2:]))
 
@@ -120,7 +126,8 @@ def match_features(fa: Features, fb: Features, H=None, ratio: Optional[float] = 
 def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=None, global_model=None,
                descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
                ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
-               base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False) -> MatchResult:
+               base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False,
+               detector: str = "hessian") -> MatchResult:
     """Detect, correct, describe and mutually match two images.
 
     Args:
@@ -130,16 +137,18 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
         local_model, global_model: models for ``"local"`` / ``"global"`` / ``"fused"`` (default: bundled weights).
         gate: gating of predicted maps (``NO_GATE`` to disable; not applied to ``"gt"``).
         bf16: run the scale networks under bfloat16 autocast.
+        detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
     """
+    get_detector(detector, max(1, num_features))
     a = load_image(image_a, "image A")
     b = load_image(image_b, "image B")
     desc = get_descriptor(descriptor)
     sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate, bf16=bf16)
-    fa = extract(a, sa, num_features, desc, base_radius, orientation)
-    fb = extract(b, sb, num_features, desc, base_radius, orientation)
+    fa = extract(a, sa, num_features, desc, base_radius, orientation, detector=detector)
+    fb = extract(b, sb, num_features, desc, base_radius, orientation, detector=detector)
     res = match_features(fa, fb, H, ratio, correction)
     res.scale_a, res.scale_b = sa, sb
-    res.meta = {"num_features_a": len(fa), "num_features_b": len(fb), "descriptor": desc.name}
+    res.meta = {"num_features_a": len(fa), "num_features_b": len(fb), "descriptor": desc.name, "detector": detector}
     return res
 
 
@@ -217,7 +226,7 @@ def models_for_correction(correction: str, local_weights=None, global_weights=No
 def run_match(image_a, image_b, out, correction: str = "local", H=None, descriptor: str = "hardnet",
               num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
               device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
-              local_model=None, global_model=None) -> MatchResult:
+              local_model=None, global_model=None, detector: str = "hessian") -> MatchResult:
     """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
 
     The models ``correction`` needs are ``local_model`` / ``global_model`` when given, else loaded
@@ -227,7 +236,7 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
         local_model, global_model = models_for_correction(correction, local_weights, global_weights, device)
     H = read_homography(H) if H is not None else None
     res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
-                     orientation=orientation, bf16=bf16)
+                     orientation=orientation, bf16=bf16, detector=detector)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
