@@ -149,9 +149,10 @@ def write_image(path, image_bgr: np.ndarray) -> Path:
     when nothing was written."""
     import cv2
 
+    from .io import _quiet_decoder
     from .outputs import atomic_path
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, _quiet_decoder():   # OpenCV's own warnings stay off the terminal
         try:
             ok = cv2.imwrite(str(tmp), image_bgr)
         except cv2.error as e:
@@ -456,7 +457,7 @@ def cmd_show(args) -> int:
 
 def cmd_demo(args) -> int:
     a, b, H = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
-    out = check_output_dir(args.output) / "demo.png"
+    out = check_output_dir(args.output, ["demo.png"]) / "demo.png"
     show_pair(a, b, out, H, _model(args, "local"), title="localscale demo: Local-ScaleNet", bf16=args.bf16)
     print(out)
     return 0
@@ -466,7 +467,10 @@ def cmd_demo(args) -> int:
 
 def cmd_scale(args) -> int:
     p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
-    if not all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale)):
+    import numpy as np
+
+    if not (all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale))
+            and np.isfinite(p.probs_ab).all()):
         raise LocalScaleError("ScaleNet predicted a non-finite scale (NaN or inf): the model is broken")
     if not p.reliable:
         print(f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "

@@ -256,12 +256,15 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image") -> np.ndarray:
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (2, 3, 4)):
-        raise ImageError(f"{name}: expected H x W, H x W x 3 or H x W x 4, got shape {arr.shape}")
+        raise ImageError(f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, "
+                         f"got shape {arr.shape}")
     _check_size(arr.shape[0], arr.shape[1], name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
         if not _is_opaque(arr[..., -1]):
             warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
         arr = arr[..., :-1]
+        if arr.shape[2] == 1:   # gray + alpha -> gray
+            arr = arr[..., 0]
     if arr.dtype == np.uint8:
         out = arr
     elif arr.dtype == np.uint16:

@@ -34,6 +34,7 @@ from .data import PairConfig, SyntheticPairs, collate, list_images, split_images
 from .errors import LocalScaleError
 from .geometry import HomographyConfig
 from .models import LocalScaleNet, LocalScaleNetConfig, ScaleNet, ScaleNetConfig
+from .outputs import check_writable_dir
 
 
 class TrainingDiverged(RuntimeError):
@@ -322,8 +323,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    log = _Logger(out, rank == 0)
+    check_writable_dir(out)   # before any work; the folder is created once the inputs are checked
 
     files = list_images(cfg.data)
     train_files, held_files = split_images(files, cfg.holdout_every)
@@ -359,6 +359,11 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(cfg.lr_milestones), cfg.lr_gamma)
     step = 0
     last = out / "last.pt"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create output folder {out}: {e.strerror or e}") from None
+    log = _Logger(out, rank == 0)
     if last.exists():
         ckpt = read_checkpoint(last)
         try:
