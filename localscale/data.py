@@ -109,7 +109,8 @@ class SyntheticPairs(Dataset):
     """
 
     def __init__(self, images: Sequence[str | Path] | str | Path, length: int = 10**9, seed: int = 0,
-                 config: PairConfig | None = None, cache: bool = True, cache_limit: int | None = 512):
+                 config: PairConfig | None = None, cache: bool = True,
+                 cache_bytes: int | None = 2**30):
         if isinstance(images, (str, Path)):
             images = list_images(images)
         self.files = [Path(p) for p in images]
@@ -119,8 +120,9 @@ class SyntheticPairs(Dataset):
         self.seed = seed
         self.cfg = config or PairConfig()
         self._cache: dict[int, np.ndarray] | None = {} if cache else None
-        #: decoded photos kept (None: all); the oldest is dropped first
-        self.cache_limit: int | None = cache_limit
+        #: bound of the decoded photos kept, in bytes per process (None: all); the oldest is dropped first
+        self.cache_bytes: int | None = cache_bytes
+        self._cache_bytes = 0
         #: indices of photos that could not be used (skipped with a warning, once each)
         self.unreadable: set[int] = set()
 
@@ -144,9 +146,10 @@ class SyntheticPairs(Dataset):
             warnings.warn(f"training photo skipped: {' '.join(str(e).split())}", stacklevel=2)
             raise _UnreadablePhoto(i) from None
         if self._cache is not None:
-            if self.cache_limit is not None and len(self._cache) >= self.cache_limit:
-                self._cache.pop(next(iter(self._cache)))   # oldest first: the cache stays bounded
             self._cache[i] = img
+            self._cache_bytes += img.nbytes
+            while self.cache_bytes is not None and self._cache_bytes > self.cache_bytes and len(self._cache) > 1:
+                self._cache_bytes -= self._cache.pop(next(iter(self._cache))).nbytes   # oldest first
         return img
 
     def _crop(self, rng: np.random.Generator, img: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 import zlib
 from pathlib import Path
 
@@ -768,17 +769,21 @@ def test_nan_gradients_with_finite_loss_do_not_reach_the_checkpoint(env, tmp_pat
         load_model(tmp_path / "run" / name)   # refuses NaN/inf weights
 
 
-def test_unusable_training_photos_are_skipped_and_counted(env, tmp_path, capsys):
+@pytest.mark.parametrize("workers", [0, 1])
+def test_unusable_training_photos_are_skipped_and_counted(env, tmp_path, capfd, workers):
     d = tmp_path / "photos"
     d.mkdir()
     for p in env["photos"].iterdir():
         (d / p.name).write_bytes(p.read_bytes())
     (d / "p1.png").write_bytes((env["photos"] / "p1.png").read_bytes()[:150])        # truncated
     cv2.imwrite(str(d / "p4.png"), _smooth_image(50, 24, 24))                          # smaller than a crop
-    argv = TRAIN_BASE + ["--data", str(d), "--out", str(tmp_path / "run"), "--steps", "4"]
-    with pytest.warns(UserWarning, match="training photo skipped"):
+    argv = TRAIN_BASE + ["--data", str(d), "--out", str(tmp_path / "run"), "--steps", "4", "--workers", str(workers)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = lambda m, c, f, ln, file=None, line=None: print(f"{c.__name__}: {m}", file=sys.stderr)
         assert training.main(argv, model="local") == 0
-    err = capsys.readouterr().err
+    err = capfd.readouterr().err   # the worker process warns on the same stderr
+    assert "training photo skipped" in err and "p1.png" in err
     assert "training sample(s) were drawn again" in err and "Traceback" not in err
     load_model(tmp_path / "run" / "model.pt")
 
