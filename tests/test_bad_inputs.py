@@ -933,3 +933,64 @@ def test_eval_hpatches_skips_bad_pairs_and_writes_the_rest(env, tmp_path, capsys
     warned = [ln for ln in err.splitlines() if ln.startswith("warning:")]
     assert any("v_size/1-2" in ln and "does not look like" in ln for ln in warned)
     assert sum("skipped:" in ln for ln in warned) == 5
+
+
+# ---------------------------------------------------------------- no silent wrong output from a broken model
+
+def _nan_global_prediction(monkeypatch):
+    from localscale.models.scalenet import ScaleNet as _S
+
+    real = _S.predict
+
+    def nan_predict(self, *a, **k):
+        p = real(self, *a, **k)
+        p.scale = p.scale_ab = float("nan")
+        return p
+
+    monkeypatch.setattr(_S, "predict", nan_predict)
+
+
+@pytest.mark.parametrize("cmd", ["scale --json", "scale", "rectify"])
+def test_non_finite_global_scale_is_an_error_not_output(env, tmp_path, monkeypatch, capsys, cmd):
+    _nan_global_prediction(monkeypatch)
+    out = tmp_path / "out"
+    argv = cmd.split() + [str(env["in"] / "a.png"), str(env["in"] / "b.png"), "--global-weights",
+                          str(env["in"] / "global.pt")] + (["-o", str(out)] if cmd == "rectify" else [])
+    rc, stdout, err = _run(main, argv, capsys)
+    assert_clean_error(rc, err, "non-finite scale", out)
+    assert "NaN" not in stdout and "nan" not in stdout
+
+
+def test_non_finite_scale_map_is_not_written(env, tmp_path, capsys, monkeypatch):
+    from localscale.models.local import LocalScaleNet as _L
+
+    real = _L._readout
+
+    def nan_readout(self, *a, **k):
+        p = real(self, *a, **k)
+        p.scale[0, 0] = np.nan
+        return p
+
+    monkeypatch.setattr(_L, "_readout", nan_readout)
+    out = tmp_path / "out"
+    rc, _, err = _run(main, ["predict", str(env["in"] / "a.png"), str(env["in"] / "b.png"), "-o", str(out),
+                             "--local-weights", str(env["in"] / "local.pt")], capsys)
+    assert_clean_error(rc, err, "not finite", out)
+
+
+def test_long_image_names_give_output_names_within_the_limit(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    names = ["a" * 200 + ".png", "b" * 200 + ".png"]
+    for i, n in enumerate(names):
+        cv2.imwrite(str(d / n), _smooth_image(70 + i))
+    (d / "pairs.txt").write_text(f"{names[0]}\t{names[1]}\n")
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
+                                  str(env["in"] / "local.pt")], capsys)
+    assert rc == 0, err
+    files = [f.name for f in out.iterdir()]
+    assert len(files) == 5 and all(len(f.encode()) <= 255 for f in files)
+    rc, stdout, err = _run(main, ["predict", str(d / names[0]), str(d / names[1]), "-o", str(out),
+                                  "--local-weights", str(env["in"] / "local.pt")], capsys)
+    assert rc == 0, err
