@@ -308,11 +308,21 @@ def read_homography(path: Union[str, os.PathLike, np.ndarray]) -> np.ndarray:
         H, src = path.astype(np.float64), "homography"
     else:
         p = Path(path)
-        if not p.is_file():
-            raise HomographyError(f"homography file not found: {p}")
+        try:
+            st = p.stat()
+        except OSError as e:
+            what = {errno.ELOOP: "is a symbolic link loop", errno.ENAMETOOLONG: "name is too long",
+                    errno.EACCES: "is not accessible (permission denied)"}.get(e.errno, "not found")
+            if e.errno == errno.ENOENT and p.is_symlink():
+                what = "is a broken symbolic link"
+            raise HomographyError(f"homography file {what}: {p}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise HomographyError(f"homography file not found (not a regular file): {p}")
         try:
             H = np.loadtxt(p, dtype=np.float64, ndmin=2)
-        except ValueError as e:
+        except OSError as e:
+            raise HomographyError(f"cannot read homography file {p} ({e.strerror or e})") from None
+        except (ValueError, UnicodeDecodeError) as e:
             raise HomographyError(f"{p}: not a text matrix of numbers ({str(e).splitlines()[0]})") from None
         src = str(p)
     if H.size == 9:
