@@ -31,7 +31,7 @@ class FeatureCache:
 
     @staticmethod
     def key(path: str | os.PathLike) -> tuple:
-        p = Path(path).resolve()
+        p = Path(os.path.realpath(os.path.abspath(path)))   # never raises on a symbolic link loop
         try:
             return (str(p), p.stat().st_mtime_ns)
         except OSError:

@@ -44,12 +44,23 @@ def checkpoint_dict(model: nn.Module, meta: dict | None = None, half: bool = Fal
 
 
 def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, half: bool = False) -> None:
-    """Write an inference checkpoint (weights + config + metadata); ``half`` stores fp16."""
+    """Write an inference checkpoint (weights + config + metadata); ``half`` stores fp16.
+
+    Atomic (temporary name, then rename); weights with NaN or inf are refused (nothing written)."""
     path = Path(path)
+    ckpt = checkpoint_dict(model, meta, half)
+    bad = non_finite_tensors(ckpt["state_dict"])
+    if bad:
+        raise CheckpointError(f"{path}: not saved, the weights contain NaN or inf ({len(bad)} tensor(s), "
+                              f"e.g. {bad[0][:80]})")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(checkpoint_dict(model, meta, half), tmp)
-    tmp.replace(path)
+    try:
+        torch.save(ckpt, tmp)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def safe_load(path: str | Path) -> Any:
@@ -88,13 +99,24 @@ def check_format(ckpt: dict, path: str | Path) -> None:
 
 
 def check_state_dict(sd: Any, path: str | Path) -> None:
-    """A state dict must map names (str) to tensors."""
+    """A state dict must map names (str) to tensors, and every floating-point tensor must be
+    finite (a checkpoint with NaN or inf weights would give NaN maps)."""
     if not isinstance(sd, dict):
         raise CheckpointError(f"{path}: 'state_dict' is a {type(sd).__name__}, not a dict of tensors")
     for k, v in sd.items():
         if not isinstance(k, str) or not isinstance(v, torch.Tensor):
             raise CheckpointError(f"{path}: 'state_dict' entry {str(k)[:80]!r} is a {type(v).__name__}, "
                                   f"not a tensor")
+    bad = non_finite_tensors(sd)
+    if bad:
+        raise CheckpointError(f"{path}: weights contain NaN or inf ({len(bad)} tensor(s), e.g. {bad[0][:80]}); "
+                              f"refused")
+
+
+def non_finite_tensors(sd: dict) -> list[str]:
+    """Names of the floating-point tensors of a state dict that hold NaN or inf."""
+    return [k for k, v in sd.items() if isinstance(v, torch.Tensor) and (v.is_floating_point() or v.is_complex())
+            and not bool(torch.isfinite(v).all())]
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -16,8 +16,14 @@ Every command takes the same model options: ``--local-weights`` / ``--global-wei
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import math
+import os
+import shlex
+import signal
 import sys
+import threading
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -113,24 +119,19 @@ def _model(args, kind: str):
     return load_scale_model(kind, getattr(args, f"{kind}_weights", None), args.device)
 
 
-def check_output_dir(path) -> Path:
-    """``-o``: a folder (created later, when writing); an existing file is an error."""
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise LocalScaleError(f"output {out} exists and is not a folder (-o names a folder)")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise LocalScaleError(f"output {out}: {parent} is a file, not a folder")
-            break
-    return out
+def check_output_dir(path, names=()) -> Path:
+    """``-o``: a folder (created later, when writing). Checked before any work: an existing file,
+    a folder that cannot be written, or file ``names`` too long for the file system are errors."""
+    from .outputs import check_writable_dir
+
+    return check_writable_dir(Path(path), names)
 
 
 def ensure_not_input(path, inputs) -> Path:
     """Refuse to write ``path`` when it is one of the command's ``inputs``."""
     path = Path(path)
     for i in inputs:
-        if i is not None and not hasattr(i, "shape") and Path(i).resolve() == path.resolve():
+        if i is not None and not hasattr(i, "shape") and _resolved(i) == _resolved(path):
             raise LocalScaleError(f"refusing to overwrite the input {i} with an output")
     return path
 
@@ -144,41 +145,47 @@ def _mkdir(path: Path) -> Path:
 
 
 def write_image(path, image_bgr: np.ndarray) -> Path:
-    """``cv2.imwrite`` that raises :class:`LocalScaleError` when nothing was written."""
+    """``cv2.imwrite`` (atomic: temporary name, then rename) that raises :class:`LocalScaleError`
+    when nothing was written."""
     import cv2
 
-    try:
-        ok = cv2.imwrite(str(path), image_bgr)
-    except cv2.error as e:
-        raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
-    if not ok:
-        raise LocalScaleError(f"cannot write {path}")
+    from .io import _quiet_decoder
+    from .outputs import atomic_path
+
+    with atomic_path(path) as tmp, _quiet_decoder():   # OpenCV's own warnings stay off the terminal
+        try:
+            ok = cv2.imwrite(str(tmp), image_bgr)
+        except cv2.error as e:
+            raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
+        if not ok:
+            raise LocalScaleError(f"cannot write {path}")
     return Path(path)
 
 
 def write_npy(path, array: np.ndarray) -> Path:
+    """``np.save`` to ``path`` (atomic: temporary name, then rename)."""
     import numpy as np
 
-    try:
-        np.save(path, array)
-    except OSError as e:
-        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
+    from .outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
     return Path(path)
 
 
 def write_text(path, text: str) -> Path:
-    try:
-        Path(path).write_text(text)
-    except OSError as e:
-        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
-    return Path(path)
+    """Write ``text`` to ``path`` (atomic: temporary name, then rename)."""
+    from .outputs import write_text as _write
+
+    return _write(path, text)
 
 
 def image_labels(paths, always_parent: bool = False) -> dict:
     """Short, distinct names of image files for output names: the stem, or ``<parent>-<stem>``
     when another file among ``paths`` has the same stem (``v_churchill/1.ppm`` ->
     ``v_churchill-1``) or when ``always_parent``. Keyed by the resolved path."""
-    uniq = list(dict.fromkeys(Path(p).resolve() for p in paths))
+    uniq = list(dict.fromkeys(_resolved(p) for p in paths))
     by_stem = defaultdict(list)
     for p in uniq:
         by_stem[p.stem].append(p)
@@ -195,12 +202,28 @@ def image_labels(paths, always_parent: bool = False) -> dict:
     return labels
 
 
+def _resolved(p) -> Path:
+    """Absolute path with symbolic links resolved as far as they go (never raises on a link loop)."""
+    return Path(os.path.realpath(os.path.abspath(p)))
+
+
+def short_name(name: str, room: int = 200) -> str:
+    """``name`` unchanged if it has at most ``room`` bytes, else its start and a hash of it
+    (output file names stay within the file system's 255-byte limit)."""
+    raw = name.encode("utf-8", "surrogateescape")
+    if len(raw) <= room:
+        return name
+    digest = hashlib.sha1(raw).hexdigest()[:10]
+    return raw[:room - 11].decode("utf-8", "ignore") + "~" + digest
+
+
 def pair_name(image_a, image_b, always_parent: bool = False) -> str:
-    """``<A>_<B>`` from :func:`image_labels` (``A_B`` for arrays)."""
+    """``<A>_<B>`` from :func:`image_labels` (``A_B`` for arrays); shortened by :func:`short_name`
+    when too long for a file name."""
     if hasattr(image_a, "shape") or hasattr(image_b, "shape"):
         return "A_B"
     labels = image_labels([image_a, image_b], always_parent)
-    return f"{labels[Path(image_a).resolve()]}_{labels[Path(image_b).resolve()]}"
+    return short_name(f"{labels[_resolved(image_a)]}_{labels[_resolved(image_b)]}")
 
 
 # ---------------------------------------------------------------- predict
@@ -215,10 +238,11 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
 
     out_dir = _mkdir(Path(out_dir))
     visible = getattr(pred, "visible", None)
-    paths = [out_dir / f"{stem}_scale.npy", out_dir / f"{stem}_scale.tif", out_dir / f"{stem}_scale.png",
-             out_dir / f"{stem}_confidence.npy"] + ([out_dir / f"{stem}_visible.npy"] if visible is not None else [])
+    paths = scale_map_paths(out_dir, stem, visible is not None)
     for p in paths:
         ensure_not_input(p, inputs)
+    if not (np.isfinite(pred.scale).all() and np.isfinite(pred.confidence).all()):
+        raise LocalScaleError(f"the predicted scale map of {stem} is not finite (NaN or inf); nothing written")
     write_npy(paths[0], pred.scale.astype(np.float32))
     write_image(paths[1], pred.scale.astype(np.float32))
     write_image(paths[2], colorize_log2_scale(pred.scale)[..., ::-1])
@@ -228,24 +252,71 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
     return paths
 
 
-def read_pairs_file(path: str | Path, with_lines: bool = False) -> list[tuple]:
-    """``A B`` per line (paths relative to the file's folder or absolute); ``#`` starts a comment.
+def scale_map_paths(out_dir: Path, stem: str, visible: bool) -> list[Path]:
+    """The files :func:`write_scale_map` writes for ``stem`` (``visible``: with ``_visible.npy``)."""
+    out_dir = Path(out_dir)
+    return [out_dir / f"{stem}_scale.npy", out_dir / f"{stem}_scale.tif", out_dir / f"{stem}_scale.png",
+            out_dir / f"{stem}_confidence.npy"] + ([out_dir / f"{stem}_visible.npy"] if visible else [])
 
-    Returns ``[(A, B), ...]``, or ``[(line_number, A, B), ...]`` with ``with_lines``.
+
+PAIRS_FORMAT = ("one pair per line: 'A<TAB>B' (each field taken as written: spaces, '#' and quotes are part "
+                "of the name), or 'A B' with shell-like quoting (\"my photo.jpg\" 'b #2.png'); lines "
+                "starting with '#' and blank lines are skipped; relative paths are relative to the file's folder")
+
+
+def _parse_pairs_line(line: str) -> list[str]:
+    if "\t" in line:
+        return [f for f in line.split("\t") if f != ""]
+    return shlex.split(line, comments=False, posix=True)
+
+
+def read_pairs_file(path: str | Path, with_lines: bool = False) -> list[tuple]:
+    """Read a pairs file: :data:`PAIRS_FORMAT`.
+
+    Returns ``[(A, B), ...]``, or ``[(line_number, A, B), ...]`` with ``with_lines``. Bad lines
+    (not two fields, unbalanced quotes, not UTF-8) are all reported, by number, in one
+    :class:`LocalScaleError`; so is a pairs file that cannot be read.
     """
     path = Path(path)
-    if not path.is_file():
-        raise LocalScaleError(f"pairs file not found: {path}")
-    pairs = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        import errno
+
+        what = {errno.ENOENT: "pairs file not found", errno.ELOOP: "pairs file is a symbolic link loop",
+                errno.EISDIR: "pairs file is a folder", errno.EACCES: "pairs file is not readable (permission denied)",
+                errno.ENAMETOOLONG: "pairs file name too long"}.get(e.errno, f"cannot read pairs file ({e.strerror})")
+        if e.errno == errno.ENOENT and path.is_symlink():
+            what = "pairs file is a broken symbolic link"
+        raise LocalScaleError(f"{what}: {path}") from None
+    pairs, bad = [], []
+    for n, raw in enumerate(data.split(b"\n"), 1):
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as e:
+            bad.append((n, f"not UTF-8 text (byte 0x{raw[e.start]:02x} at column {e.start + 1})"))
             continue
-        parts = line.split()
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            parts = _parse_pairs_line(line.rstrip("\r"))
+        except ValueError as e:
+            bad.append((n, f"{e} (quote paths with spaces: \"a b.jpg\", or separate the two paths by a TAB)"))
+            continue
         if len(parts) != 2:
-            raise LocalScaleError(f"{path}:{n}: expected two image paths, got {len(parts)} field(s)")
+            bad.append((n, f"expected two image paths, got {len(parts)} field(s)"))
+            continue
+        if any("\0" in p for p in parts):
+            bad.append((n, "a path contains a NUL character"))
+            continue
         pair = tuple((path.parent / p) if not Path(p).is_absolute() else Path(p) for p in parts)
         pairs.append((n, *pair) if with_lines else pair)
+    if bad:
+        more = f" (and {len(bad) - 1} more bad line(s): {', '.join(str(n) for n, _ in bad[1:6])}" \
+               f"{'...' if len(bad) > 6 else ''})" if len(bad) > 1 else ""
+        raise LocalScaleError(f"{path}:{bad[0][0]}: {bad[0][1]}{more}")
+    if not pairs:
+        raise LocalScaleError(f"{path}: no pairs in the file ({PAIRS_FORMAT})")
     return pairs
 
 
@@ -253,7 +324,7 @@ def pairs_output_names(pairs: list[tuple]) -> list[str]:
     """``<index:05d>_<A>_<B>`` per pair: the index is the pair's position in the list (so it does
     not depend on which pairs fail) and the names come from :func:`image_labels` over all images."""
     labels = image_labels([p for pair in pairs for p in pair])
-    return [f"{i:05d}_{labels[Path(a).resolve()]}_{labels[Path(b).resolve()]}" for i, (a, b) in enumerate(pairs)]
+    return [short_name(f"{i:05d}_{labels[_resolved(a)]}_{labels[_resolved(b)]}") for i, (a, b) in enumerate(pairs)]
 
 
 def cmd_predict(args) -> int:
@@ -265,6 +336,7 @@ def cmd_predict(args) -> int:
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)
+    check_output_dir(out, [p.name for p in scale_map_paths(out, pair_name(*inputs), True)])
     from .reliability import check_pair
 
     model = _model(args, "local")
@@ -281,7 +353,26 @@ def cmd_predict(args) -> int:
     return 0
 
 
+def _complete(paths: list[Path]) -> bool:
+    """True when every output file of a pair exists (files are written atomically, so an existing
+    file is complete) and its ``.npy`` files have a readable header."""
+    import numpy as np
+
+    try:
+        for p in paths:
+            if not p.is_file():
+                return False
+            if p.suffix == ".npy":
+                np.load(p, mmap_mode="r")
+    except (OSError, ValueError):
+        return False
+    return True
+
+
 def _predict_pairs(args, out: Path) -> int:
+    """``predict --pairs``: resumable. Pairs whose outputs are all present are skipped (unless
+    ``--overwrite``); ``index.tsv`` lists every pair's status; the summary counts pairs written,
+    skipped and failed. Exit code 1 when a pair failed."""
     from tqdm import tqdm
 
     from .cache import FeatureCache, predict_pairs
@@ -290,26 +381,42 @@ def _predict_pairs(args, out: Path) -> int:
     pairs = [(a, b) for _, a, b in rows]
     names = pairs_output_names(pairs)
     inputs = [Path(args.pairs)] + [p for pair in pairs for p in pair]
-    _mkdir(out)
+    check_output_dir(out, ["index.tsv"] + [p.name for n in names for p in scale_map_paths(out, n, True)])
     index_path = ensure_not_input(out / "index.tsv", inputs)
+    for n in names:
+        for p in scale_map_paths(out, n, True):
+            ensure_not_input(p, inputs)
     model = _model(args, "local")
+    visible = bool(getattr(model.config, "visibility", False))
+    done = set() if args.overwrite else {i for i, n in enumerate(names)
+                                         if _complete(scale_map_paths(out, n, visible))}
+    todo = [i for i in range(len(pairs)) if i not in done]
+    _mkdir(out)
     cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
-    failed = 0
-    lines = ["index\tline\timage_a\timage_b\tstatus\toutput"]
-    results = predict_pairs(model, pairs, cache, args.batch_size, hard=args.hard, planar=args.planar)
-    for i, ((line, a, b), name, (_, pred)) in enumerate(zip(rows, names, tqdm(results, total=len(pairs),
-                                                                               desc="pairs", unit="pair"))):
+    status = {i: ("skipped (outputs already complete)", names[i]) for i in done}
+    failed = written = 0
+    results = predict_pairs(model, [pairs[i] for i in todo], cache, args.batch_size, hard=args.hard,
+                            planar=args.planar)
+    for i, (_, pred) in zip(todo, tqdm(results, total=len(todo), desc="pairs", unit="pair")):
+        line, a, b = rows[i]
+        if not isinstance(pred, Exception):
+            try:
+                write_scale_map(pred, out, names[i], inputs)
+            except LocalScaleError as e:
+                pred = e
         if isinstance(pred, Exception):
             failed += 1
-            status, written = f"error: {' '.join(str(pred).split())}", ""
-            tqdm.write(f"error: pair {i} (line {line}) {a} {b}: {pred}", file=sys.stderr)
+            status[i] = (f"error: {' '.join(str(pred).split())}", "")
+            tqdm.write(f"error: pair {i} (line {line}) {a} {b}: {' '.join(str(pred).split())}", file=sys.stderr)
         else:
-            write_scale_map(pred, out, name, inputs)
-            status, written = "ok", name
-        lines.append(f"{i}\t{line}\t{a}\t{b}\t{status}\t{written}")
+            written += 1
+            status[i] = ("ok", names[i])
+    lines = ["index\tline\timage_a\timage_b\tstatus\toutput"]
+    lines += [f"{i}\t{line}\t{a}\t{b}\t{status[i][0]}\t{status[i][1]}" for i, (line, a, b) in enumerate(rows)]
     write_text(index_path, "\n".join(lines) + "\n")
-    print(f"{len(pairs) - failed}/{len(pairs)} pairs written to {out} (index: {index_path}; "
-          f"cache: {cache.misses} images encoded, {cache.hits} reused)")
+    print(f"{len(pairs)} pairs: {written} written, {len(done)} skipped (outputs already complete; --overwrite "
+          f"redoes them), {failed} failed; outputs in {out} (index: {index_path}; cache: {cache.misses} images "
+          f"encoded, {cache.hits} reused)")
     return 1 if failed else 0
 
 
@@ -341,16 +448,16 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
 
 
 def cmd_show(args) -> int:
-    out = check_output_dir(args.output)
-    fig = ensure_not_input(out / f"{pair_name(args.image_a, args.image_b)}_figure.png",
-                           (args.image_a, args.image_b, args.H))
+    name = f"{pair_name(args.image_a, args.image_b)}_figure.png"
+    out = check_output_dir(args.output, [name])
+    fig = ensure_not_input(out / name, (args.image_a, args.image_b, args.H))
     print(show_pair(args.image_a, args.image_b, fig, args.H, _model(args, "local"), bf16=args.bf16))
     return 0
 
 
 def cmd_demo(args) -> int:
     a, b, H = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
-    out = check_output_dir(args.output) / "demo.png"
+    out = check_output_dir(args.output, ["demo.png"]) / "demo.png"
     show_pair(a, b, out, H, _model(args, "local"), title="localscale demo: Local-ScaleNet", bf16=args.bf16)
     print(out)
     return 0
@@ -360,11 +467,16 @@ def cmd_demo(args) -> int:
 
 def cmd_scale(args) -> int:
     p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
+    import numpy as np
+
+    if not (all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale))
+            and np.isfinite(p.probs_ab).all()):
+        raise LocalScaleError("ScaleNet predicted a non-finite scale (NaN or inf): the model is broken")
     if not p.reliable:
         print(f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
               f"disagree by x{2 ** p.inconsistency_log2:.2f}", file=sys.stderr)
     if args.json:
-        print(json.dumps({"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
+        print(json.dumps(allow_nan=False, obj={"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
                           "hard_scale": p.hard_scale, "reliable": p.reliable,
                           "inconsistency_log2": p.inconsistency_log2, "probs_ab": p.probs_ab.round(4).tolist()}))
     else:
@@ -384,12 +496,16 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
 
     from .io import load_image
 
-    out = check_output_dir(output)
     name = pair_name(image_a, image_b, always_parent=True)
+    out = check_output_dir(output, [f"{name}_rectified_A.png", f"{name}_rectified.json"])
     inputs = (image_a, image_b)
+    for which in "AB":
+        ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     model = model or load_scale_model("global")
     a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
     s = float(model.predict(a, b, bf16=bf16).scale)
+    if not (math.isfinite(s) and s > 0):
+        raise LocalScaleError(f"ScaleNet predicted a non-finite scale ({s}): the model is broken; nothing written")
     which, factor = ("B", 1 / s) if s > 1 else ("A", s)
     img = b if which == "B" else a
     size = (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor)))
@@ -410,7 +526,8 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
 
 
 def cmd_rectify(args) -> int:
-    check_output_dir(args.output)
+    name = pair_name(args.image_a, args.image_b, always_parent=True)
+    check_output_dir(args.output, [f"{name}_rectified_A.png", f"{name}_rectified.json"])
     r = rectify_pair(args.image_a, args.image_b, args.output, _model(args, "global"), bf16=args.bf16)
     print(f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']} "
           f"(record: {r['sidecar']})")
@@ -433,7 +550,7 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; "
                         "colours inliers; default: none)")
     p.add_argument("--descriptor", default="hardnet", help="hardnet | sift | path to HardNet weights")
-    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--num-features", type=positive_int, default=1000, help="keypoints per image")
     p.add_argument("--detector", default="hessian", metavar="NAME",
                    help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze")
     p.add_argument("--ratio", type=float, default=None,
@@ -448,7 +565,7 @@ def cmd_match(args) -> int:
     from .features.detector import get_detector
     from .features.pipeline import models_for_correction, run_match
 
-    out = check_output_dir(args.output)
+    out = check_output_dir(args.output, ["matches.npz", "matches.png"])
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
@@ -479,7 +596,9 @@ EXAMPLES = {
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/
       -> out/kodim01_a_kodim01_b_scale.{npy,tif,png}, _confidence.npy
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
-      pairs.txt: one 'A B' per line (relative to the file's folder); '#' comments.
+      pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
+      quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
+      are comments. A rerun skips pairs whose outputs are complete (--overwrite redoes them).
       -> out/<index>_<A>_<B>_scale.* (index = the pair's position in the file; <A> is
          <folder>-<stem> when stems collide) and out/index.tsv (index, line, A, B, status, output)""",
     "show": """example:
@@ -506,7 +625,37 @@ EXAMPLES = {
 }
 
 
-class _LazyArgumentParser(argparse.ArgumentParser):
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return v
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """An argument error is the usage line and one ``error: <prog>: ...`` line, exit code 2."""
+
+    def error(self, message):
+        self.print_usage(sys.stderr)
+        self.exit(2, f"error: {self.prog}: {' '.join(message.split())}\n")
+
+
+class _LazyArgumentParser(OneLineErrorParser):
     """A sub-command parser whose options are added on first use (parsing or help).
 
     ``match`` and ``eval-hpatches`` take their choices from modules that import torch and
@@ -555,7 +704,7 @@ def _add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="localscale", description=__doc__, formatter_class=HelpFormatter)
+    p = OneLineErrorParser(prog="localscale", description=__doc__, formatter_class=HelpFormatter)
     from . import __version__
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_LazyArgumentParser)
@@ -570,11 +719,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("image_a", nargs="?", help="image A (omit with --pairs)")
     sp.add_argument("image_b", nargs="?", help="image B (omit with --pairs)")
     sp.add_argument("-o", "--output", default="out", help="output folder")
-    sp.add_argument("--pairs", help="text file with one 'A B' pair per line (default: none, predict A B)")
+    sp.add_argument("--pairs", help="text file with one pair per line: 'A<TAB>B', or 'A B' with shell-like "
+                                    "quoting for names with spaces (default: none, predict A B)")
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
-    sp.add_argument("--batch-size", type=int, default=8, help="pairs per network batch with --pairs")
-    sp.add_argument("--cache-mb", type=float, default=256, help="feature cache bound (MiB) with --pairs")
+    sp.add_argument("--batch-size", type=positive_int, default=8, help="pairs per network batch with --pairs")
+    sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
+    sp.add_argument("--overwrite", action="store_true",
+                    help="with --pairs: redo pairs whose outputs already exist (default: skip them)")
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 
@@ -623,11 +775,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that files being written are cleaned up."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return args.func(args)
+    except Terminated:
+        print("terminated; no partial output file was left (a rerun of predict --pairs resumes)", file=sys.stderr)
+        return 143
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
@@ -636,8 +802,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print("interrupted; no partial output file was left", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

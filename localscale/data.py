@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -33,6 +34,16 @@ from .preprocess import letterbox, make_letterbox, to_tensor
 
 #: the ``kind`` of an item is an index into this tuple
 PAIR_KINDS = ("homography", "identity", "near-identity", "rotation", "low-overlap", "unrelated")
+
+#: photos with a side below this cannot give a crop; they are skipped like unreadable ones
+MIN_PHOTO_SIDE = 32
+#: draws of one item that may hit unreadable photos before the item is an error
+MAX_REDRAWS = 50
+
+
+class _UnreadablePhoto(Exception):
+    """A draw touched a photo that cannot be used (already warned about)."""
+
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -98,7 +109,8 @@ class SyntheticPairs(Dataset):
     """
 
     def __init__(self, images: Sequence[str | Path] | str | Path, length: int = 10**9, seed: int = 0,
-                 config: PairConfig | None = None, cache: bool = True):
+                 config: PairConfig | None = None, cache: bool = True,
+                 cache_bytes: int | None = 2**30):
         if isinstance(images, (str, Path)):
             images = list_images(images)
         self.files = [Path(p) for p in images]
@@ -108,6 +120,11 @@ class SyntheticPairs(Dataset):
         self.seed = seed
         self.cfg = config or PairConfig()
         self._cache: dict[int, np.ndarray] | None = {} if cache else None
+        #: bound of the decoded photos kept, in bytes per process (None: all); the oldest is dropped first
+        self.cache_bytes: int | None = cache_bytes
+        self._cache_bytes = 0
+        #: indices of photos that could not be used (skipped with a warning, once each)
+        self.unreadable: set[int] = set()
 
     def __len__(self) -> int:
         return self.length
@@ -115,9 +132,24 @@ class SyntheticPairs(Dataset):
     def _image(self, i: int) -> np.ndarray:
         if self._cache is not None and i in self._cache:
             return self._cache[i]
-        img = load_image(self.files[i], name=str(self.files[i].name))
+        if i in self.unreadable:
+            raise _UnreadablePhoto(i)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")   # 16-bit / alpha notes, once per photo, are not news here
+                img = load_image(self.files[i], name=str(self.files[i].name))
+            if min(img.shape[:2]) < MIN_PHOTO_SIDE:
+                raise ImageError(f"{self.files[i].name}: photo is {img.shape[1]}x{img.shape[0]}, smaller than "
+                                 f"the smallest crop ({MIN_PHOTO_SIDE} px)")
+        except ImageError as e:
+            self.unreadable.add(i)
+            warnings.warn(f"training photo skipped: {' '.join(str(e).split())}", stacklevel=2)
+            raise _UnreadablePhoto(i) from None
         if self._cache is not None:
             self._cache[i] = img
+            self._cache_bytes += img.nbytes
+            while self.cache_bytes is not None and self._cache_bytes > self.cache_bytes and len(self._cache) > 1:
+                self._cache_bytes -= self._cache.pop(next(iter(self._cache))).nbytes   # oldest first
         return img
 
     def _crop(self, rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
@@ -151,7 +183,20 @@ class SyntheticPairs(Dataset):
         return sample_homography(rng, shape, shape, hcfg), kind
 
     def __getitem__(self, index: int) -> dict:
-        rng = np.random.default_rng([self.seed, int(index)])
+        """Item ``index``; a draw that hits an unreadable photo (corrupt, or smaller than a crop) is
+        redrawn from ``(seed, index, attempt)``, so items stay a pure function of ``(seed, index)``
+        for a given set of readable photos. ``redrawn`` counts such draws."""
+        for attempt in range(MAX_REDRAWS):
+            try:
+                item = self._item(np.random.default_rng([self.seed, int(index)] + ([attempt] if attempt else [])))
+            except _UnreadablePhoto:
+                continue
+            item["redrawn"] = attempt
+            return item
+        raise ImageError(f"item {index}: {MAX_REDRAWS} draws hit unreadable photos "
+                         f"({len(self.unreadable)} of {len(self.files)} photos are unreadable)")
+
+    def _item(self, rng: np.random.Generator) -> dict:
         cfg = self.cfg
         src, other = rng.choice(len(self.files), 2, replace=False)
         photo = self._image(int(src))

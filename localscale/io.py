@@ -256,12 +256,15 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image") -> np.ndarray:
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (2, 3, 4)):
-        raise ImageError(f"{name}: expected H x W, H x W x 3 or H x W x 4, got shape {arr.shape}")
+        raise ImageError(f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, "
+                         f"got shape {arr.shape}")
     _check_size(arr.shape[0], arr.shape[1], name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
         if not _is_opaque(arr[..., -1]):
             warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
         arr = arr[..., :-1]
+        if arr.shape[2] == 1:   # gray + alpha -> gray
+            arr = arr[..., 0]
     if arr.dtype == np.uint8:
         out = arr
     elif arr.dtype == np.uint16:
@@ -305,11 +308,21 @@ def read_homography(path: Union[str, os.PathLike, np.ndarray]) -> np.ndarray:
         H, src = path.astype(np.float64), "homography"
     else:
         p = Path(path)
-        if not p.is_file():
-            raise HomographyError(f"homography file not found: {p}")
+        try:
+            st = p.stat()
+        except OSError as e:
+            what = {errno.ELOOP: "is a symbolic link loop", errno.ENAMETOOLONG: "name is too long",
+                    errno.EACCES: "is not accessible (permission denied)"}.get(e.errno, "not found")
+            if e.errno == errno.ENOENT and p.is_symlink():
+                what = "is a broken symbolic link"
+            raise HomographyError(f"homography file {what}: {p}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise HomographyError(f"homography file not found (not a regular file): {p}")
         try:
             H = np.loadtxt(p, dtype=np.float64, ndmin=2)
-        except ValueError as e:
+        except OSError as e:
+            raise HomographyError(f"cannot read homography file {p} ({e.strerror or e})") from None
+        except (ValueError, UnicodeDecodeError) as e:
             raise HomographyError(f"{p}: not a text matrix of numbers ({str(e).splitlines()[0]})") from None
         src = str(p)
     if H.size == 9:

@@ -29,11 +29,12 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, Subset
 
 from . import scales
-from .checkpoint import checkpoint_dict, read_checkpoint, save_model
+from .checkpoint import checkpoint_dict, non_finite_tensors, read_checkpoint, save_model
 from .data import PairConfig, SyntheticPairs, collate, list_images, split_images
 from .errors import LocalScaleError
 from .geometry import HomographyConfig
 from .models import LocalScaleNet, LocalScaleNetConfig, ScaleNet, ScaleNetConfig
+from .outputs import check_writable_dir
 
 
 class TrainingDiverged(RuntimeError):
@@ -86,6 +87,28 @@ class TrainConfig:
     strong_light_probability: float = 0.0  #: PairConfig: strong lighting change on B
     degrade_probability: float = 0.0       #: PairConfig: blur / noise / JPEG, each, on each side
     photometric: float = 0.25              #: PairConfig: strength of the mild photometric jitter
+
+    def check(self) -> None:
+        """Refuse settings that cannot train (one-line :class:`LocalScaleError`)."""
+        import math
+
+        for name in ("steps", "batch_size", "ckpt_every", "val_every", "val_pairs", "holdout_every"):
+            if getattr(self, name) < 1:
+                raise LocalScaleError(f"{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise LocalScaleError(f"workers must be >= 0, got {self.workers}")
+        if self.image_size < 32 or self.image_size % 8:
+            raise LocalScaleError(f"image-size must be a multiple of 8 and >= 32, got {self.image_size}")
+        for name in ("lr_gamma", "width"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise LocalScaleError(f"{name.replace('_', '-')} must be a finite number > 0, got {v}")
+        if not 0 <= self.lr <= 1:
+            raise LocalScaleError(f"lr must be in [0, 1] (Adam's step size), got {self.lr}")
+        if self.feature_dim < 1:
+            raise LocalScaleError(f"feature-dim must be >= 1, got {self.feature_dim}")
+        if self.model not in ("local", "global"):
+            raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
 
     def pair_config(self) -> PairConfig:
         if not 0 < self.crop_min <= 1:
@@ -252,8 +275,38 @@ def _setup_distributed(cfg: TrainConfig) -> tuple[int, int, torch.device]:
     return 0, 1, torch.device(cfg.device)
 
 
+def die_with_parent() -> None:
+    """Make this process exit when its parent dies, even by ``kill -9``.
+
+    On Linux the kernel sends SIGKILL to it when the parent exits (``prctl(PR_SET_PDEATHSIG)``);
+    if the parent died before that was set, it exits now. Elsewhere a thread polls the parent.
+    """
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    parent_pid = parent.pid if parent is not None else os.getppid()
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            PR_SET_PDEATHSIG = 1
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - no usable libc
+            pass
+    if os.getppid() != parent_pid:   # the parent is already gone
+        os._exit(1)
+    if not sys.platform.startswith("linux"):  # pragma: no cover
+        def _watch():
+            while os.getppid() == parent_pid:
+                time.sleep(1.0)
+            os._exit(1)
+        threading.Thread(target=_watch, daemon=True).start()
+
+
 def _single_threaded_worker(_: int) -> None:
     # each DataLoader worker renders whole samples; OpenCV's own thread pool would oversubscribe the cores
+    die_with_parent()
     import cv2
     cv2.setNumThreads(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the main process's: it saves and stops
@@ -265,12 +318,12 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     ``max_steps_this_run`` stops early (for tests / time-boxed sessions); the run resumes
     from ``last.pt`` next time with identical results.
     """
+    cfg.check()
     rank, world, device = _setup_distributed(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    log = _Logger(out, rank == 0)
+    check_writable_dir(out)   # before any work; the folder is created once the inputs are checked
 
     files = list_images(cfg.data)
     train_files, held_files = split_images(files, cfg.holdout_every)
@@ -306,13 +359,24 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(cfg.lr_milestones), cfg.lr_gamma)
     step = 0
     last = out / "last.pt"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create output folder {out}: {e.strerror or e}") from None
+    log = _Logger(out, rank == 0)
     if last.exists():
         ckpt = read_checkpoint(last)
-        model.load_state_dict(ckpt["state_dict"])
-        opt.load_state_dict(ckpt["train_state"]["optimizer"])
-        sched.load_state_dict(ckpt["train_state"]["scheduler"])
+        try:
+            model.load_state_dict(ckpt["state_dict"])
+            opt.load_state_dict(ckpt["train_state"]["optimizer"])
+            sched.load_state_dict(ckpt["train_state"]["scheduler"])
+            step = int(ckpt["train_state"]["step"])
+        except (RuntimeError, KeyError, TypeError, ValueError) as e:
+            first = [ln.strip() for ln in str(e).splitlines() if ln.strip()][:2]
+            raise LocalScaleError(f"{last}: cannot resume, the checkpoint is of another configuration or has no "
+                                  f"training state ({type(e).__name__}: {' '.join(first)[:160]}); use another "
+                                  f"--out or remove it") from None
         sched.milestones = Counter(cfg.lr_milestones)   # a resumed run may extend its schedule
-        step = ckpt["train_state"]["step"]
         log.truncate(step)
         if rank == 0:
             print(f"resuming from {last} at step {step}", file=sys.stderr)
@@ -337,11 +401,24 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     def save_last():
         if rank != 0:
             return
+        bad = non_finite_tensors(core.state_dict())
+        if bad:
+            raise TrainingDiverged(f"weights became NaN or inf at step {step} ({bad[0]}); stopped without "
+                                   f"saving them, {kept_checkpoint()}")
         ck = checkpoint_dict(core, meta={"train_config": dataclasses.asdict(cfg)})
         ck["train_state"] = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "step": step}
         tmp = last.with_suffix(".tmp")
-        torch.save(ck, tmp)
-        tmp.replace(last)
+        try:
+            torch.save(ck, tmp)
+            tmp.replace(last)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+    def kept_checkpoint() -> str:
+        if saved_step is None:
+            return "no checkpoint had been written yet"
+        return f"the last good checkpoint ({last}, step {saved_step}) is kept"
 
     val_batches = [collate([val_set[i] for i in range(j, min(j + 16, len(val_set)))])
                    for j in range(0, len(val_set), 16)]
@@ -373,16 +450,15 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             interrupted.set()
             signal.signal(signal.SIGINT, previous_handler)
         previous_handler = signal.signal(signal.SIGINT, _on_sigint)
-    t0, last_val, skipped = time.time(), {}, 0
+    t0, last_val, skipped, redrawn = time.time(), {}, 0, 0
     saved_step = step if last.exists() else None
     for batch in loader:
+        redrawn += int(batch.pop("redrawn").sum()) if "redrawn" in batch else 0
         batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
         with amp_ctx():
             loss = compute_loss(model, batch, cfg.model, cfg.visibility_weight)
         if not torch.isfinite(loss):
-            kept = f"the last good checkpoint ({last}, step {saved_step}) is kept" if saved_step is not None \
-                else "no checkpoint had been written yet"
-            raise TrainingDiverged(f"loss is {loss.item()} at step {step + 1}; stopped, {kept}")
+            raise TrainingDiverged(f"loss is {loss.item()} at step {step + 1}; stopped, {kept_checkpoint()}")
         opt.zero_grad(set_to_none=True)
         if scaler is not None:
             scaler.scale(loss).backward()
@@ -396,7 +472,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
                 skipped += 1
                 if skipped > 20:
                     raise TrainingDiverged(f"non-finite gradients in {skipped} steps (last at step {step + 1}); "
-                                           f"stopped, the last checkpoint is step {saved_step}")
+                                           f"stopped, {kept_checkpoint()}")
                 if bar is not None:
                     bar.write(f"step {step + 1}: non-finite gradients, update skipped")
         sched.step()
@@ -420,6 +496,9 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
                           f"constant-1 {last_val['baseline_mean_r']:.3f})")
     if bar is not None:
         bar.close()
+    if redrawn and rank == 0:
+        print(f"warning: {redrawn} training sample(s) were drawn again because a photo could not be used "
+              f"(corrupt or smaller than a crop; each such photo was named once above)", file=sys.stderr)
     if previous_handler is not None:
         signal.signal(signal.SIGINT, previous_handler)
     if interrupted.is_set():
@@ -433,7 +512,9 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
 
 
 def parse_args(argv: list[str] | None = None, model: str | None = None) -> TrainConfig:
-    p = argparse.ArgumentParser(description="Train Local-ScaleNet or ScaleNet on synthetic homography pairs.")
+    from .cli import OneLineErrorParser
+
+    p = OneLineErrorParser(description="Train Local-ScaleNet or ScaleNet on synthetic homography pairs.")
     for f in dataclasses.fields(TrainConfig):
         if model is not None and f.name == "model":
             continue
@@ -464,7 +545,11 @@ def main(argv: list[str] | None = None, model: str | None = None) -> int:
     try:
         res = train(cfg, getattr(cfg, "_max_steps_this_run", None))
     except (LocalScaleError, TrainingDiverged) as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
+    except OSError as e:   # a file the run reads or writes (full disk, no permission)
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"interrupted; resume with the same command (checkpoint: {Path(cfg.out) / 'last.pt'})", file=sys.stderr)

@@ -108,9 +108,12 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
     if title:
         fig.suptitle(title)
     if path is not None:
+        from .outputs import atomic_path
+
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         try:
-            fig.savefig(path, dpi=110)
+            with atomic_path(path) as tmp:   # complete file or none
+                fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or None)
         finally:
             plt.close(fig)
     return fig

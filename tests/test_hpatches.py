@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from localscale.cli import main as cli_main
 from localscale.errors import LocalScaleError
 from localscale.evaluation import (evaluate, load_hpatches, main, make_pairs, make_sequences, perspective_split,
                                    scale_split)
@@ -79,10 +80,15 @@ def test_whole_eval_tiny(tiny_root, tmp_path):
 
 def test_main_writes_outputs(tiny_root, tmp_path):
     out = tmp_path / "out"
-    assert main([str(tiny_root), "-o", str(out), "--methods", "none", "gt", "local", "--descriptor", "sift",
-                 "--num-features", "100", "--local-weights", str(tmp_path / "missing.pt")]) == 0
+    # weights the user names must load: a missing file is an error before anything is computed
+    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt", "local",
+                     "--descriptor", "sift", "--num-features", "100",
+                     "--local-weights", str(tmp_path / "missing.pt")]) == 2
+    assert not out.exists()
+    assert main([str(tiny_root), "-o", str(out), "--methods", "none", "gt", "--descriptor", "sift",
+                 "--num-features", "100"]) == 0
     doc = json.loads((out / "results_sift.json").read_text())
-    assert doc["methods"] == ["none", "gt"] and any("local skipped" in n for n in doc["notes"])
+    assert doc["methods"] == ["none", "gt"] and doc["skipped"] == []
     assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_sift.md").is_file()
     assert (out / "mma_sift_all.png").stat().st_size > 0
 

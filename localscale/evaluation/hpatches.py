@@ -37,11 +37,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import re
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -49,7 +51,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..errors import LocalScaleError
+from ..errors import HomographyError, LocalScaleError
 from ..geometry import covisible_mask, global_scale, orient_homography, perspective_spread
 from ..io import load_image, read_homography
 
@@ -67,6 +69,7 @@ class HSequence:
     name: str
     images: dict                 #: index -> path
     homographies: dict           #: k -> H_1_k
+    bad: dict = field(default_factory=dict)   #: k -> why pair (1, k) cannot be evaluated (bad H_1_k)
 
 
 @dataclass
@@ -116,7 +119,7 @@ def load_hpatches(root, include_illumination: bool = False, exclude_hires: bool 
         first = _find_image(d, 1)
         if first is None:
             continue
-        images, Hs = {1: first}, {}
+        images, Hs, bad = {1: first}, {}, {}
         for hf in sorted(d.glob("H_1_*")):
             m = re.fullmatch(r"H_1_(\d+)", hf.name)
             if not m:
@@ -126,12 +129,22 @@ def load_hpatches(root, include_illumination: bool = False, exclude_hires: bool 
             if img is None:
                 continue
             images[k] = img
-            Hs[k] = read_homography(hf)
-        if Hs:
-            out.append(HSequence(d.name, images, Hs))
+            try:
+                Hs[k] = read_homography(hf)
+            except HomographyError as e:
+                bad[k] = " ".join(str(e).split())
+        if Hs or bad:
+            out.append(HSequence(d.name, images, Hs, bad))
     if not out:
         raise LocalScaleError(f"no sequences (folders with 1.ppm/png/jpg and H_1_k files) in {root}")
     return out
+
+
+def _warn(message: str) -> None:
+    """One ``warning: ...`` line on stderr (beside a progress bar)."""
+    from tqdm import tqdm
+
+    tqdm.write(f"warning: {' '.join(message.split())}", file=sys.stderr)
 
 
 def perspective_split(spread: float) -> str:
@@ -144,29 +157,114 @@ def scale_split(log2_scale: float) -> str:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
-    with Image.open(path) as im:
-        return im.size[1], im.size[0]
+    """``(height, width)`` from the file header (upright, EXIF orientation applied); raises
+    :class:`~localscale.errors.ImageError` for a file that cannot be used (unreadable header,
+    smaller than :data:`localscale.io.MIN_SIDE` or above :data:`localscale.io.MAX_PIXELS`)."""
+    from ..errors import ImageError
+    from ..io import _check_size, _header, _stat_file
+
+    _stat_file(Path(path), "image")
+    try:
+        header = _header(Path(path))
+    except OSError as e:
+        raise ImageError(f"cannot read {path} ({e.strerror})") from None
+    if header is None:
+        raise ImageError(f"cannot read the image size of {path} (corrupt, truncated or unsupported format)")
+    (w, h), orientation = header
+    _check_size(h, w, str(path))
+    return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
 
 
-def make_pairs(seqs: Sequence[HSequence]) -> list[PairInfo]:
-    """All ``(1, k)`` pairs with their perspective / scale splits."""
+#: a pair whose GT homography maps less than this fraction of image 1 into image k is warned about
+MIN_COVISIBLE = 0.05
+
+
+def make_pairs(seqs: Sequence[HSequence], skipped: Optional[list] = None) -> list[PairInfo]:
+    """All ``(1, k)`` pairs with their perspective / scale splits.
+
+    Pairs that cannot be evaluated (bad ``H_1_k``, an image whose size cannot be read or is too
+    small, an ``H`` that maps all of image 1 outside image k) are left out with a warning and
+    appended to ``skipped`` as ``{"pair", "reason"}``; a pair where ``H`` maps less than
+    :data:`MIN_COVISIBLE` of image 1 into image k is kept with a warning.
+    """
     pairs = []
+    skipped = [] if skipped is None else skipped
+
+    def skip(name, reason):
+        reason = " ".join(str(reason).split())
+        _warn(f"pair {name} skipped: {reason}")
+        skipped.append({"pair": name, "reason": reason})
+
     for s in seqs:
-        sa = image_size(s.images[1])
+        for k, why in sorted(s.bad.items()):
+            skip(f"{s.name}/1-{k}", why)
+        try:
+            sa = image_size(s.images[1])
+        except LocalScaleError as e:
+            for k in sorted(s.homographies):
+                skip(f"{s.name}/1-{k}", e)
+            continue
         for k, H in sorted(s.homographies.items()):
-            sb = image_size(s.images[k])
+            name = f"{s.name}/1-{k}"
+            try:
+                sb = image_size(s.images[k])
+            except LocalScaleError as e:
+                skip(name, e)
+                continue
             H = orient_homography(H, sa)
+            covisible = float(covisible_mask(H, sa, sb, 8).mean())
+            if not covisible > 0:
+                skip(name, f"H_1_{k} maps all of image 1 outside image {k} ({sb[1]}x{sb[0]}): check that H and "
+                           f"the images belong together")
+                continue
+            if covisible < MIN_COVISIBLE:
+                _warn(f"pair {name}: H_1_{k} maps only {covisible:.1%} of image 1 into image {k}; "
+                      f"check that H and the image sizes belong together")
             p = PairInfo(s.name, k, s.images[1], s.images[k], H)
             p.spread = perspective_spread(H, sa, sb)
             try:
                 p.log2_scale = math.log2(global_scale(H, sa, sb))
             except ValueError:
                 p.log2_scale = float("nan")
-            p.covisible = float(covisible_mask(H, sa, sb, 8).mean())
+            p.covisible = covisible
             p.perspective_split, p.scale_split = perspective_split(p.spread), scale_split(p.log2_scale)
             pairs.append(p)
     return pairs
+
+
+#: :func:`content_agreement` below this is warned about (the Oxford and HPatches pairs of
+#: ``docs/RESULTS.md`` give 0.5-1.0; the same pairs with image k at half the size H expects, <= 0.15)
+MIN_AGREEMENT = 0.25
+
+
+def content_agreement(a: np.ndarray, b: np.ndarray, H: np.ndarray, side: int = 192) -> float:
+    """Correlation of image-1 gradients with those of image k warped into image 1 by ``H``, over the
+    co-visible region, at ``side`` px: near 0 when ``H`` does not belong to the images (e.g. an image
+    of another size than the one ``H`` was measured on), 1 for a perfect fit. NaN-free; 1.0 when
+    too little is co-visible to tell."""
+    f = side / max(a.shape[:2])
+    fb = side / max(b.shape[:2])
+    S = np.diag([f, f, 1.0]) @ np.asarray(H, np.float64) @ np.diag([1 / f, 1 / f, 1.0])
+    S = np.diag([fb / f, fb / f, 1.0]) @ S
+    ga = cv2.cvtColor(cv2.resize(a, (max(1, round(a.shape[1] * f)), max(1, round(a.shape[0] * f))),
+                                 interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    gb = cv2.cvtColor(cv2.resize(b, (max(1, round(b.shape[1] * fb)), max(1, round(b.shape[0] * fb))),
+                                 interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    size = (ga.shape[1], ga.shape[0])
+    warped = cv2.warpPerspective(gb, S, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    cover = cv2.warpPerspective(np.ones_like(gb), S, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+    mask = cv2.erode(cover, np.ones((5, 5), np.uint8)) > 0.5
+    if mask.sum() < 200:
+        return 1.0
+
+    def grad(g):
+        g = cv2.GaussianBlur(g, (0, 0), 1.0)
+        return np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+
+    x, y = grad(ga)[mask], grad(warped)[mask]
+    x, y = x - x.mean(), y - y.mean()
+    den = float(np.sqrt((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / den) if den > 0 else 1.0
 
 
 def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float]:
@@ -205,6 +303,7 @@ class _Evaluator:
         self._img, self._kps, self._enc, self._genc, self._desc = {}, {}, {}, {}, {}
         self._memo = {}
         self.described = 0    #: patches described so far (the rest were reused)
+        self.suspicious = {}  #: pair -> content agreement, for pairs below :data:`MIN_AGREEMENT`
 
     def image(self, path):
         if path not in self._img:
@@ -299,6 +398,11 @@ class _Evaluator:
         a, fa = self.image(pair.image_a)
         b, fb = self.image(pair.image_b)
         H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
+        agreement = content_agreement(a, b, H)
+        if agreement < MIN_AGREEMENT and pair.name not in self.suspicious:
+            self.suspicious[pair.name] = round(agreement, 3)
+            _warn(f"pair {pair.name}: image {pair.k} warped by H_1_{pair.k} does not look like image 1 "
+                  f"(correlation {agreement:.2f}); check that H and the image sizes belong together")
         recs = []
         for m in methods:
             t0 = time.time()
@@ -411,8 +515,13 @@ def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> li
         fig.tight_layout()
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", g.replace("<", "lt").replace(">", "gt"))
         f = out / f"mma_{tag + '_' if tag else ''}{safe}.png"
-        fig.savefig(f, dpi=100)
-        plt.close(fig)
+        from ..outputs import atomic_path
+
+        try:
+            with atomic_path(f) as tmp:
+                fig.savefig(tmp, dpi=100, format="png")
+        finally:
+            plt.close(fig)
         files.append(f)
     return files
 
@@ -434,10 +543,33 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", n
     gate = gate if gate is not None else CorrectionGate()
     ev = _Evaluator(descriptor, num_features, local_model, global_model, gate, base_radius, orientation, max_side,
                     detector=detector)
-    records = []
+    records, skipped, done = [], [], []
     for p in tqdm(pairs, desc=f"eval {ev.desc.name}", disable=not progress, mininterval=5):
-        records += ev.run_pair(p, methods, list(thresholds))
-    return {"records": records, "summary": summarise(records, pairs, methods, list(thresholds))}
+        try:
+            records += ev.run_pair(p, methods, list(thresholds))
+            done.append(p)
+        except LocalScaleError as e:   # e.g. an image that is truncated after its header
+            reason = " ".join(str(e).split())
+            _warn(f"pair {p.name} skipped: {reason}")
+            skipped.append({"pair": p.name, "reason": reason})
+    return {"records": records, "summary": summarise(records, done, methods, list(thresholds)),
+            "skipped": skipped, "suspicious": ev.suspicious}
+
+
+def _plain(x):
+    """``x`` as strict JSON data: numpy scalars as numbers, NaN/inf (e.g. the log scale of a pair
+    without a defined one) as null, unknown objects as strings."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, set)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        x = x.item()
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if x is None or isinstance(x, (str, int, bool)):
+        return x
+    return str(x)
 
 
 def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=THRESHOLDS, tag: str = "",
@@ -447,24 +579,27 @@ def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=
     splits = [{"pair": p.name, "spread_log2": round(p.spread, 4), "log2_global_scale": round(p.log2_scale, 4),
                "covisible": round(p.covisible, 3), "perspective_split": p.perspective_split,
                "scale_split": p.scale_split} for p in pairs]
-    with open(out / "splits.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(splits[0]))
-        w.writeheader()
-        w.writerows(splits)
+    from ..outputs import write_text
+
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=list(splits[0]) if splits else ["pair"])
+    w.writeheader()
+    w.writerows(splits)
+    write_text(out / "splits.csv", buf.getvalue())
     doc = {"thresholds": list(thresholds), "methods": list(methods), "splits": splits,
            "split_rules": {"perspective_edges_std_log2": PERSPECTIVE_EDGES, "scale_edges_abs_log2": SCALE_EDGES},
            **(extra or {}), **result}
     name = f"results{'_' + tag if tag else ''}"
-    (out / f"{name}.json").write_text(json.dumps(doc, indent=1))
+    write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))
     md = markdown_table(result["summary"], methods, list(thresholds), tag)
-    (out / f"{name}.md").write_text(md)
+    write_text(out / f"{name}.md", md)
     plot_mma(result["summary"], methods, list(thresholds), out, tag)
     return doc
 
 
 def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``localscale eval-hpatches`` (model options shared with the other commands)."""
-    from ..cli import add_model_options
+    from ..cli import add_model_options, positive_float, positive_int
 
     p.add_argument("root", help="folder of sequences (HPatches layout)")
     p.add_argument("-o", "--output", "--out", dest="out", default="hpatches_eval",
@@ -472,7 +607,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"], choices=METHODS,
                    help="correction methods to compare")
     p.add_argument("--descriptor", nargs="+", default=["hardnet"], help="hardnet | sift | weights path (several ok)")
-    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--num-features", type=positive_int, default=1000, help="keypoints per image")
     p.add_argument("--detector", default="hessian", metavar="NAME",
                    help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze "
                         "(results files get a NAME_ prefix unless hessian)")
@@ -481,7 +616,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--exclude-hires", action="store_true", help=f"skip {', '.join(HIGH_RES)}")
     p.add_argument("--exclude", nargs="*", default=[], help="sequence names to skip")
     p.add_argument("--sequences", nargs="*", default=None, help="only these sequences (default: all)")
-    p.add_argument("--max-side", type=int, default=None,
+    p.add_argument("--max-side", type=positive_int, default=None,
                    help="downscale images (and H) to this longer side (default: full size)")
     p.add_argument("--gate-pair", type=float, default=None,
                    help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this "
@@ -492,7 +627,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--gate-min-confidence", type=float, default=None,
                    help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright", help="patch orientation")
-    p.add_argument("--base-radius", type=float, default=16.0, help="patch radius (px) at scale 1")
+    p.add_argument("--base-radius", type=positive_float, default=16.0, help="patch radius (px) at scale 1")
     return p
 
 
@@ -522,6 +657,8 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
             if w:
                 notes.append(f"{m}: weights {w}")
         except CheckpointError as e:
+            if w is not None:   # weights the user named must load
+                raise
             removed = [x for x in needs[m] if x in methods]
             for x in removed:
                 methods.remove(x)
@@ -555,13 +692,23 @@ def run(args: argparse.Namespace) -> int:
     from ..cli import check_output_dir
     from ..features.detector import get_detector
 
-    check_output_dir(args.out)
     detector = getattr(args, "detector", "hessian")
     get_detector(detector, max(1, args.num_features))
+    tags = [Path(d).stem if d not in ("hardnet", "sift") else d for d in args.descriptor]
+    tags = tags if detector == "hessian" else [f"{detector}_{t}" for t in tags]
+    check_output_dir(args.out, ["splits.csv"] + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
+                     + [f"mma_{t}_scale1.4-2.8x.png" for t in tags])
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
-    pairs = make_pairs(seqs)
+    skipped: list = []
+    pairs = make_pairs(seqs, skipped)
+    if not pairs:
+        raise LocalScaleError(f"no pair of {args.root} can be evaluated ({len(skipped)} skipped; first: "
+                              f"{skipped[0]['pair']}: {skipped[0]['reason']})" if skipped else
+                              f"no pairs in {args.root}")
     methods = list(args.methods)
     models, notes = load_scale_models(methods, args.local_weights, args.global_weights, args.device)
+    if not methods:
+        raise LocalScaleError(f"none of the methods {list(args.methods)} can run: {'; '.join(notes)}")
     local_model, global_model = models.get("local"), models.get("global")
     gate = gate_from_args(args)
     for n in notes:
@@ -570,6 +717,10 @@ def run(args: argparse.Namespace) -> int:
     for d in args.descriptor:
         res = evaluate(pairs, methods, d, args.num_features, local_model, global_model, gate, args.base_radius,
                        args.orientation, args.max_side, detector=detector)
+        res["skipped"] = skipped + res["skipped"]
+        if res["skipped"]:
+            print(f"warning: {len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)",
+                  file=sys.stderr)
         tag = Path(d).stem if d not in ("hardnet", "sift") else d
         tag = tag if detector == "hessian" else f"{detector}_{tag}"
         write_outputs(res, pairs, methods, args.out, tag=tag,

@@ -185,8 +185,11 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
-        if not cv2.imwrite(str(path), canvas[..., ::-1]):
-            raise LocalScaleError(f"cannot write picture {path}")
+        from ..outputs import atomic_path
+
+        with atomic_path(path) as tmp:   # complete file or none
+            if not cv2.imwrite(str(tmp), canvas[..., ::-1]):
+                raise LocalScaleError(f"cannot write picture {path}")
     return canvas
 
 
@@ -205,10 +208,11 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         data["errors"] = result.errors
     if result.H is not None:
         data["H"] = result.H
-    try:
-        np.savez(path, **data)
-    except OSError as e:
-        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
+    from ..outputs import atomic_path
+
+    with atomic_path(path) as tmp:   # complete file or none
+        with open(tmp, "wb") as f:
+            np.savez(f, **data)
 
 
 def models_for_correction(correction: str, local_weights=None, global_weights=None, device: str = "cpu"):
