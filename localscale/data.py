@@ -9,8 +9,9 @@ mask.
 Beyond the paper's recipe, :class:`PairConfig` can make pairs look like real second views:
 B rendered with the photo's real surroundings (``context``), low overlap (A's footprint
 shifted far into B's border), rotations over the whole circle, exact and near identity
-pairs, unrelated pairs (B another photo: nothing of A is visible), and photometric change
-on either side (lighting, gamma, colour, gray on one side, blur, noise, JPEG). Items are a pure function of ``(seed, index)``, so runs are reproducible and resume
+pairs, unrelated pairs (B another photo: nothing of A is visible), photometric change
+on either side (lighting, gamma, colour, gray on one side, blur, noise, JPEG), and pairs
+with the roles of A and B swapped. Items are a pure function of ``(seed, index)``, so runs are reproducible and resume
 exactly, with any number of DataLoader workers.
 """
 from __future__ import annotations
@@ -95,6 +96,9 @@ class PairConfig:
     strong_light_probability: float = 0.0
     #: probability of each degradation (blur, noise, JPEG) on each side
     degrade_probability: float = 0.0
+    #: share of pairs whose roles are swapped (A the rendered view, B the crop; target from
+    #: ``inv(H)``), so that a model cannot tell the direction from which side was rendered
+    swap_probability: float = 0.0
 
 
 class SyntheticPairs(Dataset):
@@ -233,6 +237,9 @@ class SyntheticPairs(Dataset):
                 a_proc = _gray3(a_proc)
             else:
                 b_proc = _gray3(b_proc)
+
+        if cfg.swap_probability > 0 and rng.random() < cfg.swap_probability:
+            a_proc, b_proc, H_proc = b_proc, a_proc, np.linalg.inv(H_proc)
 
         P, st = cfg.image_size, cfg.stride
         valid = lb.valid_mask(st)

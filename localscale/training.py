@@ -86,6 +86,7 @@ class TrainConfig:
     gray_one_side_probability: float = 0.0 #: PairConfig: one side gray
     strong_light_probability: float = 0.0  #: PairConfig: strong lighting change on B
     degrade_probability: float = 0.0       #: PairConfig: blur / noise / JPEG, each, on each side
+    swap_probability: float = 0.0          #: PairConfig: share of pairs with A and B swapped
     photometric: float = 0.25              #: PairConfig: strength of the mild photometric jitter
 
     def check(self) -> None:
@@ -115,7 +116,7 @@ class TrainConfig:
             raise LocalScaleError(f"crop_min must be in (0, 1] (a fraction of the photo side), got {self.crop_min}")
         for name in ("identity_probability", "full_rotation_probability", "low_overlap_probability",
                      "unrelated_probability", "gray_one_side_probability", "strong_light_probability",
-                     "degrade_probability"):
+                     "degrade_probability", "swap_probability"):
             if not 0 <= getattr(self, name) <= 1:
                 raise LocalScaleError(f"{name.replace('_', '-')} must be in [0, 1], got {getattr(self, name)}")
         return PairConfig(image_size=self.image_size, homography=HomographyConfig(
@@ -128,7 +129,7 @@ class TrainConfig:
             unrelated_probability=self.unrelated_probability,
             gray_one_side_probability=self.gray_one_side_probability,
             strong_light_probability=self.strong_light_probability,
-            degrade_probability=self.degrade_probability)
+            degrade_probability=self.degrade_probability, swap_probability=self.swap_probability)
 
     def build_model(self):
         if self.model == "local":

@@ -164,3 +164,18 @@ def test_pair_options_are_range_checked():
 
     with pytest.raises(LocalScaleError, match="identity-probability"):
         TrainConfig(identity_probability=1.5).pair_config()
+
+
+def test_swapped_pairs_are_the_inverse_pair(image_dir):
+    plain = SyntheticPairs(image_dir, seed=0, config=small_cfg(photometric=0.0))
+    swapped = SyntheticPairs(image_dir, seed=0, config=small_cfg(photometric=0.0, swap_probability=1.0))
+    for i in range(6):
+        p, s = plain[i], swapped[i]
+        # the same rendering, roles exchanged; the target comes from the inverse homography
+        assert torch.equal(p["a"], s["b"]) and torch.equal(p["b"], s["a"])
+        assert np.allclose(s["H"].numpy(), np.linalg.inv(p["H"].numpy()), atol=1e-8)
+        m = s["mask"].numpy()
+        if m.any():
+            assert np.allclose(s["scale"].numpy()[m], homography_scale_map(s["H"].numpy(), 64, 64, 8)[m], rtol=1e-5)
+        if p["mask"].any() and m.any():   # zoom in one way is zoom out the other way
+            assert np.log(p["global_scale"]) * np.log(s["global_scale"]) <= 1e-6

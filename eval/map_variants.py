@@ -1,0 +1,108 @@
+"""Selection set for inference-time read-outs of Local-ScaleNet (no retraining).
+
+On held-out synthetic pairs (the held-out split of the training photos, never the real
+evaluation data), the mean over pairs of the per-pair mean scale-ratio error ``r`` over the
+co-visible pixels of A, for:
+
+* ``local``: the A->B map as predicted (the default read-out);
+* ``symmetric``: the map shifted by half the disagreement of the two directions,
+  ``ln s - (median ln S_AB + median ln S_BA) / 2`` (ScaleNet's consistency check, densely);
+* ``symmetric-weighted``: the same with medians weighted by ``reliability x visible``;
+* ``fused``: the local map's shape with ScaleNet's level (the ``fused`` correction);
+* ``global``: ScaleNet's consistency-checked scale as a constant map;
+* ``rotation-search``: B rotated by 0/90/180/270 deg, the prediction with the highest mean
+  ``reliability x visible`` kept (a canonicalisation step for rotations beyond training);
+* ``const-1``: no correction.
+
+Three pair sets: the paper's homography ranges, the same with rotations over the whole circle,
+and the paper's ranges with A a central 70 % crop whose surroundings B shows.
+
+    OMP_NUM_THREADS=1 python eval/map_variants.py --photos ../shared/data/train_images --pairs 60 \
+        --out results/map_variants.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
+
+from localscale import LocalScaleNet, ScaleNet  # noqa: E402
+from localscale.data import list_images, split_images  # noqa: E402
+from localscale.geometry import HomographyConfig  # noqa: E402
+
+VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "const-1")
+PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
+             "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
+             "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7)}
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    v, w = values.ravel(), weights.ravel()
+    if w.sum() <= 1e-6:
+        return float(np.median(v))
+    order = np.argsort(v)
+    c = np.cumsum(w[order])
+    return float(v[order][np.searchsorted(c, c[-1] / 2)])
+
+
+def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray) -> dict:
+    """``{variant: H_A x W_A map}`` for one pair."""
+    ea, eb = local.encode_image(a), local.encode_image(b)
+    fwd, bwd = local.predict_from_features(ea, eb), local.predict_from_features(eb, ea)
+    g = float(scalenet.predict(a, b).scale)
+    lf, lb = np.log(fwd.scale), np.log(bwd.scale)
+    weight = lambda p: p.reliability * p.visible if p.reliability is not None else np.ones_like(p.scale)  # noqa: E731
+    c = np.median(lf) + np.median(lb)
+    cw = weighted_median(lf, weight(fwd)) + weighted_median(lb, weight(bwd))
+    best, best_score = fwd, float(weight(fwd).mean())
+    for k in (1, 2, 3):
+        p = local.predict_from_features(ea, local.encode_image(np.ascontiguousarray(np.rot90(b, k))))
+        if float(weight(p).mean()) > best_score:
+            best, best_score = p, float(weight(p).mean())
+    return {"local": fwd.scale, "symmetric": np.exp(lf - c / 2), "symmetric-weighted": np.exp(lf - cw / 2),
+            "fused": np.exp(lf - weighted_median(lf, weight(fwd)) + math.log(g)),
+            "global": np.full_like(fwd.scale, g), "rotation-search": best.scale,
+            "const-1": np.ones_like(fwd.scale)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--photos", required=True, help="training photo folder; its held-out split is used")
+    p.add_argument("--pairs", type=int, default=60, help="pairs per set")
+    p.add_argument("--seed", type=int, default=777)
+    p.add_argument("--model", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
+    p.add_argument("--global-model", default=None, help="ScaleNet checkpoint (default: bundled)")
+    p.add_argument("--out", default=None, help="JSON output")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    local, scalenet = LocalScaleNet.from_pretrained(args.model), ScaleNet.from_pretrained(args.global_model)
+    _, held = split_images(list_images(args.photos))
+    table = {}
+    for name, (cfg, crop) in PAIR_SETS.items():
+        per = {v: [] for v in VARIANTS}
+        for _, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, crop)), desc=name):
+            for v, m in variant_maps(local, scalenet, a, b).items():
+                per[v].append(float(np.exp(pixel_errors(m, H, b.shape[:2])["err"]).mean()))
+        table[name] = {v: float(np.mean(e)) for v, e in per.items()}
+        table[name]["pairs"] = len(per["local"])
+    print("| pair set (pairs) | " + " | ".join(VARIANTS) + " |")
+    print("|---|" + "---|" * len(VARIANTS))
+    for name, row in table.items():
+        print(f"| {name} ({row['pairs']}) | " + " | ".join(f"{row[v]:.3f}" for v in VARIANTS) + " |")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"seed": args.seed, "table": table}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
