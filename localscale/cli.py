@@ -261,7 +261,11 @@ def cmd_predict(args) -> int:
     if args.pairs:
         if args.image_a or args.image_b:
             raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
+        if getattr(args, "refine", False):
+            raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
         return _predict_pairs(args, out)
+    if getattr(args, "refine", False) and args.refine_passes < 1:
+        raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)
@@ -278,6 +282,19 @@ def cmd_predict(args) -> int:
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     if not check.reliable:
         print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
+    if getattr(args, "refine", False):
+        from .features.correction import CorrectionGate
+        from .features.pipeline import refine_match
+
+        first_a, first_b = CorrectionGate().apply_pair(pred.scale, check.backward.scale)
+        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, check.backward.scale,
+                           max_passes=args.refine_passes)
+        v = res.verification
+        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,
+                                  {"passes": res.meta["passes"], "inlier_counts": res.meta["inlier_counts"]}, inputs):
+            print(p)
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+        print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)
     return 0
 
 
@@ -417,6 +434,46 @@ def cmd_rectify(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- refine
+
+def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``--refine`` and ``--refine-passes`` (``match`` and ``predict``)."""
+    g = p.add_argument_group("verification and refinement")
+    g.add_argument("--refine", action="store_true",
+                   help="verify the matches (MAGSAC homography), refine the scale maps by the verified geometry "
+                        "and match again with the refined maps; also writes refined maps and geometry.json")
+    g.add_argument("--refine-passes", type=int, default=2, metavar="N",
+                   help="with --refine: matching passes at most (stops when the inlier count stops growing)")
+    return p
+
+
+def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None, inputs=()) -> list[Path]:
+    """Write ``<stem>refined_scale.npy`` (float32 ``S_{A->B}``), ``<stem>refined_source.npy`` (geometry
+    weight, 0 network .. 1 geometry), ``<stem>refined_scale.png``, with ``refined_b`` the same for B
+    (``..._b``), and ``<stem>geometry.json`` (the verification: H or F, inliers, verified, reasons)."""
+    import numpy as np
+
+    from .viz import colorize_log2_scale
+
+    out = _mkdir(Path(out))
+    items = [("", refined_a)] + ([("_b", refined_b)] if refined_b is not None else [])
+    paths = []
+    for suffix, r in items:
+        names = [out / f"{stem}refined_scale{suffix}.npy", out / f"{stem}refined_source{suffix}.npy",
+                 out / f"{stem}refined_scale{suffix}.png"]
+        for q in names:
+            ensure_not_input(q, inputs)
+        write_npy(names[0], r.scale.astype(np.float32))
+        write_npy(names[1], r.source.astype(np.float32))
+        write_image(names[2], colorize_log2_scale(r.scale)[..., ::-1])
+        paths += names
+    geo = out / f"{stem}geometry.json"
+    ensure_not_input(geo, inputs)
+    doc = refined_a.verification.to_dict() | {"inliers": np.flatnonzero(refined_a.inliers).tolist()} | (meta or {})
+    write_text(geo, json.dumps(doc, indent=1) + "\n")
+    return paths + [geo]
+
+
 # ---------------------------------------------------------------- match
 
 def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -438,6 +495,7 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
                    help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
+    add_refine_options(p)
     add_model_options(p, local=True, global_=True, bf16=True)
     return p
 
@@ -446,6 +504,10 @@ def cmd_match(args) -> int:
     from .features.pipeline import models_for_correction, run_match
 
     out = check_output_dir(args.output)
+    refine = getattr(args, "refine", False)
+    passes = getattr(args, "refine_passes", 2)
+    if refine and passes < 1:
+        raise LocalScaleError(f"--refine-passes must be >= 1, got {passes}")
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
@@ -458,7 +520,7 @@ def cmd_match(args) -> int:
                                                       args.device)
     run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
               args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
-              local_model=local_model, global_model=global_model)
+              local_model=local_model, global_model=global_model, refine=refine, max_passes=passes)
     return 0
 
 
@@ -475,6 +537,8 @@ EXAMPLES = {
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/
       -> out/kodim01_a_kodim01_b_scale.{npy,tif,png}, _confidence.npy
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
+  localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/ --refine
+      -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
       pairs.txt: one 'A B' per line (relative to the file's folder); '#' comments.
       -> out/<index>_<A>_<B>_scale.* (index = the pair's position in the file; <A> is
          <folder>-<stem> when stems collide) and out/index.tsv (index, line, A, B, status, output)""",
@@ -569,6 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
     sp.add_argument("--batch-size", type=int, default=8, help="pairs per network batch with --pairs")
     sp.add_argument("--cache-mb", type=float, default=256, help="feature cache bound (MiB) with --pairs")
+    add_refine_options(sp)
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 
