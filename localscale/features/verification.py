@@ -74,6 +74,10 @@ class VerificationConfig:
         interp_neighbours: inliers whose local scales are averaged (inverse distance, in log2) at
             each pixel (fundamental case).
         grid_stride: pixel stride of the interpolation grid (fundamental case), upsampled bilinearly.
+
+    ``min_inliers``, ``min_inlier_ratio`` and ``support`` were chosen on held-out synthetic pairs
+    (``eval/select_verification.py``; numbers in ``docs/RESULTS.md``): the smallest thresholds at
+    which no verified homography made the map worse than the network's.
     """
 
     model: str = "homography"
@@ -82,8 +86,8 @@ class VerificationConfig:
     fundamental_threshold: float = 1.0
     confidence: float = 0.999
     max_iters: int = 10000
-    min_inliers: int = 30
-    min_inlier_ratio: float = 0.10
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.15
     min_coverage: float = 0.05
     max_scale_disagreement_log2: float = 2.0
     scale_range_log2: float = 5.0
