@@ -13,8 +13,9 @@ the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 
 
 Real mode also scores ``refined``: the local maps (gated) for a first HardNet matching pass, the
 matches verified with a MAGSAC homography, the local map refined by the verified geometry and a
-second matching pass (:func:`localscale.features.pipeline.refine_match`); where verification fails
-the refined map is the local map.
+second matching pass (:func:`localscale.features.pipeline.refine_match`; when the first pass is not
+verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
+verification fails the refined map is the local map.
 
 Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
 scale alone, the D-ScaleNet hard read-out, the constant 1, a random bin, and the median of
@@ -264,7 +265,7 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True) -> dict:
         v = res.verification
         row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
                                "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
-                               "inlier_counts": res.meta["inlier_counts"]}
+                               "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
     row.update(pair_statistics(fwd, bwd))
     return row
 

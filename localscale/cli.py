@@ -288,10 +288,10 @@ def cmd_predict(args) -> int:
 
         first_a, first_b = CorrectionGate().apply_pair(pred.scale, check.backward.scale)
         res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, check.backward.scale,
-                           max_passes=args.refine_passes)
+                           max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
         v = res.verification
         for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,
-                                  {"passes": res.meta["passes"], "inlier_counts": res.meta["inlier_counts"]}, inputs):
+                                  {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs):
             print(p)
         state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
         print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)
@@ -444,6 +444,9 @@ def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "and match again with the refined maps; also writes refined maps and geometry.json")
     g.add_argument("--refine-passes", type=int, default=2, metavar="N",
                    help="with --refine: matching passes at most (stops when the inlier count stops growing)")
+    g.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
+                   help="with --refine: when the first pass is not verified, verify OpenCV SIFT matches instead "
+                        "and refine the maps with their geometry (none: only the first pass's matches)")
     return p
 
 
@@ -520,7 +523,8 @@ def cmd_match(args) -> int:
                                                       args.device)
     run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
               args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
-              local_model=local_model, global_model=global_model, refine=refine, max_passes=passes)
+              local_model=local_model, global_model=global_model, refine=refine, max_passes=passes,
+              sift_seed=getattr(args, "refine_seed", "sift") == "sift")
     return 0
 
 

@@ -160,3 +160,28 @@ def test_cli_match_and_predict_refine(tmp_path, capsys):
     assert main(["predict", "--pairs", str(tmp_path / "x.txt"), "--refine", "-o", str(tmp_path / "q")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and "--refine" in err[0]
+
+
+def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
+    import torch
+
+    from localscale.features.verification import refine_matching
+
+    a, b, H = example
+    kp = rng.uniform([0, 0], [639, 426], (300, 2))
+    calls = []
+
+    def describe(scale_map):          # descriptors that match nothing consistently
+        calls.append(scale_map)
+        return kp, torch.nn.functional.normalize(torch.randn(300, 16), dim=1)
+
+    pa, pb = _points(H, a.shape[:2], 100, rng)
+    net = np.ones(a.shape[:2], np.float32)
+    out = refine_matching(describe, describe, a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb))
+    assert out.seed is not None and out.seed.verified and out.refined_a.verified
+    assert out.passes == 2 and calls[2] is out.refined_a.scale      # second pass cut with the refined maps
+    gt = homography_scale_map(H, *a.shape[:2])
+    sup = out.refined_a.source > 0.999
+    assert np.nanmax(np.abs(np.log2(out.refined_a.scale[sup] / gt[sup]))) < 1e-3
+    no = refine_matching(describe, describe, a.shape[:2], b.shape[:2], None, None, net, net)
+    assert no.passes == 1 and not no.refined_a.verified and (no.refined_a.source == 0).all()

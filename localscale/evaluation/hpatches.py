@@ -17,7 +17,9 @@ Methods: ``none``, ``global`` (ScaleNet), ``local`` (Local-ScaleNet, gated), ``g
 ``local``, to measure what gating costs an oracle), ``pyramid`` (optional baseline: no scale maps,
 keypoints detected and described on a 4-level image pyramid with step sqrt(2)... 2),
 ``refined`` (the ``local`` maps, matching, verification with a MAGSAC homography, maps refined by
-the verified geometry and a second matching pass; :func:`localscale.features.verification.refine_matching`),
+the verified geometry and a second matching pass; when the first pass is not verified, the
+``opencv-sift`` matches are verified instead and their geometry refines the maps;
+:func:`localscale.features.verification.refine_matching`),
 ``opencv-sift`` (baseline: OpenCV's DoG detector, top-K keypoints, OpenCV SIFT descriptors,
 mutual nearest neighbours that pass Lowe's ratio test 0.8).
 
@@ -214,6 +216,7 @@ class _Evaluator:
         self._memo = {}
         self.described = 0    #: patches described so far (the rest were reused)
         self.refine_passes = 2
+        self.sift_seed = True
 
     def image(self, path):
         if path not in self._img:
@@ -289,8 +292,14 @@ class _Evaluator:
         ea, eb = self.encoding(pair.image_a), self.encoding(pair.image_b)
         pa = local.predict_from_features(ea, eb, bf16=False).scale
         pb = local.predict_from_features(eb, ea, bf16=False).scale
+        def seed():
+            (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
+            m = opencv_ratio_matches(da, db, SIFT_RATIO)
+            return ka[m[:, 0]], kb[m[:, 1]]
+
         return refine_matching(lambda s: self.describe(pair.image_a, s), lambda s: self.describe(pair.image_b, s),
-                               a.shape[:2], b.shape[:2], sa, sb, pa, pb, VerificationConfig(), self.refine_passes)
+                               a.shape[:2], b.shape[:2], sa, sb, pa, pb, VerificationConfig(), self.refine_passes,
+                               seed=seed if self.sift_seed else None)
 
     def opencv_sift(self, path):
         """OpenCV DoG keypoints (top ``num_features``) and SIFT descriptors of an image."""
@@ -337,8 +346,9 @@ class _Evaluator:
             if m == "refined":
                 rm = self.refined(pair, a, b, H)
                 ka, kb, idx = rm.keypoints_a, rm.keypoints_b, rm.matches
-                extra = {"verified": bool(rm.verification.verified), "passes": rm.passes,
-                         "inlier_counts": list(rm.inlier_counts)}
+                extra = {"verified": bool(rm.refined_a.verified), "passes": rm.passes,
+                         "inlier_counts": list(rm.inlier_counts),
+                         "seed_verified": None if rm.seed is None else bool(rm.seed.verified)}
             elif m == "opencv-sift":
                 (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
                 idx = opencv_ratio_matches(da, db, SIFT_RATIO)
@@ -363,16 +373,10 @@ class _Evaluator:
 
 
 def opencv_ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = SIFT_RATIO) -> np.ndarray:
-    """Mutual nearest neighbours (L2) that pass Lowe's ratio test, with OpenCV's brute-force matcher.
-    ``desc_a``: ``N x D``, ``desc_b``: ``M x D``; returns ``K x 2`` int64 indices (A, B)."""
-    if len(desc_a) < 2 or len(desc_b) < 2:
-        return np.zeros((0, 2), np.int64)
-    bf = cv2.BFMatcher(cv2.NORM_L2)
-    fwd = bf.knnMatch(desc_a, desc_b, k=2)
-    back = {m.queryIdx: m.trainIdx for m in bf.match(desc_b, desc_a)}
-    out = [(m.queryIdx, m.trainIdx) for m, n in (p for p in fwd if len(p) == 2)
-           if m.distance < ratio * n.distance and back.get(m.trainIdx) == m.queryIdx]
-    return np.array(out, np.int64).reshape(-1, 2)
+    """Mutual nearest neighbours that pass Lowe's ratio test
+    (:func:`localscale.features.verification.ratio_mutual_matches`); ``K x 2`` int64 indices."""
+    from ..features.verification import ratio_mutual_matches
+    return ratio_mutual_matches(desc_a, desc_b, ratio)
 
 
 def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) -> float:

@@ -31,7 +31,7 @@ from .descriptors import PatchDescriptor, get_descriptor
 from .detector import HessianDetector, image_to_gray_tensor
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
-from .verification import VerificationConfig, refine_matching
+from .verification import VerificationConfig, refine_matching, sift_seed_points
 
 
 @dataclass
@@ -130,14 +130,16 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
                ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
                base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False,
                refine: bool = False, verification: Optional[VerificationConfig] = None,
-               max_passes: int = 2) -> MatchResult:
+               max_passes: int = 2, sift_seed: bool = True) -> MatchResult:
     """Detect, correct, describe and mutually match two images.
 
     With ``refine``: the matches are verified (:func:`~.verification.verify_matches`), both maps are
     refined by the verified geometry (:func:`~.verification.refine_scale_map`, the correction's maps
     as the prior; 1 where the method gives none), the patches are re-cut with the refined maps and
     matched again, up to ``max_passes`` passes while the inlier count grows; the pass with the most
-    inliers is returned, with ``verification``, ``refined_a`` and ``refined_b`` set.
+    inliers is returned, with ``verification``, ``refined_a`` and ``refined_b`` set. With
+    ``sift_seed``, a first pass that is not verified is followed by the verification of OpenCV SIFT
+    matches (:func:`~.verification.sift_seed_points`), whose geometry, if verified, refines the maps.
 
     Args:
         image_a, image_b: paths or ``H x W x 3`` uint8 arrays.
@@ -146,7 +148,7 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
         local_model, global_model: models for ``"local"`` / ``"global"`` / ``"fused"`` (default: bundled weights).
         gate: gating of predicted maps (``NO_GATE`` to disable; not applied to ``"gt"``).
         bf16: run the scale networks under bfloat16 autocast.
-        refine, verification, max_passes: second pass with verified, refined maps (above);
+        refine, verification, max_passes, sift_seed: second pass with verified, refined maps (above);
             ``verification`` holds the thresholds (default :class:`~.verification.VerificationConfig`).
     """
     a = load_image(image_a, "image A")
@@ -156,7 +158,7 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
     if refine:
         return refine_match(a, b, sa, sb, H=H, descriptor=desc, num_features=num_features, ratio=ratio,
                             base_radius=base_radius, orientation=orientation, config=verification,
-                            max_passes=max_passes, correction=correction)
+                            max_passes=max_passes, correction=correction, sift_seed=sift_seed)
     fa = extract(a, sa, num_features, desc, base_radius, orientation)
     fb = extract(b, sb, num_features, desc, base_radius, orientation)
     res = match_features(fa, fb, H, ratio, correction)
@@ -178,7 +180,7 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
                  descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
                  ratio: Optional[float] = None, base_radius: float = 16.0, orientation: str = "upright",
                  config: Optional[VerificationConfig] = None, max_passes: int = 2,
-                 correction: str = "refined") -> MatchResult:
+                 correction: str = "refined", sift_seed: bool = True) -> MatchResult:
     """Match with given maps, verify, refine the maps and match again (:func:`~.verification.refine_matching`).
 
     Args:
@@ -186,9 +188,11 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
         scale_a, scale_b: maps (or floats, or ``None``) of the first pass (e.g. the gated network maps).
         prior_a, prior_b: network maps the refined maps start from (default: ``scale_*``; ``None`` = 1).
         H: ground-truth homography A -> B for reprojection errors (optional).
+        sift_seed: when the first pass is not verified, try OpenCV SIFT matches as the geometry's seed.
     Returns:
         :class:`MatchResult` of the pass with the most inliers; ``scale_a`` / ``scale_b`` are the maps
-        that pass used, ``refined_a`` / ``refined_b`` the refined maps, ``verification`` its geometry.
+        that pass used, ``refined_a`` / ``refined_b`` the refined maps, ``verification`` the geometry
+        they came from (the seed's when it was used; the best pass's when nothing was verified).
     """
     a = load_image(image_a, "image A")
     b = load_image(image_b, "image B")
@@ -208,8 +212,9 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
 
     pa = _as_map(scale_a if prior_a is None else prior_a, a.shape[:2])
     pb = _as_map(scale_b if prior_b is None else prior_b, b.shape[:2])
+    seed = (lambda: sift_seed_points(a, b, num_features)) if sift_seed else None
     out = refine_matching(describer(0, ga), describer(1, gb), a.shape[:2], b.shape[:2], scale_a, scale_b,
-                          pa, pb, config or VerificationConfig(), max_passes, ratio)
+                          pa, pb, config or VerificationConfig(), max_passes, ratio, seed)
     (used_a, radii_a), (used_b, radii_b) = history[0][out.best_pass], history[1][out.best_pass]
     errors = None
     if H is not None:
@@ -217,10 +222,11 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
         errors = reprojection_errors(out.keypoints_a, out.keypoints_b, out.matches, H)
     res = MatchResult(out.keypoints_a, out.keypoints_b, out.matches, out.distances, errors, radii_a, radii_b,
                       correction, H, used_a, used_b)
-    res.verification, res.refined_a, res.refined_b = out.verification, out.refined_a, out.refined_b
+    res.verification, res.refined_a, res.refined_b = out.refined_a.verification, out.refined_a, out.refined_b
     res.meta = {"num_features_a": len(out.keypoints_a), "num_features_b": len(out.keypoints_b),
                 "descriptor": desc.name, "passes": out.passes, "best_pass": out.best_pass,
-                "inlier_counts": list(out.inlier_counts)}
+                "inlier_counts": list(out.inlier_counts),
+                "seed_inliers": None if out.seed is None else int(out.seed.num_inliers)}
     return res
 
 
@@ -298,7 +304,8 @@ def models_for_correction(correction: str, local_weights=None, global_weights=No
 def run_match(image_a, image_b, out, correction: str = "local", H=None, descriptor: str = "hardnet",
               num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
               device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
-              local_model=None, global_model=None, refine: bool = False, max_passes: int = 2) -> MatchResult:
+              local_model=None, global_model=None, refine: bool = False, max_passes: int = 2,
+              sift_seed: bool = True) -> MatchResult:
     """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
 
     With ``refine`` (:func:`match_pair`): also ``out/refined_scale.npy`` / ``refined_source.npy`` /
@@ -311,7 +318,7 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
         local_model, global_model = models_for_correction(correction, local_weights, global_weights, device)
     H = read_homography(H) if H is not None else None
     res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
-                     orientation=orientation, bf16=bf16, refine=refine, max_passes=max_passes)
+                     orientation=orientation, bf16=bf16, refine=refine, max_passes=max_passes, sift_seed=sift_seed)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
@@ -319,7 +326,7 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
         from ..cli import write_refinement
         inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
         write_refinement(out, "", res.refined_a, res.refined_b,
-                         {"passes": res.meta["passes"], "inlier_counts": res.meta["inlier_counts"]}, inputs)
+                         {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs)
     if verbose:
         msg = f"{len(res.matches)} matches ({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
         if res.errors is not None:

@@ -15,7 +15,10 @@
   support. Unverified: the network map unchanged, source all 0.
 * :func:`refine_matching`: match, verify, refine the maps of both images, re-cut the patches
   with the refined maps and match again, until the inlier count stops growing; the pass with
-  the most inliers is returned.
+  the most inliers is returned. When the first pass is not verified, an optional *seed* match
+  set (e.g. OpenCV SIFT on a DoG scale space, :func:`sift_seed_points`, which finds matches under
+  zoom where a single-scale detector does not) is verified with the same thresholds and, if it
+  passes, gives the geometry of the refined maps for the second pass.
 * :func:`corner_error`, :func:`homography_auc`: mean error of A's four corners under an
   estimated vs the true homography, and the area under its cumulative curve up to a threshold.
 
@@ -497,6 +500,7 @@ class RefinedMatching:
         refined_a, refined_b: :class:`RefinedScale` of A and B from the returned pass's geometry.
         passes: matching passes run; inlier_counts: inliers after each pass;
         best_pass: index of the returned pass (0 = the first, with the initial maps).
+        seed: verification of the seed match set when it was tried, else ``None``.
     """
 
     keypoints_a: np.ndarray
@@ -509,12 +513,13 @@ class RefinedMatching:
     passes: int
     inlier_counts: list = field(default_factory=list)
     best_pass: int = 0
+    seed: Optional[VerificationResult] = None
 
 
 def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, shape_b: tuple,
                     first_a=None, first_b=None, prior_a=None, prior_b=None,
                     config: VerificationConfig = VerificationConfig(), max_passes: int = 2,
-                    ratio: Optional[float] = None) -> RefinedMatching:
+                    ratio: Optional[float] = None, seed: Optional[Callable] = None) -> RefinedMatching:
     """Match, verify, refine both maps, re-cut and match again while the inlier count grows.
 
     Args:
@@ -527,8 +532,12 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
         max_passes: matching passes at most (1 = no second pass); passes stop early when the
             inlier count does not grow or verification fails.
         ratio: Lowe ratio on top of mutual NN (``None``: mutual NN only).
+        seed: ``f() -> (points_a K x 2, points_b K x 2)``, another match set of the pair, verified
+            (same thresholds) when the first pass is not; its geometry then refines the maps.
     Returns:
-        :class:`RefinedMatching` of the pass with the most inliers (the earliest on ties).
+        :class:`RefinedMatching`: the matches of the pass with the most inliers (the earliest on
+        ties); the refined maps of the last verified geometry of a pass that grew the inlier count
+        (or of the seed), else the priors unchanged.
     """
     from .matching import match_descriptors
 
@@ -537,7 +546,7 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
     prior_a = first_a if prior_a is None else prior_a
     prior_b = first_b if prior_b is None else prior_b
     maps = (first_a, first_b)
-    best, counts = None, []
+    best, counts, geometry, seeded = None, [], None, None
     for i in range(max_passes):
         ka, da = describe_a(maps[0])
         kb, db = describe_b(maps[1])
@@ -548,14 +557,54 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
         counts.append(v.num_inliers)
         grew = best is None or v.num_inliers > best.verification.num_inliers
         if grew:
-            ra, rb = refine_pair_maps(prior_a, prior_b, v, config)
-            best = RefinedMatching(ka, kb, m, dist.numpy(), v, ra, rb, i + 1, counts, i)
-        best.passes = i + 1
-        if not grew or not v.verified:
+            best = RefinedMatching(ka, kb, m, dist.numpy(), v, None, None, i + 1, counts, i)
+        if grew and v.verified:
+            geometry = v
+        elif i == 0 and seed is not None:
+            pa, pb = seed()
+            seeded = verify_matches(pa, pb, shape_a, shape_b, prior_a, config)
+            geometry = seeded if seeded.verified else None
+        else:
             break
-        maps = (best.refined_a.scale, best.refined_b.scale)
-    best.inlier_counts = counts
+        if geometry is None:
+            break
+        ra, rb = refine_pair_maps(prior_a, prior_b, geometry, config)
+        maps = (ra.scale, rb.scale)
+        best.refined_a, best.refined_b = ra, rb
+    if best.refined_a is None:
+        best.refined_a, best.refined_b = refine_pair_maps(prior_a, prior_b, best.verification, config) \
+            if geometry is None else refine_pair_maps(prior_a, prior_b, geometry, config)
+    best.passes, best.inlier_counts, best.seed = len(counts), counts, seeded
     return best
+
+
+def sift_seed_points(image_a, image_b, num_features: int = 1000, ratio: float = 0.8):
+    """Matches of OpenCV SIFT (DoG keypoints, top ``num_features``, SIFT descriptors, mutual nearest
+    neighbours passing Lowe's ``ratio``): ``(points_a K x 2, points_b K x 2)`` float64.
+
+    ``image_a``, ``image_b``: ``H x W x 3`` RGB or ``H x W`` uint8 arrays.
+    """
+    pts, descs = [], []
+    for img in (image_a, image_b):
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+        kps, desc = cv2.SIFT_create(nfeatures=num_features).detectAndCompute(np.ascontiguousarray(gray), None)
+        pts.append(np.array([k.pt for k in kps], np.float64).reshape(-1, 2))
+        descs.append(np.zeros((0, 128), np.float32) if desc is None else desc)
+    m = ratio_mutual_matches(descs[0], descs[1], ratio)
+    return pts[0][m[:, 0]], pts[1][m[:, 1]]
+
+
+def ratio_mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """Mutual nearest neighbours (L2) that pass Lowe's ratio test, with OpenCV's brute-force matcher.
+    ``desc_a``: ``N x D``, ``desc_b``: ``M x D`` float32; returns ``K x 2`` int64 indices (A, B)."""
+    if len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    fwd = bf.knnMatch(desc_a, desc_b, k=2)
+    back = {m.queryIdx: m.trainIdx for m in bf.match(desc_b, desc_a)}
+    out = [(m.queryIdx, m.trainIdx) for m, n in (p for p in fwd if len(p) == 2)
+           if m.distance < ratio * n.distance and back.get(m.trainIdx) == m.queryIdx]
+    return np.array(out, np.int64).reshape(-1, 2)
 
 
 # ---------------------------------------------------------------- homography accuracy
