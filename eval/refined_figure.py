@@ -1,6 +1,6 @@
 """Figure of one real pair: A, the local map, the refined map, the ground truth and the geometry weight.
 
-    python eval/refined_figure.py ../shared/data/sequences/boat 4 -o docs/refined_map.png
+    python eval/refined_figure.py ../shared/data/sequences/v_churchill 3 -o docs/refined_map.png
 """
 from __future__ import annotations
 
@@ -39,6 +39,8 @@ def main(argv=None) -> int:
     title = (f"{seq.name} 1-{args.k}: {v.model} {'verified' if v.verified else 'not verified'}, "
              f"{v.num_inliers} inliers")
     plot_refined_map(a, fwd.scale, res.refined_a.scale, res.refined_a.source, gt, args.output, title)
+    from PIL import Image   # a small PNG: 128-colour palette
+    Image.open(args.output).convert("RGB").quantize(128).save(args.output, optimize=True)
     print(args.output)
     return 0
 

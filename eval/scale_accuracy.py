@@ -233,7 +233,7 @@ def real_pairs(roots: list[Path]):
         yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
 
 
-def _pair_row(local, scalenet, name, a, b, H, refine: bool = True) -> dict:
+def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True) -> dict:
     from localscale.features.correction import CorrectionGate
     from localscale.features.pipeline import refine_match
     from localscale.reliability import pair_statistics
@@ -260,7 +260,7 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True) -> dict:
     row["score"] = score[np.ix_(ys, xs)][m]
     if refine:
         first_a, first_b = CorrectionGate().apply_pair(fwd.scale, bwd.scale)
-        res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale)
+        res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
         v = res.verification
         row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
@@ -279,7 +279,7 @@ def run_real(args) -> dict:
     scalenet = ScaleNet.from_pretrained(args.global_model)
     torch.set_num_threads(args.threads) if args.threads else None
     roots = [Path(r) for r in args.real]
-    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined)
+    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift")
             for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
     keys = ("local", "refined", "global", "const1", "oracle") if not args.no_refined else \
         ("local", "global", "const1", "oracle")
@@ -377,6 +377,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--no-refined", action="store_true", help="real mode: skip the refined column (no matching)")
+    p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
+                   help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:
