@@ -11,6 +11,12 @@ co-visible pixels of A (original resolution, sampled on a 4-px grid), against
 valid for planar scenes only, which all pairs here are). Tables are split by scale band (|log2 s| < 1, 1..2, > 2) and by perspective strength of
 the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 <= high).
 
+Real mode also scores ``refined``: the local maps (gated) for a first HardNet matching pass, the
+matches verified with a MAGSAC homography, the local map refined by the verified geometry and a
+second matching pass (:func:`localscale.features.pipeline.refine_match`; when the first pass is not
+verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
+verification fails the refined map is the local map.
+
 Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
 scale alone, the D-ScaleNet hard read-out, the constant 1, a random bin, and the median of
 Local-ScaleNet's map as a global estimate; plus timing with and without cached features.
@@ -227,7 +233,9 @@ def real_pairs(roots: list[Path]):
         yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
 
 
-def _pair_row(local, scalenet, name, a, b, H) -> dict:
+def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True) -> dict:
+    from localscale.features.correction import CorrectionGate
+    from localscale.features.pipeline import refine_match
     from localscale.reliability import pair_statistics
 
     ea, eb = local.encode_image(a), local.encode_image(b)
@@ -250,6 +258,14 @@ def _pair_row(local, scalenet, name, a, b, H) -> dict:
         row["iou"] = float((pv & cov).sum() / max(1, (pv | cov).sum()))
     score = fwd.reliability if fwd.reliability is not None else fwd.confidence
     row["score"] = score[np.ix_(ys, xs)][m]
+    if refine:
+        first_a, first_b = CorrectionGate().apply_pair(fwd.scale, bwd.scale)
+        res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
+        row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
+        v = res.verification
+        row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
+                               "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
+                               "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
     row.update(pair_statistics(fwd, bwd))
     return row
 
@@ -263,7 +279,10 @@ def run_real(args) -> dict:
     scalenet = ScaleNet.from_pretrained(args.global_model)
     torch.set_num_threads(args.threads) if args.threads else None
     roots = [Path(r) for r in args.real]
-    rows = [_pair_row(local, scalenet, *item) for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
+    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift")
+            for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
+    keys = ("local", "refined", "global", "const1", "oracle") if not args.no_refined else \
+        ("local", "global", "const1", "oracle")
     cfg = PairCheckConfig()
     res = {"local_model": str(args.model or "bundled"), "global_model": str(args.global_model or "bundled"),
            "roots": [str(r) for r in roots], "pairs": len(rows), "stride_px": STRIDE}
@@ -276,7 +295,7 @@ def run_real(args) -> dict:
               "extreme pairs": lambda r: r["name"].startswith("pairs/"),
               "bark": lambda r: "/bark/" in r["name"], "leuven 1-6": lambda r: r["name"].endswith("leuven/1-6"),
               "ExtremeZoom": lambda r: "ExtremeZoom" in r["name"]}
-    res["table"] = {g: {k: pooled(k, sel) for k in ("local", "global", "const1", "oracle")}
+    res["table"] = {g: {k: pooled(k, sel) for k in keys}
                     | {"pairs": sum(map(sel, rows))} for g, sel in groups.items()}
     res["per_pair"] = {r["name"]: {"local_mean_r": float(np.exp(r["local"]).mean()),
                                    "global_mean_r": float(np.exp(r["global"]).mean()),
@@ -284,7 +303,18 @@ def run_real(args) -> dict:
                                    "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
                                    "iou": r.get("iou"), "inconsistency_log2": r["inconsistency_log2"],
                                    "visible_fraction": r["visible_fraction"], "mean_reliability": r["mean_reliability"],
-                                   "flag_reasons": flag_reasons(r, cfg)} for r in rows}
+                                   "flag_reasons": flag_reasons(r, cfg)}
+                       | ({"refined_mean_r": float(np.exp(r["refined"]).mean()), **r["verification"]}
+                          if "refined" in r else {}) for r in rows}
+    if not args.no_refined:
+        ver = [r for r in rows if r["verification"]["verified"]]
+        unv = [r for r in rows if not r["verification"]["verified"]]
+        worse = lambda rs: sum(float(np.exp(r["refined"]).mean()) > float(np.exp(r["local"]).mean()) + 1e-9  # noqa: E731
+                               for r in rs)
+        res["refined_summary"] = {"verified_pairs": len(ver), "unverified_pairs": len(unv),
+                                  "verified_refined_worse_than_local": worse(ver),
+                                  "unverified_refined_worse_than_local": worse(unv),
+                                  "unverified": [r["name"] for r in unv]}
     ious = [r["iou"] for r in rows if "iou" in r]
     res["visibility_iou_mean"] = float(np.mean(ious)) if ious else None
     err = np.exp(np.concatenate([r["local"] for r in rows]))
@@ -310,10 +340,16 @@ def run_real(args) -> dict:
     res["invariants"] = inv
 
     print(f"\n### real pairs ({len(rows)}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
-    print("| set | pairs | local map | global ScaleNet as a constant map | constant 1 | best constant per pair (oracle) |")
-    print("|---|---|---|---|---|---|")
+    ref_h = " refined (verified geometry, else local) |" if "refined" in keys else ""
+    print(f"| set | pairs | local map |{ref_h} global ScaleNet as a constant map | constant 1 | "
+          "best constant per pair (oracle) |")
+    print("|---|---|---|" + ("---|" if "refined" in keys else "") + "---|---|---|")
     for g, v in res["table"].items():
-        print(f"| {g} | {v['pairs']} | {v['local']:.3f} | {v['global']:.3f} | {v['const1']:.3f} | {v['oracle']:.3f} |")
+        ref_v = f" {v['refined']:.3f} |" if "refined" in keys else ""
+        print(f"| {g} | {v['pairs']} | {v['local']:.3f} |{ref_v} {v['global']:.3f} | {v['const1']:.3f} | "
+              f"{v['oracle']:.3f} |")
+    if "refined_summary" in res:
+        print(f"refined: {res['refined_summary']}")
     print(f"\nco-visibility IoU (mean over pairs): {res['visibility_iou_mean']}")
     print(f"reliability AUROC (r <= 1.25 vs r > 1.5): {res['reliability_auroc']:.3f}")
     print(f"pair flag: {res['flag']}")
@@ -340,6 +376,9 @@ def main(argv=None) -> int:
                    help="< 1: A is this central part of the photo and B shows its real surroundings")
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--no-refined", action="store_true", help="real mode: skip the refined column (no matching)")
+    p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
+                   help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:

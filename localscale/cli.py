@@ -332,7 +332,11 @@ def cmd_predict(args) -> int:
     if args.pairs:
         if args.image_a or args.image_b:
             raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
+        if getattr(args, "refine", False):
+            raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
         return _predict_pairs(args, out)
+    if getattr(args, "refine", False) and args.refine_passes < 1:
+        raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)
@@ -350,6 +354,19 @@ def cmd_predict(args) -> int:
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     if not check.reliable:
         print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
+    if getattr(args, "refine", False):
+        from .features.correction import CorrectionGate
+        from .features.pipeline import refine_match
+
+        first_a, first_b = CorrectionGate().apply_pair(pred.scale, check.backward.scale)
+        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, check.backward.scale,
+                           max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
+        v = res.verification
+        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,
+                                  {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs):
+            print(p)
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+        print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)
     return 0
 
 
@@ -534,6 +551,49 @@ def cmd_rectify(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- refine
+
+def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``--refine`` and ``--refine-passes`` (``match`` and ``predict``)."""
+    g = p.add_argument_group("verification and refinement")
+    g.add_argument("--refine", action="store_true",
+                   help="verify the matches (MAGSAC homography), refine the scale maps by the verified geometry "
+                        "and match again with the refined maps; also writes refined maps and geometry.json")
+    g.add_argument("--refine-passes", type=int, default=2, metavar="N",
+                   help="with --refine: matching passes at most (stops when the inlier count stops growing)")
+    g.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
+                   help="with --refine: when the first pass is not verified, verify OpenCV SIFT matches instead "
+                        "and refine the maps with their geometry (none: only the first pass's matches)")
+    return p
+
+
+def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None, inputs=()) -> list[Path]:
+    """Write ``<stem>refined_scale.npy`` (float32 ``S_{A->B}``), ``<stem>refined_source.npy`` (geometry
+    weight, 0 network .. 1 geometry), ``<stem>refined_scale.png``, with ``refined_b`` the same for B
+    (``..._b``), and ``<stem>geometry.json`` (the verification: H or F, inliers, verified, reasons)."""
+    import numpy as np
+
+    from .viz import colorize_log2_scale
+
+    out = _mkdir(Path(out))
+    items = [("", refined_a)] + ([("_b", refined_b)] if refined_b is not None else [])
+    paths = []
+    for suffix, r in items:
+        names = [out / f"{stem}refined_scale{suffix}.npy", out / f"{stem}refined_source{suffix}.npy",
+                 out / f"{stem}refined_scale{suffix}.png"]
+        for q in names:
+            ensure_not_input(q, inputs)
+        write_npy(names[0], r.scale.astype(np.float32))
+        write_npy(names[1], r.source.astype(np.float32))
+        write_image(names[2], colorize_log2_scale(r.scale)[..., ::-1])
+        paths += names
+    geo = out / f"{stem}geometry.json"
+    ensure_not_input(geo, inputs)
+    doc = refined_a.verification.to_dict() | {"inliers": np.flatnonzero(refined_a.inliers).tolist()} | (meta or {})
+    write_text(geo, json.dumps(doc, indent=1) + "\n")
+    return paths + [geo]
+
+
 # ---------------------------------------------------------------- match
 
 def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -557,6 +617,7 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
                    help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
+    add_refine_options(p)
     add_model_options(p, local=True, global_=True, bf16=True)
     return p
 
@@ -566,6 +627,10 @@ def cmd_match(args) -> int:
     from .features.pipeline import models_for_correction, run_match
 
     out = check_output_dir(args.output, ["matches.npz", "matches.png"])
+    refine = getattr(args, "refine", False)
+    passes = getattr(args, "refine_passes", 2)
+    if refine and passes < 1:
+        raise LocalScaleError(f"--refine-passes must be >= 1, got {passes}")
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
@@ -579,7 +644,8 @@ def cmd_match(args) -> int:
                                                       args.device)
     run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
               args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
-              local_model=local_model, global_model=global_model, detector=args.detector)
+              local_model=local_model, global_model=global_model, detector=args.detector, refine=refine,
+              max_passes=passes, sift_seed=getattr(args, "refine_seed", "sift") == "sift")
     return 0
 
 
@@ -596,6 +662,8 @@ EXAMPLES = {
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/
       -> out/kodim01_a_kodim01_b_scale.{npy,tif,png}, _confidence.npy
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
+  localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/ --refine
+      -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
       quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
       are comments. A rerun skips pairs whose outputs are complete (--overwrite redoes them).
@@ -727,6 +795,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
     sp.add_argument("--overwrite", action="store_true",
                     help="with --pairs: redo pairs whose outputs already exist (default: skip them)")
+    add_refine_options(sp)
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 

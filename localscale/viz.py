@@ -117,3 +117,50 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
         finally:
             plt.close(fig)
     return fig
+
+
+def plot_refined_map(image_a: np.ndarray, network: np.ndarray, refined: np.ndarray, source: np.ndarray | None = None,
+                     gt_scale: np.ndarray | None = None, path: str | Path | None = None, title: str | None = None):
+    """Figure: A, the network's map, the refined map (:func:`localscale.features.verification.refine_scale_map`),
+    the ground-truth map when given (nan outside its mask) and the geometry's weight (``source``).
+
+    The scale maps share one colour range on ``log2 S``; panel titles give the mean r against the
+    ground truth where it is known. Returns the figure; saves it to ``path`` when given.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    vmax = fitted_log2_range(network, refined, gt_scale)
+    maps = [("network map", network), ("refined map", refined)] + \
+        ([("ground truth", gt_scale)] if gt_scale is not None else [])
+    panels = 1 + len(maps) + (source is not None)
+    fig, axes = plt.subplots(1, panels, figsize=(3.0 * panels, 2.6), constrained_layout=True)
+    axes = list(np.atleast_1d(axes))
+    axes[0].imshow(image_a)
+    axes[0].set_title("A")
+    ok = np.isfinite(gt_scale) if gt_scale is not None else None
+    for ax, (name, m) in zip(axes[1:], maps):
+        im = ax.imshow(np.log2(m), cmap=CMAP, vmin=-vmax, vmax=vmax)
+        if ok is not None and m is not gt_scale and ok.any():
+            r = np.exp(np.abs(np.log(m[ok]) - np.log(gt_scale[ok]))).mean()
+            name = f"{name} (r {r:.2f})"
+        ax.set_title(name, fontsize=9)
+    _factor_colorbar(fig, im, axes[len(maps)], vmax)
+    if source is not None:
+        iw = axes[-1].imshow(source, cmap="viridis", vmin=0, vmax=1)
+        axes[-1].set_title("geometry weight", fontsize=9)
+        fig.colorbar(iw, ax=axes[-1], fraction=0.046, pad=0.02)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fig.savefig(path, dpi=80)
+        finally:
+            plt.close(fig)
+    return fig

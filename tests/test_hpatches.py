@@ -124,3 +124,28 @@ def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
             assert np.mean(fill_share) < 0.5                          # mostly the photo's surroundings
     with pytest.raises(ValueError):
         make_sequences(imgs, tmp_path / "bad", crop=0)
+
+
+def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
+    from localscale.evaluation.hpatches import markdown_table, opencv_ratio_matches
+    from localscale.models import LocalScaleNet
+
+    torch.manual_seed(0)
+    pairs = make_pairs(load_hpatches(tiny_root))[:2]
+    local = LocalScaleNet(width=0.125, image_size=64).eval()
+    methods = ["none", "refined", "gt", "opencv-sift"]
+    res = evaluate(pairs, methods, "sift", num_features=150, local_model=local, progress=False)
+    for r in res["records"]:
+        assert r["corner_error"] >= 0
+    ref = [r for r in res["records"] if r["method"] == "refined"]
+    assert all("verified" in r and r["passes"] >= 1 for r in ref)
+    for m in methods:
+        v = res["summary"]["all"][m]
+        assert len(v["h_auc"]) == 3 and all(0 <= x <= 1 for x in v["h_auc"]) and 0 <= v["h_solved"] <= 1
+    assert res["summary"]["all"]["opencv-sift"]["h_auc"][2] > 0
+    assert "H AUC@5" in markdown_table(res["summary"], methods, list(range(1, 11)))
+    d = np.random.default_rng(0).normal(size=(50, 128)).astype(np.float32)
+    m = opencv_ratio_matches(d, d[::-1].copy())
+    assert len(m) == 50 and (m[:, 1] == 49 - m[:, 0]).all()
+    with pytest.raises(LocalScaleError):
+        evaluate(pairs, ["refined"], "sift")

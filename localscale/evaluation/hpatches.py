@@ -16,7 +16,18 @@ mean matching accuracy MMA@t = fraction of matches with ``|H x_A - x_B| < t`` px
 Methods: ``none``, ``global`` (ScaleNet), ``local`` (Local-ScaleNet, gated), ``gt``
 (analytic map of the GT homography), ``gt_gated`` (the GT map through the same gate as
 ``local``, to measure what gating costs an oracle), ``pyramid`` (optional baseline: no scale maps,
-keypoints detected and described on a 4-level image pyramid with step sqrt(2)... 2).
+keypoints detected and described on a 4-level image pyramid with step sqrt(2)... 2),
+``refined`` (the ``local`` maps, matching, verification with a MAGSAC homography, maps refined by
+the verified geometry and a second matching pass; when the first pass is not verified, the
+``opencv-sift`` matches are verified instead and their geometry refines the maps;
+:func:`localscale.features.verification.refine_matching`),
+``opencv-sift`` (baseline: OpenCV's DoG detector, top-K keypoints, OpenCV SIFT descriptors,
+mutual nearest neighbours that pass Lowe's ratio test 0.8).
+
+Homography accuracy (every method): a homography estimated from the method's matches with OpenCV
+``USAC_MAGSAC`` (3 px), the mean error of A's four corners against the ground truth
+(:func:`localscale.features.verification.corner_error`), its AUC at 3 / 5 / 10 px over the pairs
+and the share of pairs solved (corner error < 10 px).
 
 Splits, from the GT homography of each pair:
 
@@ -58,7 +69,10 @@ from ..io import load_image, read_homography
 HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
             "v_astronautis", "v_talent")
 IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-METHODS = ("none", "global", "local", "fused", "gt", "gt_gated", "pyramid")
+METHODS = ("none", "global", "local", "fused", "gt", "gt_gated", "pyramid", "refined", "opencv-sift")
+H_AUC_THRESHOLDS = (3.0, 5.0, 10.0)
+SOLVED_PX = 10.0
+SIFT_RATIO = 0.8
 THRESHOLDS = tuple(range(1, 11))
 PERSPECTIVE_EDGES = (0.1, 0.25)
 SCALE_EDGES = (0.5, 1.5)
@@ -304,6 +318,8 @@ class _Evaluator:
         self._memo = {}
         self.described = 0    #: patches described so far (the rest were reused)
         self.suspicious = {}  #: pair -> content agreement, for pairs below :data:`MIN_AGREEMENT`
+        self.refine_passes = 2
+        self.sift_seed = True
 
     def image(self, path):
         if path not in self._img:
@@ -370,6 +386,34 @@ class _Evaluator:
             desc_all.append(self.desc.describe(p))
         return np.concatenate(kps_all), torch.cat(desc_all)
 
+    def refined(self, pair: PairInfo, a, b, H):
+        """Keypoints, descriptors' matches and verification of ``refined`` (``local`` maps as the first
+        pass and as the prior of the refined maps)."""
+        from ..features.verification import VerificationConfig, refine_matching
+        sa, sb = self.scale_maps(pair, "local", a, b, H)
+        local = _SharedLocal(self, self.local_model)
+        ea, eb = self.encoding(pair.image_a), self.encoding(pair.image_b)
+        pa = local.predict_from_features(ea, eb, bf16=False).scale
+        pb = local.predict_from_features(eb, ea, bf16=False).scale
+        def seed():
+            (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
+            m = opencv_ratio_matches(da, db, SIFT_RATIO)
+            return ka[m[:, 0]], kb[m[:, 1]]
+
+        return refine_matching(lambda s: self.describe(pair.image_a, s), lambda s: self.describe(pair.image_b, s),
+                               a.shape[:2], b.shape[:2], sa, sb, pa, pb, VerificationConfig(), self.refine_passes,
+                               seed=seed if self.sift_seed else None)
+
+    def opencv_sift(self, path):
+        """OpenCV DoG keypoints (top ``num_features``) and SIFT descriptors of an image."""
+        if ("sift", path) not in self._memo:
+            img, _ = self.image(path)
+            gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+            kps, desc = cv2.SIFT_create(nfeatures=self.num_features).detectAndCompute(gray, None)
+            xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+            self._memo[("sift", path)] = (xy, np.zeros((0, 128), np.float32) if desc is None else desc)
+        return self._memo[("sift", path)]
+
     def _once(self, key, fn):
         if key not in self._memo:
             self._memo[key] = fn()
@@ -406,22 +450,50 @@ class _Evaluator:
         recs = []
         for m in methods:
             t0 = time.time()
-            if m == "pyramid":
-                ka, da = self.pyramid(pair.image_a)
-                kb, db = self.pyramid(pair.image_b)
+            extra = {}
+            if m == "refined":
+                rm = self.refined(pair, a, b, H)
+                ka, kb, idx = rm.keypoints_a, rm.keypoints_b, rm.matches
+                extra = {"verified": bool(rm.refined_a.verified), "passes": rm.passes,
+                         "inlier_counts": list(rm.inlier_counts),
+                         "seed_verified": None if rm.seed is None else bool(rm.seed.verified)}
+            elif m == "opencv-sift":
+                (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
+                idx = opencv_ratio_matches(da, db, SIFT_RATIO)
             else:
-                sa, sb = self.scale_maps(pair, m, a, b, H)
-                ka, da = self.describe(pair.image_a, sa)
-                kb, db = self.describe(pair.image_b, sb)
-            _, idx = match_descriptors(da, db)
-            idx = idx.numpy()
+                if m == "pyramid":
+                    ka, da = self.pyramid(pair.image_a)
+                    kb, db = self.pyramid(pair.image_b)
+                else:
+                    sa, sb = self.scale_maps(pair, m, a, b, H)
+                    ka, da = self.describe(pair.image_a, sa)
+                    kb, db = self.describe(pair.image_b, sb)
+                _, idx = match_descriptors(da, db)
+                idx = idx.numpy()
             err = reprojection_errors(ka, kb, idx, H)
             mma = matching_accuracy(err, thresholds)
             recs.append({"pair": pair.name, "method": m, "num_features_a": int(len(ka)), "num_features_b": int(len(kb)),
                          "num_matches": int(len(idx)), "num_correct_5px": int((err < 5).sum()),
-                         "mma": [float(v) for v in mma], "seconds": round(time.time() - t0, 2),
-                         "perspective_split": pair.perspective_split, "scale_split": pair.scale_split})
+                         "mma": [float(v) for v in mma], "corner_error": homography_corner_error(ka, kb, idx, H, a.shape),
+                         "seconds": round(time.time() - t0, 2),
+                         "perspective_split": pair.perspective_split, "scale_split": pair.scale_split, **extra})
         return recs
+
+
+def opencv_ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = SIFT_RATIO) -> np.ndarray:
+    """Mutual nearest neighbours that pass Lowe's ratio test
+    (:func:`localscale.features.verification.ratio_mutual_matches`); ``K x 2`` int64 indices."""
+    from ..features.verification import ratio_mutual_matches
+    return ratio_mutual_matches(desc_a, desc_b, ratio)
+
+
+def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) -> float:
+    """Corner error (px of B) of the homography estimated from the matches (``USAC_MAGSAC``, 3 px);
+    ``inf`` when none can be estimated."""
+    from ..features.verification import corner_error, estimate_homography
+    m = np.asarray(matches, np.int64).reshape(-1, 2)
+    H_est, _ = estimate_homography(np.asarray(keypoints_a)[m[:, 0]], np.asarray(keypoints_b)[m[:, 1]])
+    return corner_error(H_est, H_true, shape_a)
 
 
 class _SharedLocal:
@@ -474,6 +546,12 @@ def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -
             out[g][m] = {"mma": [float(np.mean([r["mma"][i] for r in rs])) for i in range(len(thresholds))],
                          "num_matches": float(np.mean([r["num_matches"] for r in rs])),
                          "num_features": float(np.mean([(r["num_features_a"] + r["num_features_b"]) / 2 for r in rs]))}
+            ce = [r["corner_error"] for r in rs if "corner_error" in r]
+            if ce:
+                from ..features.verification import homography_auc
+                out[g][m]["h_auc"] = homography_auc(ce, H_AUC_THRESHOLDS)
+                out[g][m]["h_solved"] = float(np.mean(np.asarray(ce) < SOLVED_PX))
+                out[g][m]["corner_error_median"] = float(np.median(ce))
     return out
 
 
@@ -483,16 +561,20 @@ SPLIT_ORDER = ("all", "easy", "medium", "hard", "scale<1.4x", "scale1.4-2.8x", "
 def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
     ti = [thresholds.index(t) for t in (1, 3, 5, 10) if t in thresholds]
     head = " | ".join(f"MMA@{thresholds[i]}" for i in ti)
-    lines = [f"### {title}" if title else "", "", f"| split (pairs) | method | {head} | matches | features |",
-             "|---|---|" + "---|" * len(ti) + "---|---|"]
+    hh = " | ".join(f"H AUC@{t:g}" for t in H_AUC_THRESHOLDS)
+    lines = [f"### {title}" if title else "", "",
+             f"| split (pairs) | method | {head} | matches | features | {hh} | solved (<{SOLVED_PX:g} px) |",
+             "|---|---|" + "---|" * len(ti) + "---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1)]
     for g in [s for s in SPLIT_ORDER if s in summary] + [s for s in summary if s not in SPLIT_ORDER]:
         for m in methods:
             if m not in summary[g]:
                 continue
             v = summary[g][m]
             vals = " | ".join(f"{v['mma'][i]:.3f}" for i in ti)
+            hv = " | ".join(f"{x:.3f}" for x in v["h_auc"]) + f" | {v['h_solved']:.3f}" if "h_auc" in v \
+                else " | ".join("-" for _ in range(len(H_AUC_THRESHOLDS) + 1))
             lines.append(f"| {g} ({summary[g]['num_pairs']}) | {m} | {vals} | {v['num_matches']:.0f} | "
-                         f"{v['num_features']:.0f} |")
+                         f"{v['num_features']:.0f} | {hv} |")
     return "\n".join(lines) + "\n"
 
 
@@ -536,8 +618,9 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", n
     Hessian); patch sizes come from ``base_radius`` and each method's maps whatever the detector."""
     from ..features.pipeline import CorrectionGate
     from tqdm import tqdm
-    if "local" in methods and local_model is None:
-        raise LocalScaleError("method 'local' needs a local model")
+    for m in ("local", "refined"):
+        if m in methods and local_model is None:
+            raise LocalScaleError(f"method '{m}' needs a local model")
     if "global" in methods and global_model is None:
         raise LocalScaleError("method 'global' needs a global model")
     gate = gate if gate is not None else CorrectionGate()
@@ -647,7 +730,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
     from ..errors import CheckpointError
 
     models, notes = {}, []
-    needs = {"local": ("local", "fused"), "global": ("global", "fused")}
+    needs = {"local": ("local", "fused", "refined"), "global": ("global", "fused")}
     device = resolve_device(device)
     for m, w in (("local", local_weights), ("global", global_weights)):
         if not any(x in methods for x in needs[m]):

@@ -15,7 +15,10 @@ _EXPORTS = {
     ".keypoint_scaling": ("correction_factors", "describe_lafs", "keypoint_scales", "keypoints_to_xy",
                          "laf_from_opencv", "opencv_from_laf", "rescale_keypoint_pair", "rescale_keypoints"),
     ".pipeline": ("Features", "MatchResult", "add_match_arguments", "draw_matches", "extract", "match_pair",
-                  "models_for_correction", "run_match", "run_match_cli", "save_matches"),
+                  "models_for_correction", "refine_match", "run_match", "run_match_cli", "save_matches"),
+    ".verification": ("RefinedMatching", "RefinedScale", "VerificationConfig", "VerificationResult", "corner_error",
+                      "estimate_fundamental", "estimate_homography", "homography_auc", "local_affine_scales",
+                      "refine_matching", "refine_pair_maps", "refine_scale_map", "verify_matches"),
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 
@@ -27,7 +30,10 @@ __all__ = ["detect_keypoints", "detect", "get_detector", "DETECTORS", "ResponseD
 __all__ += ["match_descriptors", "MutualNNMatcher", "reprojection_errors", "matching_accuracy", "extract",
             "match_pair", "Features", "MatchResult", "CorrectionGate", "NO_GATE", "CORRECTIONS", "draw_matches",
             "save_matches", "run_match", "run_match_cli", "add_match_arguments", "fuse_local_global",
-            "scale_maps_for_pair", "models_for_correction"]
+            "scale_maps_for_pair", "models_for_correction", "refine_match", "VerificationConfig", "VerificationResult",
+            "RefinedScale", "RefinedMatching", "verify_matches", "refine_scale_map", "refine_pair_maps",
+            "refine_matching", "estimate_homography", "estimate_fundamental", "local_affine_scales", "corner_error",
+            "homography_auc"]
 
 
 def __getattr__(name):

@@ -7,6 +7,8 @@ Example::
 
     res = match_pair("a.png", "b.png", correction="gt", H=H, descriptor="sift")
     res.accuracy(5.0), len(res.matches)
+    res = match_pair("a.png", "b.png", correction="local", refine=True)   # verify, refine, match again
+    res.verification.verified, res.refined_a.scale
     draw_matches("a.png", "b.png", res, "matches.png"); save_matches(res, "matches.npz")
 """
 from __future__ import annotations
@@ -29,6 +31,7 @@ from .descriptors import PatchDescriptor, get_descriptor
 from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
+from .verification import VerificationConfig, refine_matching, sift_seed_points
 
 
 @dataclass
@@ -86,6 +89,8 @@ class MatchResult:
         errors: ``K`` reprojection errors ``|H x_A - x_B|`` (pixels of B) when ``H`` was given, else ``None``.
         radii_a, radii_b: patch radii of all keypoints; correction: the method used.
         scale_a, scale_b: the (gated) maps / floats used, for inspection.
+        verification: :class:`~.verification.VerificationResult` of the matches (``refine=True``).
+        refined_a, refined_b: :class:`~.verification.RefinedScale` of A and B (``refine=True``).
     """
 
     keypoints_a: np.ndarray
@@ -100,6 +105,9 @@ class MatchResult:
     scale_a: object = None
     scale_b: object = None
     meta: dict = field(default_factory=dict)
+    verification: object = None
+    refined_a: object = None
+    refined_b: object = None
 
     def inliers(self, threshold: float = 5.0) -> np.ndarray:
         if self.errors is None:
@@ -127,8 +135,17 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
                descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
                ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
                base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False,
-               detector: str = "hessian") -> MatchResult:
+               detector: str = "hessian", refine: bool = False, verification: Optional[VerificationConfig] = None,
+               max_passes: int = 2, sift_seed: bool = True) -> MatchResult:
     """Detect, correct, describe and mutually match two images.
+
+    With ``refine``: the matches are verified (:func:`~.verification.verify_matches`), both maps are
+    refined by the verified geometry (:func:`~.verification.refine_scale_map`, the correction's maps
+    as the prior; 1 where the method gives none), the patches are re-cut with the refined maps and
+    matched again, up to ``max_passes`` passes while the inlier count grows; the pass with the most
+    inliers is returned, with ``verification``, ``refined_a`` and ``refined_b`` set. With
+    ``sift_seed``, a first pass that is not verified is followed by the verification of OpenCV SIFT
+    matches (:func:`~.verification.sift_seed_points`), whose geometry, if verified, refines the maps.
 
     Args:
         image_a, image_b: paths or ``H x W x 3`` uint8 arrays.
@@ -138,17 +155,88 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
         gate: gating of predicted maps (``NO_GATE`` to disable; not applied to ``"gt"``).
         bf16: run the scale networks under bfloat16 autocast.
         detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
+        refine, verification, max_passes, sift_seed: second pass with verified, refined maps (above);
+            ``verification`` holds the thresholds (default :class:`~.verification.VerificationConfig`).
     """
     get_detector(detector, max(1, num_features))
     a = load_image(image_a, "image A")
     b = load_image(image_b, "image B")
     desc = get_descriptor(descriptor)
     sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate, bf16=bf16)
+    if refine:
+        return refine_match(a, b, sa, sb, H=H, descriptor=desc, num_features=num_features, ratio=ratio,
+                            base_radius=base_radius, orientation=orientation, config=verification,
+                            max_passes=max_passes, correction=correction, sift_seed=sift_seed,
+                            detector=detector)
     fa = extract(a, sa, num_features, desc, base_radius, orientation, detector=detector)
     fb = extract(b, sb, num_features, desc, base_radius, orientation, detector=detector)
     res = match_features(fa, fb, H, ratio, correction)
     res.scale_a, res.scale_b = sa, sb
     res.meta = {"num_features_a": len(fa), "num_features_b": len(fb), "descriptor": desc.name, "detector": detector}
+    return res
+
+
+def _as_map(scale, shape):
+    """A map or float as an ``H x W`` float32 map (``None`` = 1)."""
+    if scale is None:
+        return np.ones(shape, np.float32)
+    if np.isscalar(scale):
+        return np.full(shape, float(scale), np.float32)
+    return np.asarray(scale, np.float32)
+
+
+def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, prior_b=None, H=None,
+                 descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
+                 ratio: Optional[float] = None, base_radius: float = 16.0, orientation: str = "upright",
+                 config: Optional[VerificationConfig] = None, max_passes: int = 2,
+                 correction: str = "refined", sift_seed: bool = True, detector: str = "hessian") -> MatchResult:
+    """Match with given maps, verify, refine the maps and match again (:func:`~.verification.refine_matching`).
+
+    Args:
+        image_a, image_b: paths or ``H x W x 3`` uint8 arrays.
+        scale_a, scale_b: maps (or floats, or ``None``) of the first pass (e.g. the gated network maps).
+        prior_a, prior_b: network maps the refined maps start from (default: ``scale_*``; ``None`` = 1).
+        H: ground-truth homography A -> B for reprojection errors (optional).
+        sift_seed: when the first pass is not verified, try OpenCV SIFT matches as the geometry's seed.
+        detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
+    Returns:
+        :class:`MatchResult` of the pass with the most inliers; ``scale_a`` / ``scale_b`` are the maps
+        that pass used, ``refined_a`` / ``refined_b`` the refined maps, ``verification`` the geometry
+        they came from (the seed's when it was used; the best pass's when nothing was verified).
+    """
+    a = load_image(image_a, "image A")
+    b = load_image(image_b, "image B")
+    desc = get_descriptor(descriptor)
+    ga, gb = image_to_gray_tensor(a), image_to_gray_tensor(b)
+    det = get_detector(detector, num_features)
+    cutter = ScaleCorrectedPatches(base_radius, desc.patch_size, orientation)
+    kps = {0: det(ga)[0], 1: det(gb)[0]}
+    history = {0: [], 1: []}   # per image, per pass: (map, radii)
+
+    def describer(i, gray):
+        def describe(scale_map):
+            patches, _, r = cutter(gray, kps[i], scale_map)
+            history[i].append((scale_map, r.numpy()))
+            return kps[i].numpy(), desc.describe(patches)
+        return describe
+
+    pa = _as_map(scale_a if prior_a is None else prior_a, a.shape[:2])
+    pb = _as_map(scale_b if prior_b is None else prior_b, b.shape[:2])
+    seed = (lambda: sift_seed_points(a, b, num_features)) if sift_seed else None
+    out = refine_matching(describer(0, ga), describer(1, gb), a.shape[:2], b.shape[:2], scale_a, scale_b,
+                          pa, pb, config or VerificationConfig(), max_passes, ratio, seed)
+    (used_a, radii_a), (used_b, radii_b) = history[0][out.best_pass], history[1][out.best_pass]
+    errors = None
+    if H is not None:
+        H = read_homography(H)
+        errors = reprojection_errors(out.keypoints_a, out.keypoints_b, out.matches, H)
+    res = MatchResult(out.keypoints_a, out.keypoints_b, out.matches, out.distances, errors, radii_a, radii_b,
+                      correction, H, used_a, used_b)
+    res.verification, res.refined_a, res.refined_b = out.refined_a.verification, out.refined_a, out.refined_b
+    res.meta = {"num_features_a": len(out.keypoints_a), "num_features_b": len(out.keypoints_b),
+                "descriptor": desc.name, "passes": out.passes, "best_pass": out.best_pass,
+                "inlier_counts": list(out.inlier_counts),
+                "seed_inliers": None if out.seed is None else int(out.seed.num_inliers)}
     return res
 
 
@@ -230,8 +318,12 @@ def models_for_correction(correction: str, local_weights=None, global_weights=No
 def run_match(image_a, image_b, out, correction: str = "local", H=None, descriptor: str = "hardnet",
               num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
               device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
-              local_model=None, global_model=None, detector: str = "hessian") -> MatchResult:
+              local_model=None, global_model=None, detector: str = "hessian", refine: bool = False,
+              max_passes: int = 2, sift_seed: bool = True) -> MatchResult:
     """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
+
+    With ``refine`` (:func:`match_pair`): also ``out/refined_scale.npy`` / ``refined_source.npy`` /
+    ``refined_scale.png`` for A, the same with ``_b`` for B, and ``out/geometry.json``.
 
     The models ``correction`` needs are ``local_model`` / ``global_model`` when given, else loaded
     from ``local_weights`` / ``global_weights`` (None = bundled) on ``device``.
@@ -240,15 +332,26 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
         local_model, global_model = models_for_correction(correction, local_weights, global_weights, device)
     H = read_homography(H) if H is not None else None
     res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
-                     orientation=orientation, bf16=bf16, detector=detector)
+                     orientation=orientation, bf16=bf16, detector=detector, refine=refine, max_passes=max_passes,
+                     sift_seed=sift_seed)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
+    if refine:
+        from ..cli import write_refinement
+        inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
+        write_refinement(out, "", res.refined_a, res.refined_b,
+                         {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs)
     if verbose:
         msg = f"{len(res.matches)} matches ({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
         if res.errors is not None:
             msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
         print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
+        if refine:
+            v = res.verification
+            state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"
+            print(f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
+                  f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}")
     return res
 
 
