@@ -24,6 +24,7 @@ import torch
 import torch.nn as nn
 
 from .errors import CheckpointError
+from .outputs import atomic_path
 
 FORMAT_VERSION = 1
 _REGISTRY: dict[str, type] = {}
@@ -54,13 +55,13 @@ def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, hal
         raise CheckpointError(f"{path}: not saved, the weights contain NaN or inf ({len(bad)} tensor(s), "
                               f"e.g. {bad[0][:80]})")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        torch.save(ckpt, tmp)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    save_atomic(ckpt, path)
+
+
+def save_atomic(obj: Any, path: str | Path) -> None:
+    """``torch.save`` through :func:`localscale.outputs.atomic_path`: ``path`` is complete or untouched."""
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def safe_load(path: str | Path) -> Any:

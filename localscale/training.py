@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, Subset
 
 from . import scales
-from .checkpoint import checkpoint_dict, non_finite_tensors, read_checkpoint, save_model
+from .checkpoint import checkpoint_dict, non_finite_tensors, read_checkpoint, save_atomic, save_model
 from .data import PairConfig, SyntheticPairs, collate, list_images, split_images
 from .errors import LocalScaleError
 from .geometry import HomographyConfig
@@ -408,13 +408,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
                                    f"saving them, {kept_checkpoint()}")
         ck = checkpoint_dict(core, meta={"train_config": dataclasses.asdict(cfg)})
         ck["train_state"] = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "step": step}
-        tmp = last.with_suffix(".tmp")
-        try:
-            torch.save(ck, tmp)
-            tmp.replace(last)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        save_atomic(ck, last)
 
     def kept_checkpoint() -> str:
         if saved_step is None:

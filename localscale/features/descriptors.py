@@ -21,7 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from kornia.feature import HardNet, SIFTDescriptor
 
-from ..checkpoint import check_format, check_state_dict, safe_load
+from ..checkpoint import check_format, check_state_dict, safe_load, save_atomic
 from ..errors import CheckpointError, LocalScaleError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -123,9 +123,7 @@ class HardNetDescriptor(PatchDescriptor):
         sd = {k: (v.half() if half and v.is_floating_point() else v).cpu() for k, v in self.net.state_dict().items()}
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        torch.save({"localscale_format": 1, "arch": "HardNet", "state_dict": sd, "meta": meta or {}}, tmp)
-        tmp.replace(path)
+        save_atomic({"localscale_format": 1, "arch": "HardNet", "state_dict": sd, "meta": meta or {}}, path)
 
 
 class SIFTPatchDescriptor(PatchDescriptor):
