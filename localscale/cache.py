@@ -76,8 +76,8 @@ def encode_batch(model: ScaleModel, images: list, bf16: bool = False) -> list[En
     """Encode several images (paths or arrays) in one backbone pass."""
     tensors, boxes = [], []
     for im in images:
-        boxed, lb = letterbox(load_image(im, name=str(im) if not hasattr(im, "shape") else "image"),
-                              model.config.image_size)
+        rgb, shape = model.load(im, name=str(im) if not hasattr(im, "shape") else "image")
+        boxed, lb = letterbox(rgb, model.config.image_size, shape)
         tensors.append(to_tensor(boxed))
         boxes.append(lb)
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):

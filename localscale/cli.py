@@ -174,6 +174,23 @@ def write_npy(path, array: np.ndarray) -> Path:
     return Path(path)
 
 
+def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
+    """A float32 ``.npy`` of ``shape`` written from ``(y0, rows)`` row bands in order, without the
+    whole array in memory (atomic: temporary name, then rename)."""
+    import numpy as np
+
+    from .outputs import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
+                    "shape": tuple(int(n) for n in shape)})
+            for _, rows in bands:
+                np.ascontiguousarray(rows, np.float32).tofile(f)
+    return Path(path)
+
+
 def write_text(path, text: str) -> Path:
     """Write ``text`` to ``path`` (atomic: temporary name, then rename)."""
     from .outputs import write_text as _write
@@ -232,23 +249,31 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
     """Write ``<stem>_scale.npy`` (float32), ``_scale.tif`` (float32 TIFF), ``_scale.png`` (colour),
     ``_confidence.npy`` and, for models that predict it, ``_visible.npy``. ``inputs`` are never
     overwritten."""
+    import cv2
     import numpy as np
 
     from .viz import colorize_log2_scale
 
     out_dir = _mkdir(Path(out_dir))
-    visible = getattr(pred, "visible", None)
-    paths = scale_map_paths(out_dir, stem, visible is not None)
+    has_visible = pred.has("visible") if hasattr(pred, "has") else getattr(pred, "visible", None) is not None
+    paths = scale_map_paths(out_dir, stem, has_visible)
     for p in paths:
         ensure_not_input(p, inputs)
-    if not (np.isfinite(pred.scale).all() and np.isfinite(pred.confidence).all()):
+    banded = hasattr(pred, "bands")   # read out band by band: only the scale map is ever whole
+    finite = pred.finite() if banded else bool(np.isfinite(pred.scale).all() and np.isfinite(pred.confidence).all())
+    if not finite:
         raise LocalScaleError(f"the predicted scale map of {stem} is not finite (NaN or inf); nothing written")
-    write_npy(paths[0], pred.scale.astype(np.float32))
-    write_image(paths[1], pred.scale.astype(np.float32))
-    write_image(paths[2], colorize_log2_scale(pred.scale)[..., ::-1])
-    write_npy(paths[3], pred.confidence.astype(np.float32))
-    if visible is not None:
-        write_npy(paths[4], np.asarray(visible, np.float32))
+    scale = np.asarray(pred.scale, np.float32)
+    write_npy(paths[0], scale)
+    write_image(paths[1], scale)
+    colour = colorize_log2_scale(scale)
+    write_image(paths[2], cv2.cvtColor(colour, cv2.COLOR_RGB2BGR, dst=colour))   # in place: no second copy
+    del colour
+    for path, name in zip(paths[3:], ("confidence", "visible")):
+        if banded:
+            write_npy_bands(path, scale.shape, pred.bands(name))
+        else:
+            write_npy(path, np.asarray(getattr(pred, name), np.float32))
     return paths
 
 
@@ -348,9 +373,9 @@ def cmd_predict(args) -> int:
     pred = check.forward
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
-    s = pred.scale
     import numpy as np
 
+    s = pred.sampled("scale")
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     if not check.reliable:
         print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
@@ -439,20 +464,27 @@ def _predict_pairs(args, out: Path) -> int:
 
 # ---------------------------------------------------------------- show, demo
 
+#: images larger than this (longer side) are shown, and predicted for the figure, at this size
+SHOW_MAX_SIDE = 2048
+
+
 def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bool = False) -> Path:
     """Predict and write the figure (A, B, scale factor map, confidence, and GT/error when ``H`` is
     given) to the file ``output``; returns its path."""
+    import numpy as np
+
     from .geometry import covisible_mask, homography_scale_map
-    from .io import load_image, read_homography
+    from .io import load_working_image, read_homography
     from .viz import plot_scale_prediction
 
     output = ensure_not_input(output, (image_a, image_b, H))
     model = model or load_scale_model("local")
-    a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
+    a, to_a = load_working_image(image_a, SHOW_MAX_SIDE, "image A")   # a figure needs no more pixels
+    b, to_b = load_working_image(image_b, SHOW_MAX_SIDE, "image B")
     pred = model.predict(a, b, bf16=bf16)
     gt = mask = None
     if H is not None:
-        Hm = read_homography(H)
+        Hm = to_b @ read_homography(H) @ np.linalg.inv(to_a)
         gt = homography_scale_map(Hm, *a.shape[:2])
         mask = covisible_mask(Hm, a.shape[:2], b.shape[:2])
     _mkdir(Path(output).parent)
@@ -511,7 +543,7 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     """
     import cv2
 
-    from .io import load_image
+    from .io import image_shape, load_image_reduced
 
     name = pair_name(image_a, image_b, always_parent=True)
     out = check_output_dir(output, [f"{name}_rectified_A.png", f"{name}_rectified.json"])
@@ -519,23 +551,23 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     for which in "AB":
         ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     model = model or load_scale_model("global")
-    a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
-    s = float(model.predict(a, b, bf16=bf16).scale)
+    s = float(model.predict(image_a, image_b, bf16=bf16).scale)
     if not (math.isfinite(s) and s > 0):
         raise LocalScaleError(f"ScaleNet predicted a non-finite scale ({s}): the model is broken; nothing written")
     which, factor = ("B", 1 / s) if s > 1 else ("A", s)
-    img = b if which == "B" else a
-    size = (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor)))
+    src = image_b if which == "B" else image_a
+    h, w = image_shape(src, f"image {which}")
+    size = (max(1, round(w * factor)), max(1, round(h * factor)))
+    img, (h, w) = load_image_reduced(src, f"image {which}", max(size))   # decoded no larger than needed
     resized = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     dst = ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     sidecar = ensure_not_input(out / f"{name}_rectified.json", inputs)
     _mkdir(out)
     write_image(dst, resized[..., ::-1])
-    src = image_b if which == "B" else image_a
     record = {"image_a": "array" if hasattr(image_a, "shape") else str(image_a),
               "image_b": "array" if hasattr(image_b, "shape") else str(image_b),
               "scale": s, "resized": which, "resized_image": "array" if hasattr(src, "shape") else str(src),
-              "factor": factor, "size_before": [img.shape[1], img.shape[0]], "size_after": list(size),
+              "factor": factor, "size_before": [w, h], "size_after": list(size),
               "output": str(dst)}
     write_text(sidecar, json.dumps(record, indent=1) + "\n")
     record["sidecar"] = str(sidecar)
@@ -617,6 +649,9 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
                    help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
+    p.add_argument("--max-side", type=nonnegative_int, default=2048, metavar="PX",
+                   help="match larger images at this working resolution (longer side; 0: full resolution); "
+                        "keypoints are written in full-image pixels")
     add_refine_options(p)
     add_model_options(p, local=True, global_=True, bf16=True)
     return p
@@ -645,7 +680,8 @@ def cmd_match(args) -> int:
     run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
               args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
               local_model=local_model, global_model=global_model, detector=args.detector, refine=refine,
-              max_passes=passes, sift_seed=getattr(args, "refine_seed", "sift") == "sift")
+              max_passes=passes, sift_seed=getattr(args, "refine_seed", "sift") == "sift",
+              max_side=getattr(args, "max_side", 2048) or None)
     return 0
 
 
@@ -701,6 +737,17 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
     return v
 
 

@@ -11,6 +11,11 @@
   file whose size cannot be read from its header is refused undecoded;
 * the EXIF orientation tag of a file is applied (a portrait photo stays portrait).
 
+:func:`load_image_reduced` decodes a file much larger than needed at ``1/2``, ``1/4`` or ``1/8``
+(JPEG through libjpeg's DCT scaling, other formats reduced right after decoding) and returns the
+full size beside it; :func:`load_working_image` brings an image to a working resolution and
+returns the matrix from full-image to working pixels; :func:`image_shape` reads the size alone.
+
 Decoder messages (OpenCV's log, libjpeg/libpng warnings on stderr) are kept off the
 terminal while a file is decoded; a decoder warning on a file that still decodes is
 reported as one Python warning.
@@ -200,42 +205,120 @@ def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
         ImageError: missing/unreadable/corrupt file, bad dtype or shape, NaN/inf,
             image too small or too large, size not readable from the file header.
     """
+    return load_image_reduced(image, name)[0]
+
+
+def reduction_factor(height: int, width: int, min_long_side: int | None) -> int:
+    """The largest of 1, 2, 4, 8 that keeps the longer side at least ``min_long_side``."""
+    k = 1
+    while min_long_side and k < 8 and max(height, width) / (2 * k) >= min_long_side:
+        k *= 2
+    return k
+
+
+def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int | None = None
+                       ) -> tuple[np.ndarray, tuple[int, int]]:
+    """Like :func:`load_image`, but a file much larger than needed is decoded at a reduced size.
+
+    A file whose longer side is at least twice ``min_long_side`` is reduced by the largest
+    ``k`` of 2, 4, 8 that keeps its longer side at least ``min_long_side``: JPEG files are
+    decoded at ``1/k`` (libjpeg's DCT scaling, which never holds the full image), other formats
+    are decoded and at once reduced (area average), before any conversion. Arrays are not reduced.
+
+    Returns:
+        ``(rgb, (H, W))``: the ``h x w x 3`` uint8 RGB image and the size of the full image
+        (upright, as :func:`load_image` would return it).
+    """
     if isinstance(image, (str, os.PathLike)):
-        path = Path(image)
-        label = f"{name} ({path})"
-        st = _stat_file(path, name)
-        if stat.S_ISDIR(st.st_mode):
-            raise ImageError(f"{name}: is a directory, not an image file: {path}")
-        if st.st_size == 0:
-            raise ImageError(f"{name}: empty file (0 bytes): {path}")
-        try:
-            header = _header(path)
-        except OSError as e:
-            raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
-        if header is None:
-            raise ImageError(f"{name}: cannot decode image, its size cannot be read from the header "
-                             f"(corrupt, truncated or unsupported format): {path}")
-        (width, height), orientation = header
-        _check_size(height, width, label)
-        try:
-            data = np.fromfile(str(path), dtype=np.uint8)
-        except OSError as e:
-            raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
-        with _quiet_decoder() as messages:
-            arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        if arr is None:
-            raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
-        if sorted(arr.shape[:2]) != sorted((height, width)):
-            raise ImageError(f"{name}: decoded image is {arr.shape[1]}x{arr.shape[0]}, but its header says "
-                             f"{width}x{height} (corrupt file): {path}")
-        if messages:
-            warnings.warn(f"{label}: the decoder reported a problem: {messages[0][:200]}", stacklevel=2)
-        if arr.ndim == 3:
-            code = cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB
-            if arr.shape[2] in (3, 4):
-                arr = cv2.cvtColor(arr, code)
-        arr = _apply_orientation(arr, orientation)
-        return to_rgb_uint8(arr, label)
+        return _load_file(Path(image), name, min_long_side)
+    rgb = load_image_array(image, name)
+    return rgb, rgb.shape[:2]
+
+
+def load_working_image(image: ImageLike, max_side: int | None, name: str = "image"
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """An image at a working resolution: its longer side at most ``max_side`` (None: full size).
+
+    Returns ``(rgb, S)``: the image, and the ``3 x 3`` matrix from pixel coordinates of the full
+    image to those of the returned one (the identity when it was not resized)."""
+    rgb, (h, w) = load_image_reduced(image, name, max_side)
+    if not max_side or max(h, w) <= max_side:
+        return rgb, np.eye(3)
+    f = max_side / max(h, w)
+    nw, nh = max(1, round(w * f)), max(1, round(h * f))
+    rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA)
+    fx, fy = nw / w, nh / h
+    return rgb, np.array([[fx, 0, 0.5 * fx - 0.5], [0, fy, 0.5 * fy - 0.5], [0, 0, 1]])
+
+
+def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
+    """``(H, W)`` of an image (upright) without decoding a file: from its header, checked as
+    :func:`load_image` checks it."""
+    if isinstance(image, (str, os.PathLike)):
+        (width, height), orientation = _checked_header(Path(image), name)
+        return (width, height) if orientation in (5, 6, 7, 8) else (height, width)
+    return load_image_array(image, name).shape[:2]
+
+
+def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
+    st = _stat_file(path, name)
+    if stat.S_ISDIR(st.st_mode):
+        raise ImageError(f"{name}: is a directory, not an image file: {path}")
+    if st.st_size == 0:
+        raise ImageError(f"{name}: empty file (0 bytes): {path}")
+    try:
+        header = _header(path)
+    except OSError as e:
+        raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
+    if header is None:
+        raise ImageError(f"{name}: cannot decode image, its size cannot be read from the header "
+                         f"(corrupt, truncated or unsupported format): {path}")
+    (width, height), _ = header
+    _check_size(height, width, f"{name} ({path})")
+    return header
+
+
+def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.ndarray, tuple[int, int]]:
+    label = f"{name} ({path})"
+    (width, height), orientation = _checked_header(path, name)
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as e:
+        raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
+    k = reduction_factor(height, width, min_long_side)
+    jpeg_reduced = k > 1 and bytes(data[:3]) == b"\xff\xd8\xff"
+    flags = cv2.IMREAD_UNCHANGED
+    if jpeg_reduced:
+        flags = _REDUCED_COLOR[k] | cv2.IMREAD_IGNORE_ORIENTATION
+    with _quiet_decoder() as messages:
+        arr = cv2.imdecode(data, flags)
+    del data
+    if arr is None:
+        raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
+    expected = (-(-height // k), -(-width // k)) if jpeg_reduced else (height, width)
+    if sorted(arr.shape[:2]) != sorted(expected):
+        raise ImageError(f"{name}: decoded image is {arr.shape[1] * (k if jpeg_reduced else 1)}x"
+                         f"{arr.shape[0] * (k if jpeg_reduced else 1)}, but its header says "
+                         f"{width}x{height} (corrupt file): {path}")
+    if messages:
+        warnings.warn(f"{label}: the decoder reported a problem: {messages[0][:200]}", stacklevel=3)
+    if k > 1 and not jpeg_reduced:
+        arr = cv2.resize(arr, (-(-arr.shape[1] // k), -(-arr.shape[0] // k)), interpolation=cv2.INTER_AREA)
+    if arr.ndim == 3:
+        code = cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB
+        if arr.shape[2] in (3, 4):
+            arr = cv2.cvtColor(arr, code)
+    arr = _apply_orientation(arr, orientation)
+    full = (width, height) if orientation in (5, 6, 7, 8) else (height, width)
+    _check_size(*full, label)
+    return to_rgb_uint8(arr, label, check_size=k == 1), full
+
+
+_REDUCED_COLOR = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
+
+
+def load_image_array(image, name: str = "image") -> np.ndarray:
+    """Validate an array (or a ``C x H x W`` / ``H x W x C`` torch tensor) as :func:`load_image` does."""
     if isinstance(image, np.ndarray):
         return to_rgb_uint8(image, name)
     try:  # torch tensors: C x H x W float in [0, 1] or uint8
@@ -251,14 +334,15 @@ def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
     raise ImageError(f"{name}: expected a file path or a numpy array, got {type(image).__name__}")
 
 
-def to_rgb_uint8(arr: np.ndarray, name: str = "image") -> np.ndarray:
+def to_rgb_uint8(arr: np.ndarray, name: str = "image", check_size: bool = True) -> np.ndarray:
     """Validate and convert an ``H x W [x C]`` array to ``H x W x 3`` uint8 RGB."""
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (2, 3, 4)):
         raise ImageError(f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, "
                          f"got shape {arr.shape}")
-    _check_size(arr.shape[0], arr.shape[1], name)
+    if check_size:
+        _check_size(arr.shape[0], arr.shape[1], name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
         if not _is_opaque(arr[..., -1]):
             warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)

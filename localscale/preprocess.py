@@ -61,10 +61,15 @@ def make_letterbox(height: int, width: int, size: int) -> Letterbox:
     return Letterbox(height, width, size, nh, nw, (size - nh) // 2, (size - nw) // 2)
 
 
-def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, Letterbox]:
-    """Resize + pad an ``H x W x C`` uint8 image into ``size x size`` (zeros outside)."""
-    lb = make_letterbox(image.shape[0], image.shape[1], size)
-    interp = cv2.INTER_AREA if lb.factor < 1 else cv2.INTER_LINEAR
+def letterbox(image: np.ndarray, size: int, original_shape: tuple[int, int] | None = None
+              ) -> tuple[np.ndarray, Letterbox]:
+    """Resize + pad an ``H x W x C`` uint8 image into ``size x size`` (zeros outside).
+
+    ``original_shape``: ``(H, W)`` of the original when ``image`` is a reduced copy of it (see
+    :func:`localscale.io.load_image_reduced`); the placement is then that of the original.
+    """
+    lb = make_letterbox(*(original_shape or image.shape[:2]), size)
+    interp = cv2.INTER_AREA if lb.new_width < image.shape[1] else cv2.INTER_LINEAR
     resized = cv2.resize(image, (lb.new_width, lb.new_height), interpolation=interp)
     out = np.zeros((size, size) + image.shape[2:], dtype=image.dtype)
     out[lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width] = resized

@@ -64,20 +64,33 @@ class PairCheck:
     reasons: list[str] = field(default_factory=list)
 
 
+def _map(pred, name: str):
+    """A map of a prediction, on a stride that keeps it under a few megapixels (the statistics of
+    a pair do not need more, and a huge image's full maps are never made whole for them)."""
+    if hasattr(pred, "sampled"):
+        return pred.sampled(name) if pred.has(name) else None
+    return getattr(pred, name, None)
+
+
 def _visible(pred, threshold: float) -> np.ndarray:
-    vis = getattr(pred, "visible", None)
+    vis = _map(pred, "visible")
     if vis is None:
-        return np.ones(pred.scale.shape, bool)
+        return np.ones(_map(pred, "scale").shape, bool)
     return vis > threshold
 
 
 def pair_statistics(forward, backward, cfg: PairCheckConfig = PairCheckConfig()) -> dict:
-    """The three pair-level numbers of :class:`PairCheck` from two predictions."""
+    """The three pair-level numbers of :class:`PairCheck` from two predictions (maps of images
+    above 4 MP are read on a stride)."""
     va, vb = _visible(forward, cfg.visible_threshold), _visible(backward, cfg.visible_threshold)
     visible_fraction = float(va.mean())
-    med = lambda p, m: float(np.median(np.log2(p.scale[m]))) if m.any() else float(np.median(np.log2(p.scale)))  # noqa: E731
+
+    def med(p, m):
+        s = _map(p, "scale")
+        return float(np.median(np.log2(s[m]))) if m.any() else float(np.median(np.log2(s)))
+
     inconsistency = abs(med(forward, va) + med(backward, vb))
-    rel = getattr(forward, "reliability", None)
+    rel = _map(forward, "reliability")
     if rel is None:
         mean_rel = float("nan")
     else:

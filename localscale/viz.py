@@ -19,9 +19,14 @@ def colorize_log2_scale(scale: np.ndarray, vmax: float = LOG2_RANGE) -> np.ndarr
     import matplotlib
 
     cmap = matplotlib.colormaps[CMAP]
-    x = (np.log2(np.clip(scale, 1e-6, None)) / vmax + 1) / 2
-    rgb = cmap(np.nan_to_num(np.clip(x, 0, 1), nan=0.5))[..., :3]
-    return (rgb * 255).round().astype(np.uint8)
+    scale = np.asarray(scale)
+    out = np.empty(scale.shape + (3,), np.uint8)
+    step = max(1, (1 << 18) // max(1, scale.shape[-1])) if scale.ndim == 2 else len(scale)
+    for y0 in range(0, len(scale), step):   # in row bands: the colormap's float RGBA is 32 bytes a pixel
+        x = (np.log2(np.clip(scale[y0:y0 + step], 1e-6, None)) / vmax + 1) / 2
+        rgb = cmap(np.nan_to_num(np.clip(x, 0, 1), nan=0.5))[..., :3]
+        out[y0:y0 + step] = (rgb * 255).round()
+    return out
 
 
 def fitted_log2_range(*maps, percentile: float = 99.0, cap: float = LOG2_RANGE) -> float:

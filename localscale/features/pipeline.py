@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..errors import LocalScaleError
-from ..io import load_image, read_homography
+from ..io import load_image, load_working_image, read_homography
 from .correction import (CORRECTIONS, NO_GATE, CorrectionGate, _global_scale, fuse_local_global,  # noqa: F401
                          scale_maps_for_pair)
 from .descriptors import PatchDescriptor, get_descriptor
@@ -32,6 +32,9 @@ from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
 from .patches import ScaleCorrectedPatches
 from .verification import VerificationConfig, refine_matching, sift_seed_points
+
+#: default working resolution of :func:`match_pair` (longer side, pixels)
+MAX_SIDE = 2048
 
 
 @dataclass
@@ -136,8 +139,13 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
                ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
                base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False,
                detector: str = "hessian", refine: bool = False, verification: Optional[VerificationConfig] = None,
-               max_passes: int = 2, sift_seed: bool = True) -> MatchResult:
+               max_passes: int = 2, sift_seed: bool = True, max_side: Optional[int] = MAX_SIDE) -> MatchResult:
     """Detect, correct, describe and mutually match two images.
+
+    Images larger than ``max_side`` (longer side) are matched at that working resolution (a large
+    JPEG is decoded at a reduced size); keypoints, radii and errors are returned in pixels of the
+    full images, the maps (``scale_a``, ``refined_a``, ...) stay in the working frame
+    (``meta["working_scale"]``: working pixels per full-image pixel of A and B).
 
     With ``refine``: the matches are verified (:func:`~.verification.verify_matches`), both maps are
     refined by the verified geometry (:func:`~.verification.refine_scale_map`, the correction's maps
@@ -157,10 +165,38 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
         detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
         refine, verification, max_passes, sift_seed: second pass with verified, refined maps (above);
             ``verification`` holds the thresholds (default :class:`~.verification.VerificationConfig`).
+        max_side: working resolution (None: full resolution).
     """
     get_detector(detector, max(1, num_features))
-    a = load_image(image_a, "image A")
-    b = load_image(image_b, "image B")
+    a, to_work_a = load_working_image(image_a, max_side, "image A")
+    b, to_work_b = load_working_image(image_b, max_side, "image B")
+    H_full = None if H is None else read_homography(H)
+    H = None if H is None else to_work_b @ H_full @ np.linalg.inv(to_work_a)
+    res = _match_loaded(a, b, correction, H, local_model, global_model, descriptor, num_features, ratio, gate,
+                        base_radius, orientation, bf16, detector, refine, verification, max_passes, sift_seed)
+    return _to_full_frame(res, to_work_a, to_work_b, H_full)
+
+
+def _to_full_frame(res: MatchResult, to_work_a: np.ndarray, to_work_b: np.ndarray, H_full) -> MatchResult:
+    """Keypoints, radii and errors of a result computed at a working resolution, in full-image pixels."""
+    if np.array_equal(to_work_a, np.eye(3)) and np.array_equal(to_work_b, np.eye(3)):
+        return res
+
+    def back(points, S):
+        return ((points - S[:2, 2]) / np.diag(S)[:2]).astype(np.float32)
+
+    fa, fb = (float(np.sqrt(S[0, 0] * S[1, 1])) for S in (to_work_a, to_work_b))
+    res.keypoints_a, res.keypoints_b = back(res.keypoints_a, to_work_a), back(res.keypoints_b, to_work_b)
+    res.radii_a, res.radii_b = res.radii_a / fa, res.radii_b / fb
+    res.H = H_full
+    if H_full is not None:
+        res.errors = reprojection_errors(res.keypoints_a, res.keypoints_b, res.matches, H_full)
+    res.meta["working_scale"] = [fa, fb]
+    return res
+
+
+def _match_loaded(a, b, correction, H, local_model, global_model, descriptor, num_features, ratio, gate,
+                  base_radius, orientation, bf16, detector, refine, verification, max_passes, sift_seed):
     desc = get_descriptor(descriptor)
     sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate, bf16=bf16)
     if refine:
@@ -241,10 +277,12 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
 
 
 def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, None] = None,
-                 threshold: float = 5.0, max_lines: int = 500) -> np.ndarray:
+                 threshold: float = 5.0, max_lines: int = 500, max_side: Optional[int] = MAX_SIDE) -> np.ndarray:
     """Side-by-side picture; with ``H`` inliers (error < ``threshold``) green, outliers red,
-    else all matches yellow. Returns the RGB canvas and writes it to ``path`` if given."""
-    a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
+    else all matches yellow. Images larger than ``max_side`` are drawn at that size. Returns the
+    RGB canvas and writes it to ``path`` if given."""
+    a, to_a = load_working_image(image_a, max_side, "image A")
+    b, to_b = load_working_image(image_b, max_side, "image B")
     h = max(a.shape[0], b.shape[0])
     canvas = np.zeros((h, a.shape[1] + b.shape[1], 3), np.uint8)
     canvas[:a.shape[0], :a.shape[1]] = a
@@ -259,9 +297,11 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
             else result.errors[:len(m)]
         ok = err < threshold
     lw = max(1, round(max(canvas.shape) / 800))
+    kpa = result.keypoints_a * np.diag(to_a)[:2] + to_a[:2, 2]
+    kpb = result.keypoints_b * np.diag(to_b)[:2] + to_b[:2, 2]
     for i, (ia, ib) in enumerate(m):
-        pa = tuple(int(round(v)) for v in result.keypoints_a[ia])
-        pb = result.keypoints_b[ib]
+        pa = tuple(int(round(v)) for v in kpa[ia])
+        pb = kpb[ib]
         pb = (int(round(pb[0])) + a.shape[1], int(round(pb[1])))
         colour = (255, 220, 0) if ok is None else ((0, 220, 0) if ok[i] else (230, 0, 0))
         cv2.line(canvas, pa, pb, colour, lw, cv2.LINE_AA)
@@ -319,7 +359,7 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
               num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
               device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
               local_model=None, global_model=None, detector: str = "hessian", refine: bool = False,
-              max_passes: int = 2, sift_seed: bool = True) -> MatchResult:
+              max_passes: int = 2, sift_seed: bool = True, max_side: Optional[int] = MAX_SIDE) -> MatchResult:
     """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
 
     With ``refine`` (:func:`match_pair`): also ``out/refined_scale.npy`` / ``refined_source.npy`` /
@@ -333,7 +373,7 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, descript
     H = read_homography(H) if H is not None else None
     res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
                      orientation=orientation, bf16=bf16, detector=detector, refine=refine, max_passes=max_passes,
-                     sift_seed=sift_seed)
+                     sift_seed=sift_seed, max_side=max_side)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")

@@ -9,7 +9,7 @@ import torch
 import torch.nn as nn
 
 from ..errors import ImageError
-from ..io import ImageLike, load_image
+from ..io import ImageLike, load_image, load_image_reduced
 from ..preprocess import Letterbox, letterbox, to_tensor
 from .common import FeatureExtractor
 
@@ -75,10 +75,26 @@ class ScaleModel(nn.Module):
                              f"got {tuple(images.shape)}")
         return self.extractor(images)
 
-    def prepare(self, image: ImageLike, name: str = "image") -> tuple[torch.Tensor, Letterbox]:
-        """Load/validate an image and letterbox it: ``1 x 3 x P x P`` tensor + placement."""
-        rgb = load_image(image, name)
-        boxed, lb = letterbox(rgb, self.config.image_size)
+    @property
+    def input_side(self) -> int:
+        """Files are decoded at a reduced size down to this longer side (4x the network's input)."""
+        return 4 * self.config.image_size
+
+    def load(self, image: ImageLike, name: str = "image") -> tuple[np.ndarray, tuple[int, int]]:
+        """An image as the network needs it: ``(rgb, (H, W))``, a large file decoded at a reduced
+        size (:func:`~localscale.io.load_image_reduced`), with the size of the full image."""
+        return load_image_reduced(image, name, self.input_side)
+
+    def prepare(self, image: ImageLike, name: str = "image",
+                original_shape: tuple[int, int] | None = None) -> tuple[torch.Tensor, Letterbox]:
+        """Load/validate an image and letterbox it: ``1 x 3 x P x P`` tensor + placement.
+
+        ``original_shape``: the full ``(H, W)`` when ``image`` is an array reduced by :meth:`load`."""
+        if original_shape is None:
+            rgb, original_shape = self.load(image, name)
+        else:
+            rgb = load_image(image, name)
+        boxed, lb = letterbox(rgb, self.config.image_size, original_shape)
         return to_tensor(boxed)[None].to(self.device), lb
 
     def _batch_images(self, images, name: str) -> tuple[list[np.ndarray], "BatchFormat"]:
@@ -134,9 +150,11 @@ class ScaleModel(nn.Module):
         return lb_a, lb_b, fmt, outs
 
     @torch.inference_mode()
-    def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False) -> EncodedImage:
-        """Encode one image for later pairing (the feature cache's unit)."""
-        x, lb = self.prepare(image, name)
+    def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False,
+                     original_shape: tuple[int, int] | None = None) -> EncodedImage:
+        """Encode one image for later pairing (the feature cache's unit); ``original_shape`` as in
+        :meth:`prepare`."""
+        x, lb = self.prepare(image, name, original_shape)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
             f = self.encode(x)
         return EncodedImage(f.float(), lb)
@@ -144,10 +162,10 @@ class ScaleModel(nn.Module):
     def encode_pair(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> tuple[EncodedImage, EncodedImage]:
         """Encode both images of a pair; when exactly one of them is gray, the other is turned
         gray too, so that a colour difference is not read as a scale change."""
-        a, b = load_image(image_a, "image A"), load_image(image_b, "image B")
+        (a, shape_a), (b, shape_b) = self.load(image_a, "image A"), self.load(image_b, "image B")
         if is_gray(a) != is_gray(b):
             a, b = to_gray3(a), to_gray3(b)
-        return self.encode_image(a, "image A", bf16), self.encode_image(b, "image B", bf16)
+        return self.encode_image(a, "image A", bf16, shape_a), self.encode_image(b, "image B", bf16, shape_b)
 
     @classmethod
     def from_pretrained(cls, path: str | Path | None = None, device: str | torch.device = "cpu"):

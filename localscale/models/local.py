@@ -27,7 +27,8 @@ Example::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -37,6 +38,7 @@ import torch.nn.functional as F
 from .. import scales
 from ..checkpoint import register
 from ..io import ImageLike
+from ..maps import GridMaps
 from ..planar import planarize
 from ..preprocess import Letterbox
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
@@ -95,9 +97,20 @@ class DenseHead(nn.Module):
         return self.out(y), (self.visible(y) if self.visible is not None else None)
 
 
-@dataclass
+def _clip01(x: np.ndarray) -> np.ndarray:
+    return np.clip(x, 0, 1, out=x)
+
+
+#: channels of :class:`LocalScalePrediction`'s grid and how each is read out at full resolution
+_CHANNELS = {"scale": np.exp, "confidence": _clip01, "visible": _clip01, "reliability": _clip01}
+
+
 class LocalScalePrediction:
     """Output of :meth:`LocalScaleNet.predict`.
+
+    The maps are kept on the network's processing grid and read out at A's original resolution
+    when first used (then cached), band by band: a full map costs its own 4 bytes per pixel and
+    no temporaries. :meth:`bands` and :meth:`sampled` read a map without making it whole.
 
     Attributes:
         scale: ``H_A x W_A`` float32, ``S_{A->B}`` per pixel of A (original resolution).
@@ -108,16 +121,69 @@ class LocalScalePrediction:
             (None for a model without the visibility output). The scale is meaningful only there.
         reliability: ``H_A x W_A`` in [0, 1], the calibrated probability that the scale at a
             pixel is within a factor 1.25 of the truth (None for an uncalibrated model).
+        maps: the :class:`~localscale.maps.GridMaps` behind them (channels in :attr:`channels`).
     """
 
-    scale: np.ndarray
-    confidence: np.ndarray
-    probs: torch.Tensor
-    letterbox_a: Letterbox
-    letterbox_b: Letterbox
-    visible: np.ndarray | None = None
-    reliability: np.ndarray | None = None
-    meta: dict = field(default_factory=dict)
+    def __init__(self, grid: torch.Tensor, channels: tuple[str, ...], probs: torch.Tensor,
+                 letterbox_a: Letterbox, letterbox_b: Letterbox, meta: dict | None = None):
+        self.channels = tuple(channels)
+        self.maps = GridMaps(grid, letterbox_a, [_CHANNELS[c] for c in self.channels])
+        self.probs = probs
+        self.letterbox_a, self.letterbox_b = letterbox_a, letterbox_b
+        self.meta = meta if meta is not None else {}
+        self._full: dict[str, np.ndarray] = {}
+
+    def has(self, name: str) -> bool:
+        return name in self._full or name in self.channels
+
+    def full(self, name: str) -> np.ndarray | None:
+        """A map at full resolution (None when the model has no such output)."""
+        if name not in self._full:
+            if name not in self.channels:
+                return None
+            self._full[name] = self.maps.full(self.channels.index(name))
+        return self._full[name]
+
+    def bands(self, name: str) -> Iterator[tuple[int, np.ndarray]]:
+        """``(y0, rows)`` row bands of a map at full resolution, without making it whole."""
+        if name in self._full:
+            step = self.maps.band_rows()
+            for y0 in range(0, self._full[name].shape[0], step):
+                yield y0, self._full[name][y0:y0 + step]
+        else:
+            yield from self.maps.bands(self.channels.index(name))
+
+    def sampled(self, name: str, max_pixels: int = 4_000_000) -> np.ndarray:
+        """A map on every ``k``-th pixel (``full(name)[::k, ::k]``, ``k`` the smallest stride with at
+        most ``max_pixels`` pixels; ``k = 1`` for images up to that size)."""
+        step = self.maps.sample_step(max_pixels)
+        if name in self._full:
+            return self._full[name][::step, ::step]
+        return self.maps.sampled(self.channels.index(name), step)
+
+    def finite(self) -> bool:
+        """True when every map is finite."""
+        return self.maps.finite() and all(np.isfinite(m).all() for m in self._full.values())
+
+    @property
+    def scale(self) -> np.ndarray:
+        return self.full("scale")
+
+    @scale.setter
+    def scale(self, value: np.ndarray) -> None:
+        self._full["scale"] = value
+
+    @property
+    def confidence(self) -> np.ndarray:
+        return self.full("confidence")
+
+    @property
+    def visible(self) -> np.ndarray | None:
+        return self.full("visible")
+
+    @property
+    def reliability(self) -> np.ndarray | None:
+        return self.full("reliability")
 
     @property
     def log2_scale(self) -> np.ndarray:
@@ -254,18 +320,17 @@ class LocalScaleNet(ScaleModel):
         log_s = torch.log(scales.hard_scale(probs, 0)) if hard else scales.soft_log_scale(probs, 0)
         log_s = log_s + math.log(lb_a.factor / lb_b.factor)
         conf = scales.confidence(probs, 0)
-        grids = [log_s, conf] + ([visible] if visible is not None else [])
+        grids, channels = [log_s, conf], ["scale", "confidence"]
+        if visible is not None:
+            grids.append(visible)
+            channels.append("visible")
         if self.config.calibration:
             grids.append(reliability(probs, visible, self.config.calibration, 0))
-        maps = upsample_to_original(torch.stack(grids), lb_a)
-        scale = np.exp(as_numpy(maps[0])).astype(np.float32)
-        confidence = as_numpy(maps[1]).clip(0, 1).astype(np.float32)
-        vis_map = as_numpy(maps[2]).clip(0, 1).astype(np.float32) if visible is not None else None
-        rel_map = as_numpy(maps[-1]).clip(0, 1).astype(np.float32) if self.config.calibration else None
+            channels.append("reliability")
+        pred = LocalScalePrediction(torch.stack(grids).float().cpu(), tuple(channels), probs.cpu(), lb_a, lb_b)
         if planar:
-            scale = planarize(scale, confidence, stride=max(1, round(8 / lb_a.factor)))
-        return LocalScalePrediction(scale=scale, confidence=confidence, probs=probs.cpu(),
-                                    letterbox_a=lb_a, letterbox_b=lb_b, visible=vis_map, reliability=rel_map)
+            pred.scale = planarize(pred.scale, pred.confidence, stride=max(1, round(8 / lb_a.factor)))
+        return pred
 
 
 def reliability_features(probs: torch.Tensor, visible: torch.Tensor | None, dim: int = 1) -> torch.Tensor:
