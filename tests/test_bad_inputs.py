@@ -342,6 +342,8 @@ def _option_cases():
         ("match-num-features-0", M + ["--correction", "none", "--num-features", "0"], "--num-features"),
         ("match-num-features--3", M + ["--correction", "none", "--num-features", "-3"], "--num-features"),
         ("match-ratio-nan", M + ["--correction", "none", "--ratio", "nan"], "ratio"),
+        ("match-max-side--5", M + ["--correction", "none", "--max-side", "-5"], "--max-side"),
+        ("match-max-side-text", M + ["--correction", "none", "--max-side", "big"], "--max-side"),
         ("match-ratio-2", M + ["--correction", "none", "--ratio", "2"], "ratio"),
         ("match-bad-correction", M + ["--correction", "magic"], "invalid choice"),
         ("match-gt-without-H", M + ["--correction", "gt"], "needs the homography"),
