@@ -12,6 +12,9 @@ co-visible pixels of A, for:
 * ``global``: ScaleNet's consistency-checked scale as a constant map;
 * ``rotation-search``: B rotated by 0/90/180/270 deg, the prediction with the highest mean
   ``reliability x visible`` kept (a canonicalisation step for rotations beyond training);
+* ``shrink-A``: the map pulled towards its own level, ``c + A (ln s - c)`` with ``c`` the
+  median of ``ln s`` weighted by ``reliability x visible`` (``shrink-0``: that level as a
+  constant map; the per-pixel detail kept at the share ``A``);
 * ``const-1``: no correction.
 
 Three pair sets: the paper's homography ranges, the same with rotations over the whole circle,
@@ -39,7 +42,8 @@ from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
 
-VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "const-1")
+VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "shrink-0",
+            "shrink-0.5", "const-1")
 PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
              "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
              "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7)}
@@ -54,10 +58,18 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     return float(v[order][np.searchsorted(c, c[-1] / 2)])
 
 
-def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray) -> dict:
+def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray,
+                 variants=VARIANTS) -> dict:
     """``{variant: H_A x W_A map}`` for one pair."""
     ea, eb = local.encode_image(a), local.encode_image(b)
-    fwd, bwd = local.predict_from_features(ea, eb), local.predict_from_features(eb, ea)
+    fwd = local.predict_from_features(ea, eb)
+    if not set(variants) & {"symmetric", "symmetric-weighted", "fused", "global", "rotation-search"}:
+        lf = np.log(fwd.scale)
+        c = weighted_median(lf, fwd.reliability * fwd.visible)
+        out = {"local": fwd.scale, "const-1": np.ones_like(fwd.scale)}
+        out.update({v: np.exp(c + float(v.split("-", 1)[1]) * (lf - c)) for v in variants if v.startswith("shrink-")})
+        return {v: out[v] for v in variants}
+    bwd = local.predict_from_features(eb, ea)
     g = float(scalenet.predict(a, b).scale)
     lf, lb = np.log(fwd.scale), np.log(bwd.scale)
     weight = lambda p: p.reliability * p.visible if p.reliability is not None else np.ones_like(p.scale)  # noqa: E731
@@ -71,6 +83,8 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
     return {"local": fwd.scale, "symmetric": np.exp(lf - c / 2), "symmetric-weighted": np.exp(lf - cw / 2),
             "fused": np.exp(lf - weighted_median(lf, weight(fwd)) + math.log(g)),
             "global": np.full_like(fwd.scale, g), "rotation-search": best.scale,
+            "shrink-0": np.full_like(fwd.scale, math.exp(weighted_median(lf, weight(fwd)))),
+            "shrink-0.5": np.exp(0.5 * lf + 0.5 * weighted_median(lf, weight(fwd))),
             "const-1": np.ones_like(fwd.scale)}
 
 
@@ -81,23 +95,28 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=777)
     p.add_argument("--model", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
     p.add_argument("--global-model", default=None, help="ScaleNet checkpoint (default: bundled)")
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS),
+                   help="read-outs to measure (default: all; local, shrink-A and const-1 alone are fast)")
+    p.add_argument("--sets", nargs="+", default=list(PAIR_SETS), help="pair sets (default: all three)")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
+    variants = [v for v in args.variants]
     torch.set_num_threads(1)
     local, scalenet = LocalScaleNet.from_pretrained(args.model), ScaleNet.from_pretrained(args.global_model)
     _, held = split_images(list_images(args.photos))
     table = {}
-    for name, (cfg, crop) in PAIR_SETS.items():
-        per = {v: [] for v in VARIANTS}
+    for name in args.sets:
+        cfg, crop = PAIR_SETS[name]
+        per = {v: [] for v in variants}
         for _, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, crop)), desc=name):
-            for v, m in variant_maps(local, scalenet, a, b).items():
+            for v, m in variant_maps(local, scalenet, a, b, variants).items():
                 per[v].append(float(np.exp(pixel_errors(m, H, b.shape[:2])["err"]).mean()))
         table[name] = {v: float(np.mean(e)) for v, e in per.items()}
         table[name]["pairs"] = len(per["local"])
-    print("| pair set (pairs) | " + " | ".join(VARIANTS) + " |")
-    print("|---|" + "---|" * len(VARIANTS))
+    print("| pair set (pairs) | " + " | ".join(variants) + " |")
+    print("|---|" + "---|" * len(variants))
     for name, row in table.items():
-        print(f"| {name} ({row['pairs']}) | " + " | ".join(f"{row[v]:.3f}" for v in VARIANTS) + " |")
+        print(f"| {name} ({row['pairs']}) | " + " | ".join(f"{row[v]:.3f}" for v in variants) + " |")
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"seed": args.seed, "table": table}, indent=1))
