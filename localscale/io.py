@@ -310,7 +310,6 @@ def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.nda
             arr = cv2.cvtColor(arr, code)
     arr = _apply_orientation(arr, orientation)
     full = (width, height) if orientation in (5, 6, 7, 8) else (height, width)
-    _check_size(*full, label)
     return to_rgb_uint8(arr, label, check_size=k == 1), full
 
 

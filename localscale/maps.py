@@ -67,9 +67,6 @@ class GridMaps:
         """``(H, W)`` of the original image."""
         return self.letterbox.height, self.letterbox.width
 
-    def __len__(self) -> int:
-        return self.source.shape[0]
-
     def finite(self) -> bool:
         """True when every grid value is finite (then so is every read-out value)."""
         return bool(np.isfinite(self.source).all())

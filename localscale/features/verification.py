@@ -178,17 +178,10 @@ def estimate_homography(points_a: np.ndarray, points_b: np.ndarray, threshold: f
 
     Returns ``(H 3 x 3 or None, inlier mask K bool)``.
     """
-    pa = np.asarray(points_a, np.float64).reshape(-1, 2)
-    pb = np.asarray(points_b, np.float64).reshape(-1, 2)
-    if len(pa) < 4:
-        return None, np.zeros(len(pa), bool)
-    try:
-        H, mask = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, threshold, maxIters=max_iters, confidence=confidence)
-    except cv2.error:
-        return None, np.zeros(len(pa), bool)
-    if H is None or mask is None or not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
-        return None, np.zeros(len(pa), bool)
-    return H, mask.reshape(-1).astype(bool)
+    return _robust_fit(points_a, points_b, 4,
+                       lambda pa, pb: cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, threshold, maxIters=max_iters,
+                                                         confidence=confidence),
+                       lambda H: abs(np.linalg.det(H)) >= 1e-12)
 
 
 def estimate_fundamental(points_a: np.ndarray, points_b: np.ndarray, threshold: float = 1.0,
@@ -197,17 +190,27 @@ def estimate_fundamental(points_a: np.ndarray, points_b: np.ndarray, threshold: 
 
     Returns ``(F 3 x 3 or None, inlier mask K bool)``.
     """
+    return _robust_fit(points_a, points_b, 8,
+                       lambda pa, pb: cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, threshold, confidence, max_iters),
+                       lambda F: F.shape == (3, 3))
+
+
+def _robust_fit(points_a, points_b, min_points: int, fit, valid):
+    """``(M, inlier mask)`` of an OpenCV robust estimator ``fit(pa, pb) -> (M, mask)``; ``(None, all
+    False)`` with fewer than ``min_points`` points, on an OpenCV error, or when ``M`` is missing,
+    not finite or fails ``valid``."""
     pa = np.asarray(points_a, np.float64).reshape(-1, 2)
     pb = np.asarray(points_b, np.float64).reshape(-1, 2)
-    if len(pa) < 8:
-        return None, np.zeros(len(pa), bool)
+    none = None, np.zeros(len(pa), bool)
+    if len(pa) < min_points:
+        return none
     try:
-        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, threshold, confidence, max_iters)
+        M, mask = fit(pa, pb)
     except cv2.error:
-        return None, np.zeros(len(pa), bool)
-    if F is None or mask is None or F.shape != (3, 3) or not np.isfinite(F).all():
-        return None, np.zeros(len(pa), bool)
-    return F, mask.reshape(-1).astype(bool)
+        return none
+    if M is None or mask is None or not np.isfinite(M).all() or not valid(M):
+        return none
+    return M, mask.reshape(-1).astype(bool)
 
 
 def local_affine_scales(points_a: np.ndarray, points_b: np.ndarray, neighbours: int = 8,
