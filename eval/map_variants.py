@@ -15,10 +15,13 @@ co-visible pixels of A, for:
 * ``shrink-A``: the map pulled towards its own level, ``c + A (ln s - c)`` with ``c`` the
   median of ``ln s`` weighted by ``reliability x visible`` (``shrink-0``: that level as a
   constant map; the per-pixel detail kept at the share ``A``);
+* ``window-search``: :func:`localscale.search.search_scale_map` (windows of A or B at 1/2
+  and 1/4 of the sides against the other image whole, the best-scoring pair kept);
 * ``const-1``: no correction.
 
-Three pair sets: the paper's homography ranges, the same with rotations over the whole circle,
-and the paper's ranges with A a central 70 % crop whose surroundings B shows.
+Pair sets: the paper's homography ranges, the same with rotations over the whole circle, the
+paper's ranges with A a central 70 % crop whose surroundings B shows, and zooms at the two
+ends of the bin range (B 4.5-8x closer; B 4.5-8x further, i.e. A's content in 1/20-1/64 of B).
 
     OMP_NUM_THREADS=1 python eval/map_variants.py --photos ../shared/data/train_images --pairs 60 \
         --out results/map_variants.json
@@ -41,12 +44,15 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
+from localscale.search import search_scale_map  # noqa: E402
 
 VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "shrink-0",
-            "shrink-0.5", "const-1")
+            "shrink-0.5", "window-search", "const-1")
 PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
              "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
-             "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7)}
+             "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7),
+             "zoom-in end (4.5-8x)": (HomographyConfig(scale_range=(4.5, 8.0)), 1.0),
+             "zoom-out end (1/8-1/4.5)": (HomographyConfig(scale_range=(0.125, 0.22)), 1.0)}
 
 
 def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
@@ -61,14 +67,20 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
 def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray,
                  variants=VARIANTS) -> dict:
     """``{variant: H_A x W_A map}`` for one pair."""
+    out = {}
+    if "window-search" in variants:
+        out["window-search"] = search_scale_map(local, a, b).prediction.scale
+        variants = [v for v in variants if v != "window-search"]
+        if not variants:
+            return out
     ea, eb = local.encode_image(a), local.encode_image(b)
     fwd = local.predict_from_features(ea, eb)
     if not set(variants) & {"symmetric", "symmetric-weighted", "fused", "global", "rotation-search"}:
         lf = np.log(fwd.scale)
         c = weighted_median(lf, fwd.reliability * fwd.visible)
-        out = {"local": fwd.scale, "const-1": np.ones_like(fwd.scale)}
+        out.update({"local": fwd.scale, "const-1": np.ones_like(fwd.scale)})
         out.update({v: np.exp(c + float(v.split("-", 1)[1]) * (lf - c)) for v in variants if v.startswith("shrink-")})
-        return {v: out[v] for v in variants}
+        return {v: out[v] for v in list(variants) + (["window-search"] if "window-search" in out else [])}
     bwd = local.predict_from_features(eb, ea)
     g = float(scalenet.predict(a, b).scale)
     lf, lb = np.log(fwd.scale), np.log(bwd.scale)
@@ -80,7 +92,7 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
         p = local.predict_from_features(ea, local.encode_image(np.ascontiguousarray(np.rot90(b, k))))
         if float(weight(p).mean()) > best_score:
             best, best_score = p, float(weight(p).mean())
-    return {"local": fwd.scale, "symmetric": np.exp(lf - c / 2), "symmetric-weighted": np.exp(lf - cw / 2),
+    return out | {"local": fwd.scale, "symmetric": np.exp(lf - c / 2), "symmetric-weighted": np.exp(lf - cw / 2),
             "fused": np.exp(lf - weighted_median(lf, weight(fwd)) + math.log(g)),
             "global": np.full_like(fwd.scale, g), "rotation-search": best.scale,
             "shrink-0": np.full_like(fwd.scale, math.exp(weighted_median(lf, weight(fwd)))),
@@ -97,7 +109,7 @@ def main(argv=None) -> int:
     p.add_argument("--global-model", default=None, help="ScaleNet checkpoint (default: bundled)")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS),
                    help="read-outs to measure (default: all; local, shrink-A and const-1 alone are fast)")
-    p.add_argument("--sets", nargs="+", default=list(PAIR_SETS), help="pair sets (default: all three)")
+    p.add_argument("--sets", nargs="+", default=list(PAIR_SETS), help="pair sets (default: all)")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     variants = [v for v in args.variants]
@@ -110,6 +122,8 @@ def main(argv=None) -> int:
         per = {v: [] for v in variants}
         for _, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, crop)), desc=name):
             for v, m in variant_maps(local, scalenet, a, b, variants).items():
+                if v not in per:
+                    continue
                 per[v].append(float(np.exp(pixel_errors(m, H, b.shape[:2])["err"]).mean()))
         table[name] = {v: float(np.mean(e)) for v, e in per.items()}
         table[name]["pairs"] = len(per["local"])

@@ -15,7 +15,9 @@ Real mode also scores ``refined``: the local maps (gated) for a first HardNet ma
 matches verified with a MAGSAC homography, the local map refined by the verified geometry and a
 second matching pass (:func:`localscale.features.pipeline.refine_match`; when the first pass is not
 verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
-verification fails the refined map is the local map.
+verification fails the refined map is the local map. With ``--search`` it also scores the
+window search (:func:`localscale.search.search_scale_map`) and ScaleNet run on the windows the
+search chose.
 
 Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
 scale alone, the D-ScaleNet hard read-out, the constant 1, a random bin, and the median of
@@ -233,7 +235,12 @@ def real_pairs(roots: list[Path]):
         yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
 
 
-def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True) -> dict:
+def _crop(img: np.ndarray, win) -> np.ndarray:
+    return img if win is None else np.ascontiguousarray(img[win[1]:win[3], win[0]:win[2]])
+
+
+def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True,
+              search: bool = False) -> dict:
     from localscale.features.correction import CorrectionGate
     from localscale.features.pipeline import refine_match
     from localscale.reliability import pair_statistics
@@ -266,6 +273,14 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
         row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
                                "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
                                "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
+    if search:
+        from localscale.search import search_scale_map
+
+        res = search_scale_map(local, a, b)
+        row["search"] = pixel_errors(res.prediction.scale, H, b.shape[:2])["err"]
+        gs = scalenet.predict(_crop(a, res.window_a), _crop(b, res.window_b)).scale
+        row["global-search"] = np.abs(math.log(gs) - pe["log_gt"])
+        row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
     row.update(pair_statistics(fwd, bwd))
     return row
 
@@ -279,10 +294,13 @@ def run_real(args) -> dict:
     scalenet = ScaleNet.from_pretrained(args.global_model)
     torch.set_num_threads(args.threads) if args.threads else None
     roots = [Path(r) for r in args.real]
-    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift")
+    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift",
+                      search=args.search)
             for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
     keys = ("local", "refined", "global", "const1", "oracle") if not args.no_refined else \
         ("local", "global", "const1", "oracle")
+    if args.search:
+        keys = keys[:1] + ("search",) + keys[1:] + ("global-search",)
     cfg = PairCheckConfig()
     res = {"local_model": str(args.model or "bundled"), "global_model": str(args.global_model or "bundled"),
            "roots": [str(r) for r in roots], "pairs": len(rows), "stride_px": STRIDE}
@@ -305,7 +323,10 @@ def run_real(args) -> dict:
                                    "visible_fraction": r["visible_fraction"], "mean_reliability": r["mean_reliability"],
                                    "flag_reasons": flag_reasons(r, cfg)}
                        | ({"refined_mean_r": float(np.exp(r["refined"]).mean()), **r["verification"]}
-                          if "refined" in r else {}) for r in rows}
+                          if "refined" in r else {})
+                       | ({"search_mean_r": float(np.exp(r["search"]).mean()),
+                           "global_search_mean_r": float(np.exp(r["global-search"]).mean()), **r["search_windows"]}
+                          if "search" in r else {}) for r in rows}
     if not args.no_refined:
         ver = [r for r in rows if r["verification"]["verified"]]
         unv = [r for r in rows if not r["verification"]["verified"]]
@@ -340,14 +361,14 @@ def run_real(args) -> dict:
     res["invariants"] = inv
 
     print(f"\n### real pairs ({len(rows)}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
-    ref_h = " refined (verified geometry, else local) |" if "refined" in keys else ""
-    print(f"| set | pairs | local map |{ref_h} global ScaleNet as a constant map | constant 1 | "
-          "best constant per pair (oracle) |")
-    print("|---|---|---|" + ("---|" if "refined" in keys else "") + "---|---|---|")
+    titles = {"local": "local map", "search": "local map, window search",
+              "refined": "refined (verified geometry, else local)", "global": "global ScaleNet as a constant map",
+              "const1": "constant 1", "oracle": "best constant per pair (oracle)",
+              "global-search": "global ScaleNet on the searched windows"}
+    print("| set | pairs | " + " | ".join(titles[k] for k in keys) + " |")
+    print("|---|---|" + "---|" * len(keys))
     for g, v in res["table"].items():
-        ref_v = f" {v['refined']:.3f} |" if "refined" in keys else ""
-        print(f"| {g} | {v['pairs']} | {v['local']:.3f} |{ref_v} {v['global']:.3f} | {v['const1']:.3f} | "
-              f"{v['oracle']:.3f} |")
+        print(f"| {g} | {v['pairs']} | " + " | ".join(f"{v[k]:.3f}" for k in keys) + " |")
     if "refined_summary" in res:
         print(f"refined: {res['refined_summary']}")
     print(f"\nco-visibility IoU (mean over pairs): {res['visibility_iou_mean']}")
@@ -379,6 +400,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-refined", action="store_true", help="real mode: skip the refined column (no matching)")
     p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
                    help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
+    p.add_argument("--search", action="store_true",
+                   help="real mode: also score the window search (localscale.search) and ScaleNet on its windows")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:

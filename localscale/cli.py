@@ -359,6 +359,8 @@ def cmd_predict(args) -> int:
             raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
         if getattr(args, "refine", False):
             raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
+        if args.search:
+            raise LocalScaleError("predict: --search works on one pair A B, not with --pairs")
         return _predict_pairs(args, out)
     if getattr(args, "refine", False) and args.refine_passes < 1:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
@@ -369,8 +371,20 @@ def cmd_predict(args) -> int:
     from .reliability import check_pair
 
     model = _model(args, "local")
+    if args.search and (args.hard or args.planar):
+        raise LocalScaleError("predict: --search uses the soft read-out; drop --hard/--planar")
     check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
     pred = check.forward
+    if args.search:
+        from .search import search_scale_map
+
+        if not model.config.calibration:
+            raise LocalScaleError("predict --search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
+        found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
+        pred = found.prediction
+        where = ", ".join(f"{n} {w}" for n, w in (("A window", found.window_a), ("B window", found.window_b)) if w)
+        print(f"search: {found.candidates} window pairs scored; kept {where or 'the whole images'} "
+              f"(score {found.score:.1f}, whole images {found.base_score:.1f})", file=sys.stderr)
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     import numpy as np
@@ -378,7 +392,8 @@ def cmd_predict(args) -> int:
     s = pred.sampled("scale")
     print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
     if not check.reliable:
-        print(f"warning: this scale map is unreliable: {'; '.join(check.reasons)}", file=sys.stderr)
+        scope = " (checked on the whole images)" if args.search else ""
+        print(f"warning: this scale map is unreliable{scope}: {'; '.join(check.reasons)}", file=sys.stderr)
     if getattr(args, "refine", False):
         from .features.correction import CorrectionGate
         from .features.pipeline import refine_match
@@ -698,6 +713,7 @@ EXAMPLES = {
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/
       -> out/kodim01_a_kodim01_b_scale.{npy,tif,png}, _confidence.npy
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
+  localscale predict wide.jpg closeup.jpg -o out/ --search     (strong zoom or low overlap)
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/ --refine
       -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
@@ -836,6 +852,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "quoting for names with spaces (default: none, predict A B)")
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
+    sp.add_argument("--search", action="store_true",
+                    help="window search: re-estimate on the windows of A or B (1/2, 1/4 of the sides) that share "
+                         "the most content with the other image; for strong zooms and low overlap, ~30x slower")
     sp.add_argument("--batch-size", type=positive_int, default=8, help="pairs per network batch with --pairs")
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
     sp.add_argument("--overwrite", action="store_true",

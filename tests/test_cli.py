@@ -73,6 +73,29 @@ def test_predict_writes_npy_tiff_png(models, pair, tmp_path):
     assert png.shape == (400, 600, 3)
 
 
+def test_predict_search_writes_the_searched_map_and_says_what_it_kept(pair, tmp_path, capsys):
+    rc = main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--search"])
+    assert rc == 0
+    err = capsys.readouterr().err
+    assert "window pairs scored; kept" in err
+    s = np.load(tmp_path / "a_b_scale.npy")
+    assert s.shape == (400, 600) and np.isfinite(s).all()
+
+
+@pytest.mark.parametrize("extra,words", [(["--hard"], "--search uses the soft read-out"),
+                                         (["--local-weights", "UNCAL"], "needs a calibrated Local-ScaleNet")])
+def test_predict_search_refuses_what_it_cannot_do(models, pair, tmp_path, capsys, extra, words):
+    extra = [str(models / "local.pt") if e == "UNCAL" else e for e in extra]
+    assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--search", *extra]) == 2
+    one_line_error(capsys, words)
+
+
+def test_predict_search_is_for_one_pair(models, seqs, tmp_path, capsys):
+    (seqs / "p.txt").write_text("v_coffee/1.png v_coffee/2.png\n")
+    assert main(["predict", "--pairs", str(seqs / "p.txt"), "-o", str(tmp_path), "--search"]) == 2
+    one_line_error(capsys, "--search works on one pair")
+
+
 def test_deprecated_model_option_still_names_the_checkpoint(models, pair, tmp_path, capsys):
     assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path),
                  "--model", str(models / "global.pt")]) == 2

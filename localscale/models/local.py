@@ -171,7 +171,14 @@ class LocalScalePrediction:
 
     @scale.setter
     def scale(self, value: np.ndarray) -> None:
-        self._full["scale"] = value
+        self.set_map("scale", value)
+
+    def set_map(self, name: str, value: np.ndarray) -> None:
+        """Replace a map by a full-resolution ``H_A x W_A`` array (used by read-outs that change it)."""
+        shape = (self.letterbox_a.height, self.letterbox_a.width)
+        if np.shape(value) != shape:
+            raise ValueError(f"{name}: expected a {shape[0]} x {shape[1]} map, got {np.shape(value)}")
+        self._full[name] = value
 
     @property
     def confidence(self) -> np.ndarray:
