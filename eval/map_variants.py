@@ -17,6 +17,7 @@ co-visible pixels of A, for:
   constant map; the per-pixel detail kept at the share ``A``);
 * ``window-search``: :func:`localscale.search.search_scale_map` (windows of A or B at 1/2
   and 1/4 of the sides against the other image whole, the best-scoring pair kept);
+  ``window-search-turns``: the same after trying B turned by 90/180/270 deg;
 * ``const-1``: no correction.
 
 Pair sets: the paper's homography ranges, the same with rotations over the whole circle, the
@@ -44,10 +45,10 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
-from localscale.search import search_scale_map  # noqa: E402
+from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
 
 VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "shrink-0",
-            "shrink-0.5", "window-search", "const-1")
+            "shrink-0.5", "window-search", "window-search-turns", "const-1")
 PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
              "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
              "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7),
@@ -70,9 +71,12 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
     out = {}
     if "window-search" in variants:
         out["window-search"] = search_scale_map(local, a, b).prediction.scale
-        variants = [v for v in variants if v != "window-search"]
-        if not variants:
-            return out
+    if "window-search-turns" in variants:
+        turns = WindowSearchConfig(quarter_turns=(1, 2, 3))
+        out["window-search-turns"] = search_scale_map(local, a, b, turns).prediction.scale
+    variants = [v for v in variants if v not in out]
+    if not variants:
+        return out
     ea, eb = local.encode_image(a), local.encode_image(b)
     fwd = local.predict_from_features(ea, eb)
     if not set(variants) & {"symmetric", "symmetric-weighted", "fused", "global", "rotation-search"}:
@@ -80,7 +84,7 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
         c = weighted_median(lf, fwd.reliability * fwd.visible)
         out.update({"local": fwd.scale, "const-1": np.ones_like(fwd.scale)})
         out.update({v: np.exp(c + float(v.split("-", 1)[1]) * (lf - c)) for v in variants if v.startswith("shrink-")})
-        return {v: out[v] for v in list(variants) + (["window-search"] if "window-search" in out else [])}
+        return out
     bwd = local.predict_from_features(eb, ea)
     g = float(scalenet.predict(a, b).scale)
     lf, lb = np.log(fwd.scale), np.log(bwd.scale)

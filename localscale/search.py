@@ -4,13 +4,18 @@ One Local-ScaleNet pass sees both images whole at 192 px. Under a strong zoom th
 covers a few cells of one of them (a 6x zoom-out puts all of A in 1/36 of B), and under low
 overlap most cells of both are unrelated; the map is then poor, although the same network is
 accurate once the shared part fills both inputs. The search tries windows of one image against
-the whole other image (in the spirit of MODS' adaptive synthetic views), and keeps the pair that
-scores best:
+the whole other image (in the spirit of MODS' adaptive synthetic views) and scores each pair:
 
     score = mean calibrated reliability over A's side x sum of the similarities of the mutual
             nearest neighbours between the two feature grids
 
 (the first says how sure the network is, the second how much content the two inputs share).
+The best-scoring pairs that beat the whole images are then checked (:func:`plausible`): the
+two directions must roughly agree (within 4x), and a window of B must be filled by A's content
+as the maps predict it (A's visible pixels, each covering ``S^2`` pixels of B, at least 10 % of
+the window). A window that scores well but fails is the network confidently reading unrelated
+content as a tiny copy of A, the failure that matters on real low-overlap pairs. The first
+pair that passes is kept.
 Windows have sides ``z`` of the image's for each ``z`` in :attr:`WindowSearchConfig.zooms`, on a
 grid with half-window overlap; each candidate costs one encoding and one head pass (about 120
 candidates with the default zooms). The scale units stay those of the original images, so the
@@ -35,6 +40,7 @@ from .io import ImageLike
 from .models.base import is_gray, to_gray3
 from .models.local import LocalScaleNet, LocalScalePrediction, reliability
 from .preprocess import Letterbox, letterbox, to_tensor
+from .reliability import pair_statistics
 
 #: ``(x0, y0, x1, y1)`` in the pixels of the original image, end exclusive
 Window = tuple[int, int, int, int]
@@ -47,14 +53,31 @@ class WindowSearchConfig:
     zooms: tuple[float, ...] = (0.5, 0.25)
     #: search windows of A (zooms into B), of B (zooms out of B), or both
     sides: tuple[str, ...] = ("a", "b")
+    #: quarter turns of B (counter-clockwise) tried on the whole images before the windows; the
+    #: best-scoring turn is kept for the window search (the scale map does not depend on it)
+    quarter_turns: tuple[int, ...] = ()
     #: candidates per network pass
     batch_size: int = 8
+    #: the best-scoring window pairs (at most this many, in order) are checked by
+    #: :func:`plausible`; the first that passes is kept, the whole images when none does
+    checked: int = 8
+    #: a kept pair's two directions agree within this (median log2 S_AB + median log2 S_BA)
+    max_inconsistency_log2: float = 2.0
+    #: a kept window of B is filled at least this much by A's visible content (its predicted area)
+    min_cover: float = 0.1
 
     def __post_init__(self):
         if not self.zooms or any(not 0 < z < 1 for z in self.zooms):
             raise ValueError(f"zooms must be fractions in (0, 1), got {self.zooms}")
+        if any(k not in (1, 2, 3) for k in self.quarter_turns):
+            raise ValueError(f"quarter_turns must be among 1, 2, 3, got {self.quarter_turns}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.checked < 0:
+            raise ValueError(f"checked must be >= 0, got {self.checked}")
+        if self.min_cover < 0 or self.max_inconsistency_log2 <= 0:
+            raise ValueError(f"min_cover must be >= 0 and max_inconsistency_log2 > 0, "
+                             f"got {self.min_cover}, {self.max_inconsistency_log2}")
         if not self.sides or set(self.sides) - {"a", "b"}:
             raise ValueError(f"sides must be a non-empty subset of ('a', 'b'), got {self.sides}")
 
@@ -71,6 +94,8 @@ class WindowSearchResult:
         score: the chosen pair's score; ``base_score`` that of the whole images.
         base: the first pass (whole A against whole B).
         candidates: pairs scored.
+        quarter_turns_b: B was searched turned by this many quarter turns counter-clockwise
+            (``np.rot90(B, k)``); ``window_b`` is given in the pixels of B as it was passed.
     """
 
     prediction: LocalScalePrediction
@@ -80,6 +105,7 @@ class WindowSearchResult:
     base_score: float
     base: LocalScalePrediction
     candidates: int = 0
+    quarter_turns_b: int = 0
     scores: list[tuple[str, Window | None, float]] = field(default_factory=list, repr=False)
 
 
@@ -94,6 +120,16 @@ def grid_windows(height: int, width: int, zoom: float, min_side: int = 16) -> li
     ys = np.linspace(0, height - wh, n).round().astype(int)
     xs = np.linspace(0, width - ww, n).round().astype(int)
     return [(int(x), int(y), int(x) + ww, int(y) + wh) for y in ys for x in xs]
+
+
+def unturn_window(win: Window, turned_shape: tuple[int, int], turns: int) -> Window:
+    """A window given in ``np.rot90(image, turns)`` (of shape ``turned_shape``) in the pixels of ``image``."""
+    for _ in range(turns % 4):
+        # np.rot90(img, 1)[i, j] == img[j, W - 1 - i], W (img's width) being the turned height
+        h, w = turned_shape
+        x0, y0, x1, y1 = win
+        win, turned_shape = (h - y1, x0, h - y0, x1), (w, h)
+    return win
 
 
 def _inside_cells(lb, grid: int) -> torch.Tensor:
@@ -152,6 +188,21 @@ def _encode_windows(model: LocalScaleNet, rgb: np.ndarray, factor: float, window
     return torch.cat(feats), lb
 
 
+def plausible(fwd: LocalScalePrediction, bwd: LocalScalePrediction, side: str, cfg: WindowSearchConfig) -> bool:
+    """Whether a window pair's maps are believable: ``fwd`` (A side -> B side) and ``bwd`` agree
+    within ``cfg.max_inconsistency_log2``; for a window of B (``side == "b"``), A's visible
+    content covers at least ``cfg.min_cover`` of it."""
+    if pair_statistics(fwd, bwd)["inconsistency_log2"] >= cfg.max_inconsistency_log2:
+        return False
+    if side == "b":
+        scale = fwd.sampled("scale")
+        vis = fwd.sampled("visible") if fwd.has("visible") else np.ones_like(scale)
+        lb_a, lb_b = fwd.letterbox_a, fwd.letterbox_b
+        cover = float((vis * scale.astype(np.float64) ** 2).mean()) * lb_a.height * lb_a.width
+        return cover >= cfg.min_cover * lb_b.height * lb_b.width
+    return True
+
+
 def _compose(base: LocalScalePrediction, inner: LocalScalePrediction, win: Window | None) -> LocalScalePrediction:
     """``inner``'s maps pasted into ``base``'s at ``win`` (``inner`` itself when ``win`` is None)."""
     if win is None:
@@ -189,8 +240,18 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
     ea, eb = encode(a, fa, None, "image A"), encode(b, fb, None, "image B")
     base = model.predict_from_features(ea, eb, bf16=bf16)
     base_score = float(_scores(model, ea.features, eb.features, ea.letterbox, eb.letterbox, bf16)[0])
-    best = (base_score, None, None)
     scores: list[tuple[str, Window | None, float]] = [("whole", None, base_score)]
+    turns, turn_score = 0, base_score
+    for k in cfg.quarter_turns:
+        shape_k = shape_b if k % 2 == 0 else shape_b[::-1]
+        ek = model.encode_image(np.ascontiguousarray(np.rot90(b, k)), "image B", bf16, shape_k)
+        v = float(_scores(model, ea.features, ek.features, ea.letterbox, ek.letterbox, bf16)[0])
+        scores.append((f"whole, B turned {90 * k} deg", None, v))
+        if v > turn_score:
+            turns, turn_score, eb = k, v, ek
+    if turns:
+        b, shape_b = np.ascontiguousarray(np.rot90(b, turns)), (shape_b if turns % 2 == 0 else shape_b[::-1])
+    candidates: list[tuple[float, str, Window]] = []
     for zoom in cfg.zooms:
         for side, rgb, shape, factor in (("a", a, shape_a, fa), ("b", b, shape_b, fb)):
             windows = grid_windows(*shape, zoom) if side in cfg.sides else []
@@ -203,17 +264,28 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
                       _scores(model, ea.features, part, ea.letterbox, lb, bf16))
                 for win, v in zip(windows[i:i + cfg.batch_size], sc.tolist()):
                     scores.append((side, win, v))
-                    if v > best[0]:
-                        best = (v, win, None) if side == "a" else (v, None, win)
+                    if v > turn_score:
+                        candidates.append((v, side, win))
+    best = (turn_score, None, None)
+    for v, side, win in sorted(candidates, key=lambda c: -c[0])[:cfg.checked]:
+        ew = encode(a, fa, win, "image A") if side == "a" else ea
+        eo = encode(b, fb, win, "image B") if side == "b" else eb
+        fwd, bwd = model.predict_from_features(ew, eo, bf16=bf16), model.predict_from_features(eo, ew, bf16=bf16)
+        if plausible(fwd, bwd, side, cfg):
+            best = (v, win, None) if side == "a" else (v, None, win)
+            break
     score, win_a, win_b = best
     if win_a is None and win_b is None:
-        pred = base
+        pred = base if not turns else model.predict_from_features(ea, eb, bf16=bf16)
     else:
         ew = encode(a, fa, win_a, "image A") if win_a is not None else ea
         eo = encode(b, fb, win_b, "image B") if win_b is not None else eb
         pred = model.predict_from_features(ew, eo, bf16=bf16)
         if win_a is not None:
             pred = _compose(model.predict_from_features(ea, eb, bf16=bf16), pred, win_a)
-        if win_b is not None:
-            pred.meta["window_b"] = win_b
-    return WindowSearchResult(pred, win_a, win_b, score, base_score, base, len(scores), scores)
+    if win_b is not None and turns:
+        win_b = unturn_window(win_b, shape_b, turns)
+    if win_b is not None:
+        pred.meta["window_b"] = win_b
+    pred.meta["quarter_turns_b"] = turns
+    return WindowSearchResult(pred, win_a, win_b, score, base_score, base, len(scores), turns, scores)

@@ -8,7 +8,7 @@ import torch
 
 from localscale import LocalScaleNet
 from localscale.geometry import covisible_mask, homography_scale_map, sample_homography, warp_image, HomographyConfig
-from localscale.search import WindowSearchConfig, grid_windows, mutual_similarity, search_scale_map
+from localscale.search import WindowSearchConfig, grid_windows, mutual_similarity, search_scale_map, unturn_window
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,16 @@ def test_grid_windows_skip_windows_below_the_minimum_size():
     assert len(grid_windows(64, 64, 0.25)) == 49
 
 
+@pytest.mark.parametrize("turns", [0, 1, 2, 3, 5])
+def test_unturn_window_maps_a_window_of_the_turned_image_back(turns):
+    img = np.arange(7 * 11).reshape(7, 11)
+    turned = np.rot90(img, turns)
+    win = (2, 1, 5, 4)
+    x0, y0, x1, y1 = unturn_window(win, turned.shape, turns)
+    inside_turned = turned[win[1]:win[3], win[0]:win[2]]
+    np.testing.assert_array_equal(np.sort(img[y0:y1, x0:x1].ravel()), np.sort(inside_turned.ravel()))
+
+
 def test_mutual_similarity_counts_mutual_neighbours():
     torch.manual_seed(0)
     f = torch.randn(1, 16, 6, 6)
@@ -58,6 +68,8 @@ def test_config_is_checked(local):
         WindowSearchConfig(zooms=(1.5,))
     with pytest.raises(ValueError, match="sides"):
         WindowSearchConfig(sides=("c",))
+    with pytest.raises(ValueError, match="quarter_turns"):
+        WindowSearchConfig(quarter_turns=(4,))
     with pytest.raises(ValueError, match="batch_size"):
         WindowSearchConfig(batch_size=0)
     uncalibrated = LocalScaleNet(local.config.__class__(**{**local.config.__dict__, "calibration": ()}))
@@ -111,3 +123,50 @@ def test_set_map_checks_the_shape(local, photos):
         pred.set_map("visible", np.zeros((3, 3), np.float32))
     pred.set_map("visible", np.zeros(photos["coffee"].shape[:2], np.float32))
     assert pred.visible.max() == 0
+
+
+def test_quarter_turn_of_b_is_found_and_windows_come_back_in_b_pixels(local, photos):
+    """B = A zoomed 5x about a point and turned 90 deg: the search turns B back and its window
+    of B lies where A's content is, in B's own pixels."""
+    a = photos["astronaut"]
+    h, w = a.shape[:2]
+    c = np.array([[1, 0, -(w - 1) / 2], [0, 1, -(h - 1) / 2], [0, 0, 1]])
+    H = np.linalg.inv(c) @ np.diag([0.2, 0.2, 1]) @ c
+    zoomed_out, _ = warp_image(a, H, (h, w), fill=photos["coffee"])
+    b = np.ascontiguousarray(np.rot90(zoomed_out, 1))
+    res = search_scale_map(local, a, b, WindowSearchConfig(quarter_turns=(1, 2, 3)))
+    assert res.quarter_turns_b == 3
+    assert res.window_b is not None
+    x0, y0, x1, y1 = res.window_b
+    assert 0 <= x0 < x1 <= b.shape[1] and 0 <= y0 < y1 <= b.shape[0]
+    # A's content sits at the centre of B
+    assert x0 < b.shape[1] / 2 < x1 and y0 < b.shape[0] / 2 < y1
+    assert abs(math.log(float(np.median(res.prediction.scale)) / 0.2)) < math.log(1.6)
+
+
+def _constant_prediction(scale: float, visible: float, shape_a, shape_b, size: int = 64):
+    from localscale.models.local import LocalScalePrediction
+    from localscale.preprocess import make_letterbox
+
+    g = size // 8
+    grid = torch.stack([torch.full((g, g), math.log(scale)), torch.ones(g, g), torch.full((g, g), visible)])
+    return LocalScalePrediction(grid, ("scale", "confidence", "visible"), torch.full((13, g, g), 1 / 13),
+                                make_letterbox(*shape_a, size), make_letterbox(*shape_b, size))
+
+
+@pytest.mark.parametrize("scale_ab,scale_ba,side,expected", [
+    (0.2, 5.0, "b", True),      # A at 1/5 fills 16 % of a window a quarter of A's side
+    (0.05, 20.0, "b", False),   # A at 1/20 would fill 1 % of it: not what a chosen window means
+    (0.05, 20.0, "a", True),    # the cover rule is for windows of B only
+    (0.2, 0.2, "b", False),     # the directions disagree by 25x
+    (1.0, 1 / 3.0, "a", True),  # within 4x
+])
+def test_plausible_checks_cover_and_consistency(scale_ab, scale_ba, side, expected):
+    from localscale.search import plausible
+
+    cfg = WindowSearchConfig()
+    big, window = (400, 400), (100, 100)
+    shape_a, shape_b = (big, window) if side == "b" else (window, big)
+    fwd = _constant_prediction(scale_ab, 1.0, shape_a, shape_b)
+    bwd = _constant_prediction(scale_ba, 1.0, shape_b, shape_a)
+    assert plausible(fwd, bwd, side, cfg) is expected
