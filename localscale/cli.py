@@ -530,7 +530,18 @@ def cmd_demo(args) -> int:
 # ---------------------------------------------------------------- scale, rectify
 
 def cmd_scale(args) -> int:
-    p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
+    if args.search:
+        from .search import search_global_scale
+
+        local = _model(args, "local")
+        if not local.config.calibration:
+            raise LocalScaleError("scale --search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
+        p, found = search_global_scale(local, _model(args, "global"), args.image_a, args.image_b, bf16=args.bf16)
+        where = ", ".join(f"{n} {w}" for n, w in (("A window", found.window_a), ("B window", found.window_b)) if w)
+        print(f"search: {found.candidates} window pairs scored; ScaleNet on {where or 'the whole images'}",
+              file=sys.stderr)
+    else:
+        p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
     import numpy as np
 
     if not (all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale))
@@ -652,7 +663,8 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="out", help="output folder (matches.npz, matches.png)")
     p.add_argument("--correction", choices=CORRECTIONS, default="local",
                    help="patch-size correction: none; global (ScaleNet); local (Local-ScaleNet, gated); "
-                        "fused (local map shape + global ScaleNet level); gt (map of --H)")
+                        "fused (local map shape + global ScaleNet level); searched (local maps from the windows "
+                        "sharing the most content: strong zoom, low overlap; ~30x slower); gt (map of --H)")
     p.add_argument("--H", default=None,
                    help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; "
                         "colours inliers; default: none)")
@@ -685,7 +697,7 @@ def cmd_match(args) -> int:
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
     get_detector(args.detector, max(1, args.num_features))
-    uses = {"local": ("local", "fused"), "global": ("global", "fused")}
+    uses = {"local": ("local", "fused", "searched"), "global": ("global", "fused")}
     for kind in MODEL_KINDS:
         w = getattr(args, f"{kind}_weights", None)
         if w is not None and args.correction not in uses[kind]:
@@ -727,7 +739,8 @@ EXAMPLES = {
     "demo": """example:
   localscale demo -o out/      -> out/demo.png""",
     "scale": """example:
-  localscale scale examples/kodim01_a.jpg examples/kodim01_b.jpg --json""",
+  localscale scale examples/kodim01_a.jpg examples/kodim01_b.jpg --json
+  localscale scale wide.jpg closeup.jpg --search     (strong zoom or low overlap)""",
     "rectify": """example:
   localscale rectify v_churchill/1.ppm v_churchill/2.ppm -o out/
       -> out/v_churchill-1_v_churchill-2_rectified_B.png (the resized image) and
@@ -884,7 +897,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("image_a", help="image A")
     sp.add_argument("image_b", help="image B")
     sp.add_argument("--json", action="store_true", help="print one JSON object")
-    add_model_options(sp, local=False, global_=True, model_alias="global")
+    sp.add_argument("--search", action="store_true",
+                    help="run ScaleNet on the window pair Local-ScaleNet's window search keeps (see predict --search): "
+                         "strong zoom, low overlap; ~30x slower")
+    add_model_options(sp, local=True, global_=True, model_alias="global")
     sp.set_defaults(func=cmd_scale)
 
     sp = command("rectify", "resize one image by the global scale so the pair has scale ~1",

@@ -24,9 +24,12 @@ keep the first pass's values.
 
 Example::
 
-    res = search_scale_map(LocalScaleNet.from_pretrained(), "wide.jpg", "zoomed.jpg")
+    local_model = LocalScaleNet.from_pretrained()
+    res = search_scale_map(local_model, "wide.jpg", "zoomed.jpg")
     print(res.window_a, res.window_b, res.score)
     s = res.prediction.scale          # H_A x W_A, S_{A->B}
+    g, _ = search_global_scale(local_model, ScaleNet.from_pretrained(), "wide.jpg", "zoomed.jpg")
+    g.scale                           # ScaleNet's S_{A->B} on the kept windows
 """
 from __future__ import annotations
 
@@ -289,3 +292,29 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
         pred.meta["window_b"] = win_b
     pred.meta["quarter_turns_b"] = turns
     return WindowSearchResult(pred, win_a, win_b, score, base_score, base, len(scores), turns, scores)
+
+
+@torch.inference_mode()
+def search_global_scale(local_model: LocalScaleNet, global_model, image_a: ImageLike, image_b: ImageLike,
+                        cfg: WindowSearchConfig = WindowSearchConfig(), bf16: bool = False):
+    """ScaleNet's global ``S_{A->B}`` on the window pair :func:`search_scale_map` keeps.
+
+    Returns ``(GlobalScalePrediction, WindowSearchResult)``. With no window kept, this is
+    ``global_model.predict(A, B)``. The windows are cut from the original images; the scale is
+    in their pixels, which are the images' own.
+    """
+    res = search_scale_map(local_model, image_a, image_b, cfg, bf16)
+    (a, shape_a), (b, shape_b) = global_model.load(image_a, "image A"), global_model.load(image_b, "image B")
+    if is_gray(a) != is_gray(b):
+        a, b = to_gray3(a), to_gray3(b)
+
+    def encode(rgb, shape, win, name, turns=0):
+        factor = shape[0] / rgb.shape[0]
+        crop, size = (rgb, shape) if win is None else (_crop(rgb, win, factor), (win[3] - win[1], win[2] - win[0]))
+        if turns % 2:
+            size = size[::-1]
+        return global_model.encode_image(np.ascontiguousarray(np.rot90(crop, turns)), name, bf16, size)
+
+    ea = encode(a, shape_a, res.window_a, "image A")
+    eb = encode(b, shape_b, res.window_b, "image B", res.quarter_turns_b)
+    return global_model.predict_from_features(ea, eb, bf16), res

@@ -90,6 +90,13 @@ def test_predict_search_refuses_what_it_cannot_do(models, pair, tmp_path, capsys
     one_line_error(capsys, words)
 
 
+def test_scale_search_runs_scalenet_on_the_kept_windows(pair, capsys):
+    assert main(["scale", str(pair / "a.png"), str(pair / "b.jpg"), "--search", "--json"]) == 0
+    out = capsys.readouterr()
+    assert "window pairs scored; ScaleNet on" in out.err
+    assert json.loads(out.out)["scale"] > 0
+
+
 def test_predict_search_is_for_one_pair(models, seqs, tmp_path, capsys):
     (seqs / "p.txt").write_text("v_coffee/1.png v_coffee/2.png\n")
     assert main(["predict", "--pairs", str(seqs / "p.txt"), "-o", str(tmp_path), "--search"]) == 2

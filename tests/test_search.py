@@ -170,3 +170,34 @@ def test_plausible_checks_cover_and_consistency(scale_ab, scale_ba, side, expect
     fwd = _constant_prediction(scale_ab, 1.0, shape_a, shape_b)
     bwd = _constant_prediction(scale_ba, 1.0, shape_b, shape_a)
     assert plausible(fwd, bwd, side, cfg) is expected
+
+
+def test_searched_correction_gives_each_image_its_searched_map(local, photos):
+    from localscale.features.correction import NO_GATE, scale_maps_for_pair
+
+    a = photos["coffee"]
+    b = np.ascontiguousarray(a[100:300, 150:450])      # B: a window of A, at A's resolution
+    sa, sb = scale_maps_for_pair(a, b, "searched", local_model=local, gate=NO_GATE)
+    assert sa.shape == a.shape[:2] and sb.shape == b.shape[:2]
+    np.testing.assert_allclose(sa, search_scale_map(local, a, b).prediction.scale)
+    np.testing.assert_allclose(sb, search_scale_map(local, b, a).prediction.scale)
+    # no zoom between the two: B's map is about 1
+    assert abs(math.log(float(np.median(sb)))) < math.log(1.3)
+
+
+def test_global_scale_on_the_searched_windows_handles_a_6x_zoom_out(local, photos):
+    from localscale import ScaleNet
+    from localscale.search import search_global_scale
+
+    scalenet = ScaleNet.from_pretrained()
+    a = photos["astronaut"]
+    h, w = a.shape[:2]
+    c = np.array([[1, 0, -(w - 1) / 2], [0, 1, -(h - 1) / 2], [0, 0, 1]])
+    shift = np.array([[1, 0, 0.2 * w], [0, 1, -0.15 * h], [0, 0, 1]])
+    H = np.linalg.inv(c) @ shift @ np.diag([1 / 6, 1 / 6, 1]) @ c
+    b, _ = warp_image(a, H, (h, w), fill=photos["rocket"])
+    g, res = search_global_scale(local, scalenet, a, b)
+    assert res.window_b is not None
+    plain = scalenet.predict(a, b).scale
+    assert abs(math.log(g.scale * 6)) < abs(math.log(plain * 6))
+    assert abs(math.log(g.scale * 6)) < math.log(1.5), (g.scale, plain)

@@ -69,7 +69,7 @@ from ..io import load_image, read_homography
 HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
             "v_astronautis", "v_talent")
 IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-METHODS = ("none", "global", "local", "fused", "gt", "gt_gated", "pyramid", "refined", "opencv-sift")
+METHODS = ("none", "global", "local", "fused", "searched", "gt", "gt_gated", "pyramid", "refined", "opencv-sift")
 H_AUC_THRESHOLDS = (3.0, 5.0, 10.0)
 SOLVED_PX = 10.0
 SIFT_RATIO = 0.8
@@ -427,7 +427,9 @@ class _Evaluator:
         if m not in CORRECTIONS:
             raise LocalScaleError(f"unknown method {m!r}; choose from {METHODS}")
         enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if m in ("local", "fused") else None
-        local = _SharedLocal(self, self.local_model) if self.local_model is not None else None
+        # the search makes and drops many encodings: keyed by id(), the shared cache could mix them up
+        local = (self.local_model if m == "searched" else _SharedLocal(self, self.local_model)) \
+            if self.local_model is not None else None
         glob = _SharedGlobal(self, self.global_model, pair) if self.global_model is not None else None
         return scale_maps_for_pair(a, b, m, H, local, glob, self.gate, enc)
 
@@ -618,7 +620,7 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", n
     Hessian); patch sizes come from ``base_radius`` and each method's maps whatever the detector."""
     from ..features.pipeline import CorrectionGate
     from tqdm import tqdm
-    for m in ("local", "refined"):
+    for m in ("local", "fused", "searched", "refined"):
         if m in methods and local_model is None:
             raise LocalScaleError(f"method '{m}' needs a local model")
     if "global" in methods and global_model is None:
@@ -730,7 +732,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
     from ..errors import CheckpointError
 
     models, notes = {}, []
-    needs = {"local": ("local", "fused", "refined"), "global": ("global", "fused")}
+    needs = {"local": ("local", "fused", "searched", "refined"), "global": ("global", "fused")}
     device = resolve_device(device)
     for m, w in (("local", local_weights), ("global", global_weights)):
         if not any(x in methods for x in needs[m]):

@@ -13,6 +13,10 @@ convention ``scale_map = S_{this->other}``):
   (:func:`fuse_local_global`); gated like ``"local"``. The local map is weakest at its level
   under strong zoom, ScaleNet has no spatial variation; together they do better than either
   on held-out synthetic pairs (README, Results);
+* ``"searched"``: A gets ``search_scale_map(local_model, A, B)``'s map, B that of
+  ``search_scale_map(local_model, B, A)`` (:mod:`localscale.search`: the windows of the two
+  images that share the most content; for strong zoom and low overlap, ~30x slower); gated
+  like ``"local"``;
 * ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``.
 
 Example::
@@ -31,7 +35,7 @@ from ..errors import LocalScaleError
 from ..geometry import homography_scale_map
 from ..io import read_homography
 
-CORRECTIONS = ("none", "global", "local", "fused", "gt")
+CORRECTIONS = ("none", "global", "local", "fused", "searched", "gt")
 
 
 @dataclass
@@ -133,6 +137,12 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     if local_model is None:
         from ..models import LocalScaleNet
         local_model = LocalScaleNet.from_pretrained()
+    if correction == "searched":
+        from ..search import search_scale_map
+
+        pa = search_scale_map(local_model, image_a, image_b, bf16=bf16).prediction
+        pb = search_scale_map(local_model, image_b, image_a, bf16=bf16).prediction
+        return gate.apply_pair(pa.scale, pb.scale, pa.confidence, pb.confidence)
     ea, eb = encodings or (local_model.encode_image(image_a, "image A", bf16),
                            local_model.encode_image(image_b, "image B", bf16))
     pa = local_model.predict_from_features(ea, eb, bf16=bf16)

@@ -350,7 +350,7 @@ def models_for_correction(correction: str, local_weights=None, global_weights=No
 
     if correction not in CORRECTIONS:
         raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
-    local_model = load_scale_model("local", local_weights, device) if correction in ("local", "fused") else None
+    local_model = load_scale_model("local", local_weights, device) if correction in ("local", "fused", "searched") else None
     global_model = load_scale_model("global", global_weights, device) if correction in ("global", "fused") else None
     return local_model, global_model
 
