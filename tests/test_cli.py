@@ -97,6 +97,12 @@ def test_scale_search_runs_scalenet_on_the_kept_windows(pair, capsys):
     assert json.loads(out.out)["scale"] > 0
 
 
+def test_match_with_the_searched_correction(pair, tmp_path):
+    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "searched",
+                 "--H", str(pair / "H"), "--num-features", "150", "--descriptor", "sift"]) == 0
+    assert len(np.load(tmp_path / "matches.npz")["matches"]) > 0
+
+
 def test_predict_search_is_for_one_pair(models, seqs, tmp_path, capsys):
     (seqs / "p.txt").write_text("v_coffee/1.png v_coffee/2.png\n")
     assert main(["predict", "--pairs", str(seqs / "p.txt"), "-o", str(tmp_path), "--search"]) == 2
