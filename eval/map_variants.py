@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     p.add_argument("--sets", nargs="+", default=list(PAIR_SETS), help="pair sets (default: all)")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
-    variants = [v for v in args.variants]
+    variants = list(args.variants)
     torch.set_num_threads(1)
     local, scalenet = LocalScaleNet.from_pretrained(args.model), ScaleNet.from_pretrained(args.global_model)
     _, held = split_images(list_images(args.photos))

@@ -235,10 +235,6 @@ def real_pairs(roots: list[Path]):
         yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
 
 
-def _crop(img: np.ndarray, win) -> np.ndarray:
-    return img if win is None else np.ascontiguousarray(img[win[1]:win[3], win[0]:win[2]])
-
-
 def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True,
               search: bool = False) -> dict:
     from localscale.features.correction import CorrectionGate
@@ -274,11 +270,11 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
                                "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
                                "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
     if search:
-        from localscale.search import search_scale_map
+        from localscale.search import search_global_scale
 
-        res = search_scale_map(local, a, b)
+        gp, res = search_global_scale(local, scalenet, a, b)
         row["search"] = pixel_errors(res.prediction.scale, H, b.shape[:2])["err"]
-        gs = scalenet.predict(_crop(a, res.window_a), _crop(b, res.window_b)).scale
+        gs = gp.scale
         row["global-search"] = np.abs(math.log(gs) - pe["log_gt"])
         row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
     row.update(pair_statistics(fwd, bwd))

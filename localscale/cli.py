@@ -378,12 +378,9 @@ def cmd_predict(args) -> int:
     if args.search:
         from .search import search_scale_map
 
-        if not model.config.calibration:
-            raise LocalScaleError("predict --search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
         found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
         pred = found.prediction
-        where = ", ".join(f"{n} {w}" for n, w in (("A window", found.window_a), ("B window", found.window_b)) if w)
-        print(f"search: {found.candidates} window pairs scored; kept {where or 'the whole images'} "
+        print(f"search: {found.candidates} window pairs scored; kept {found.kept()} "
               f"(score {found.score:.1f}, whole images {found.base_score:.1f})", file=sys.stderr)
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
@@ -533,12 +530,9 @@ def cmd_scale(args) -> int:
     if args.search:
         from .search import search_global_scale
 
-        local = _model(args, "local")
-        if not local.config.calibration:
-            raise LocalScaleError("scale --search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
-        p, found = search_global_scale(local, _model(args, "global"), args.image_a, args.image_b, bf16=args.bf16)
-        where = ", ".join(f"{n} {w}" for n, w in (("A window", found.window_a), ("B window", found.window_b)) if w)
-        print(f"search: {found.candidates} window pairs scored; ScaleNet on {where or 'the whole images'}",
+        p, found = search_global_scale(_model(args, "local"), _model(args, "global"), args.image_a, args.image_b,
+                                       bf16=args.bf16)
+        print(f"search: {found.candidates} window pairs scored; ScaleNet on {found.kept()}",
               file=sys.stderr)
     else:
         p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)

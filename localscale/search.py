@@ -39,6 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .errors import LocalScaleError
 from .io import ImageLike
 from .models.base import is_gray, to_gray3
 from .models.local import LocalScaleNet, LocalScalePrediction, reliability
@@ -111,6 +112,11 @@ class WindowSearchResult:
     quarter_turns_b: int = 0
     scores: list[tuple[str, Window | None, float]] = field(default_factory=list, repr=False)
 
+    def kept(self) -> str:
+        """What the search kept, in words: the windows (``x0, y0, x1, y1``) or the whole images."""
+        where = [f"{n} window {w}" for n, w in (("A", self.window_a), ("B", self.window_b)) if w is not None]
+        return ", ".join(where) or "the whole images"
+
 
 def grid_windows(height: int, width: int, zoom: float, min_side: int = 16) -> list[Window]:
     """Windows with sides ``zoom`` of the image's, on a regular grid with half-window overlap,
@@ -177,6 +183,16 @@ def _crop(rgb: np.ndarray, win: Window, factor: float) -> np.ndarray:
     return np.ascontiguousarray(rgb[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)])
 
 
+def _encode(model, rgb: np.ndarray, factor: float, full_shape: tuple[int, int], win: Window | None, name: str,
+            bf16: bool, turns: int = 0):
+    """Encoding of a (possibly reduced, by ``factor``) image or of one window of it, turned by
+    ``turns`` quarter turns; scales stay in the pixels of the full image (``full_shape``)."""
+    crop, size = (rgb, full_shape) if win is None else (_crop(rgb, win, factor), (win[3] - win[1], win[2] - win[0]))
+    if turns % 2:
+        size = size[::-1]
+    return model.encode_image(np.ascontiguousarray(np.rot90(crop, turns)), name, bf16, size)
+
+
 def _encode_windows(model: LocalScaleNet, rgb: np.ndarray, factor: float, windows: list[Window],
                     bf16: bool, batch: int) -> tuple[torch.Tensor, Letterbox]:
     """Encodings ``N x D x h x w`` of the windows of one image (all of one size, so one placement)."""
@@ -229,25 +245,25 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
     the first pass.
     """
     if not model.config.calibration:
-        raise ValueError("search_scale_map needs a calibrated Local-ScaleNet (config.calibration)")
+        raise LocalScaleError("the window search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
     (a, shape_a), (b, shape_b) = model.load(image_a, "image A"), model.load(image_b, "image B")
     if is_gray(a) != is_gray(b):
         a, b = to_gray3(a), to_gray3(b)
     fa, fb = shape_a[0] / a.shape[0], shape_b[0] / b.shape[0]
 
-    def encode(rgb, factor, win, name):
-        crop = rgb if win is None else _crop(rgb, win, factor)
-        shape = (shape_a if name == "image A" else shape_b) if win is None else (win[3] - win[1], win[2] - win[0])
-        return model.encode_image(crop, name, bf16, shape)
+    def encode_a(win=None):
+        return _encode(model, a, fa, shape_a, win, "image A", bf16)
 
-    ea, eb = encode(a, fa, None, "image A"), encode(b, fb, None, "image B")
+    def encode_b(win=None):
+        return _encode(model, b, fb, shape_b, win, "image B", bf16)
+
+    ea, eb = encode_a(), encode_b()
     base = model.predict_from_features(ea, eb, bf16=bf16)
     base_score = float(_scores(model, ea.features, eb.features, ea.letterbox, eb.letterbox, bf16)[0])
     scores: list[tuple[str, Window | None, float]] = [("whole", None, base_score)]
     turns, turn_score = 0, base_score
     for k in cfg.quarter_turns:
-        shape_k = shape_b if k % 2 == 0 else shape_b[::-1]
-        ek = model.encode_image(np.ascontiguousarray(np.rot90(b, k)), "image B", bf16, shape_k)
+        ek = _encode(model, b, fb, shape_b, None, "image B", bf16, k)
         v = float(_scores(model, ea.features, ek.features, ea.letterbox, ek.letterbox, bf16)[0])
         scores.append((f"whole, B turned {90 * k} deg", None, v))
         if v > turn_score:
@@ -271,8 +287,8 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
                         candidates.append((v, side, win))
     best = (turn_score, None, None)
     for v, side, win in sorted(candidates, key=lambda c: -c[0])[:cfg.checked]:
-        ew = encode(a, fa, win, "image A") if side == "a" else ea
-        eo = encode(b, fb, win, "image B") if side == "b" else eb
+        ew = encode_a(win) if side == "a" else ea
+        eo = encode_b(win) if side == "b" else eb
         fwd, bwd = model.predict_from_features(ew, eo, bf16=bf16), model.predict_from_features(eo, ew, bf16=bf16)
         if plausible(fwd, bwd, side, cfg):
             best = (v, win, None) if side == "a" else (v, None, win)
@@ -281,8 +297,8 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
     if win_a is None and win_b is None:
         pred = base if not turns else model.predict_from_features(ea, eb, bf16=bf16)
     else:
-        ew = encode(a, fa, win_a, "image A") if win_a is not None else ea
-        eo = encode(b, fb, win_b, "image B") if win_b is not None else eb
+        ew = encode_a(win_a) if win_a is not None else ea
+        eo = encode_b(win_b) if win_b is not None else eb
         pred = model.predict_from_features(ew, eo, bf16=bf16)
         if win_a is not None:
             pred = _compose(model.predict_from_features(ea, eb, bf16=bf16), pred, win_a)
@@ -308,13 +324,7 @@ def search_global_scale(local_model: LocalScaleNet, global_model, image_a: Image
     if is_gray(a) != is_gray(b):
         a, b = to_gray3(a), to_gray3(b)
 
-    def encode(rgb, shape, win, name, turns=0):
-        factor = shape[0] / rgb.shape[0]
-        crop, size = (rgb, shape) if win is None else (_crop(rgb, win, factor), (win[3] - win[1], win[2] - win[0]))
-        if turns % 2:
-            size = size[::-1]
-        return global_model.encode_image(np.ascontiguousarray(np.rot90(crop, turns)), name, bf16, size)
-
-    ea = encode(a, shape_a, res.window_a, "image A")
-    eb = encode(b, shape_b, res.window_b, "image B", res.quarter_turns_b)
+    ea = _encode(global_model, a, shape_a[0] / a.shape[0], shape_a, res.window_a, "image A", bf16)
+    eb = _encode(global_model, b, shape_b[0] / b.shape[0], shape_b, res.window_b, "image B", bf16,
+                 res.quarter_turns_b)
     return global_model.predict_from_features(ea, eb, bf16), res
