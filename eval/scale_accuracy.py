@@ -262,7 +262,7 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
     score = fwd.reliability if fwd.reliability is not None else fwd.confidence
     row["score"] = score[np.ix_(ys, xs)][m]
     if refine:
-        first_a, first_b = CorrectionGate().apply_pair(fwd.scale, bwd.scale)
+        first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
         res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
         v = res.verification

@@ -395,7 +395,7 @@ def cmd_predict(args) -> int:
         from .features.correction import CorrectionGate
         from .features.pipeline import refine_match
 
-        first_a, first_b = CorrectionGate().apply_pair(pred.scale, check.backward.scale)
+        first_a, first_b = CorrectionGate().apply_predictions(pred, check.backward)
         res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, check.backward.scale,
                            max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
         v = res.verification

@@ -255,6 +255,54 @@ def test_gate():
     assert np.allclose(sa, 4.0) and np.allclose(sb, 0.25)
 
 
+def test_gate_weighting_ignores_pixels_the_other_image_does_not_show():
+    # A sees B (2x bigger) on its left third; the rest of A is not in B and its map is noise (0.25)
+    sa = np.full((6, 9), 0.25, np.float32)
+    sa[:, :3] = 2.0
+    wa = np.zeros((6, 9), np.float32)
+    wa[:, :3] = 1.0
+    sb = np.full((6, 6), 0.5, np.float32)
+    wb = np.ones((6, 6), np.float32)
+    plain = CorrectionGate(min_pair_log2=0.5, weighting="none")
+    weighted = CorrectionGate(min_pair_log2=0.5, weighting="visible")
+    ga, gb = plain.apply_pair(sa, sb)                       # whole-map medians: the noise sets A's level
+    assert not np.allclose(ga[:, :3], 2.0, rtol=1e-3)
+    ga, gb = weighted.apply_pair(sa, sb, None, None, wa, wb)
+    assert np.allclose(ga[:, :3], 2.0, rtol=1e-5) and np.allclose(gb, 0.5, rtol=1e-5)
+    # the pair level looks at the weighted pixels only: a flat A->B of 1 over what B shows stays off
+    flat = np.full((6, 9), 4.0, np.float32)
+    flat[:, :3] = 1.0
+    assert weighted.apply_pair(flat, np.ones((6, 6), np.float32), None, None, wa, wb) == (None, None)
+    assert plain.apply_pair(flat, np.ones((6, 6), np.float32))[0] is not None
+    # all-zero weights fall back to every pixel; weights are ignored for global (scalar) scales
+    assert np.allclose(weighted.apply_pair(sa, sb, None, None, 0 * wa, wb)[0], plain.apply_pair(sa, sb)[0])
+    assert weighted.apply_pair(2.0, 0.5, None, None, wa, wb) == (2.0, 0.5)
+    with pytest.raises(LocalScaleError, match="weights have shape"):
+        weighted.apply_pair(sa, sb, None, None, wb, wb)
+    with pytest.raises(LocalScaleError, match="weighting"):
+        CorrectionGate(weighting="median")
+
+
+def test_weighted_quantile():
+    from localscale.features.correction import weighted_quantile
+
+    v = np.array([0.0, 1.0, 2.0, 10.0])
+    assert weighted_quantile(v, None, 0.5) == np.quantile(v, 0.5)
+    assert weighted_quantile(v, np.array([0.0, 0.0, 1.0, 0.0]), 0.5) == 2.0
+    assert weighted_quantile(v, np.array([1.0, 1.0, 1.0, 5.0]), 0.5) == 10.0
+    assert weighted_quantile(v, np.array([5.0, 1.0, 1.0, 1.0]), 0.9) == 10.0
+    assert weighted_quantile(v, np.zeros(4), 0.5) == np.quantile(v, 0.5)
+
+
+def test_fuse_local_global_weighted():
+    from localscale.features.pipeline import fuse_local_global
+
+    a = np.array([[1.0, 1.0, 8.0]], np.float32)
+    b = np.array([[1.0, 1.0]], np.float32)
+    fa, fb = fuse_local_global(a, b, 2.0, np.array([[0.0, 0.0, 1.0]]), None)
+    assert np.allclose(fa, [[0.25, 0.25, 2.0]]) and np.allclose(fb, 0.5)
+
+
 def test_bad_inputs(photos, tmp_path):
     a, b, H = _synthetic_pair(photos["chelsea"])
     with pytest.raises(LocalScaleError):

@@ -94,6 +94,20 @@ def test_main_writes_outputs(tiny_root, tmp_path):
 
 
 
+def test_gate_options(tiny_root, tmp_path):
+    import argparse
+
+    from localscale.evaluation.hpatches import add_arguments, gate_from_args
+
+    parse = add_arguments(argparse.ArgumentParser()).parse_args
+    gate = gate_from_args(parse([str(tiny_root)]))
+    assert gate.weighting == "reliability" and gate.consistency
+    gate = gate_from_args(parse([str(tiny_root), "--gate-weighting", "none", "--gate-pair", "0.5", "--no-consistency"]))
+    assert (gate.weighting, gate.min_pair_log2, gate.consistency) == ("none", 0.5, False)
+    with pytest.raises(SystemExit):
+        parse([str(tiny_root), "--gate-weighting", "median"])
+
+
 def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
     """``crop < 1``: image 1 is the photo's centre; image k = the whole photo warped so that
     ``H_1_k`` still maps image 1 onto it, with the photo (not the fill) around that footprint."""

@@ -711,6 +711,9 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--no-consistency", action="store_true", help="gate: skip the A<->B median consistency shift")
     p.add_argument("--gate-min-confidence", type=float, default=None,
                    help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
+    p.add_argument("--gate-weighting", choices=("none", "visible", "reliability"), default=None,
+                   help="gate: weight the maps' medians by the predicted visibility or reliability "
+                        "(default: CorrectionGate's)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright", help="patch orientation")
     p.add_argument("--base-radius", type=positive_float, default=16.0, help="patch radius (px) at scale 1")
     return p
@@ -762,6 +765,8 @@ def gate_from_args(args):
         gate.deadzone_log2 = args.gate_deadzone
     if getattr(args, "gate_min_confidence", None) is not None:
         gate.min_confidence = args.gate_min_confidence
+    if getattr(args, "gate_weighting", None) is not None:
+        gate.weighting = args.gate_weighting
     gate.consistency = not getattr(args, "no_consistency", False)
     return gate
 
