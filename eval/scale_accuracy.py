@@ -17,7 +17,8 @@ second matching pass (:func:`localscale.features.pipeline.refine_match`; when th
 verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
 verification fails the refined map is the local map. With ``--search`` it also scores the
 window search (:func:`localscale.search.search_scale_map`) and ScaleNet run on the windows the
-search chose.
+search chose, and (unless ``--no-refined``) the refinement seeded by the searched maps of both
+directions instead of the one-pass maps.
 
 Global mode (ScaleNet): per-pair r of the consistency-checked soft scale, the A->B soft
 scale alone, the D-ScaleNet hard read-out, the constant 1, a random bin, and the median of
@@ -270,13 +271,19 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
                                "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
                                "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
     if search:
-        from localscale.search import search_global_scale
+        from localscale.search import search_global_scale, search_scale_map
 
         gp, res = search_global_scale(local, scalenet, a, b)
         row["search"] = pixel_errors(res.prediction.scale, H, b.shape[:2])["err"]
         gs = gp.scale
         row["global-search"] = np.abs(math.log(gs) - pe["log_gt"])
         row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
+        if refine:   # the refinement seeded by the searched maps of both directions
+            back = search_scale_map(local, b, a).prediction
+            first_a, first_b = CorrectionGate().apply_predictions(res.prediction, back)
+            sref = refine_match(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
+            row["search-refined"] = pixel_errors(sref.refined_a.scale, H, b.shape[:2])["err"]
+            row["search_refined_verified"] = bool(sref.verification.verified)
     row.update(pair_statistics(fwd, bwd))
     return row
 
@@ -293,10 +300,14 @@ def run_real(args) -> dict:
     rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift",
                       search=args.search)
             for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
+    if not rows:
+        raise SystemExit(f"error: no image pairs (1.* + H_1_k) in the sequence folders under {', '.join(map(str, roots))}")
     keys = ("local", "refined", "global", "const1", "oracle") if not args.no_refined else \
         ("local", "global", "const1", "oracle")
     if args.search:
         keys = keys[:1] + ("search",) + keys[1:] + ("global-search",)
+        if not args.no_refined:
+            keys = keys[:3] + ("search-refined",) + keys[3:]
     cfg = PairCheckConfig()
     res = {"local_model": str(args.model or "bundled"), "global_model": str(args.global_model or "bundled"),
            "roots": [str(r) for r in roots], "pairs": len(rows), "stride_px": STRIDE}
@@ -322,12 +333,17 @@ def run_real(args) -> dict:
                           if "refined" in r else {})
                        | ({"search_mean_r": float(np.exp(r["search"]).mean()),
                            "global_search_mean_r": float(np.exp(r["global-search"]).mean()), **r["search_windows"]}
-                          if "search" in r else {}) for r in rows}
+                          if "search" in r else {})
+                       | ({"search_refined_mean_r": float(np.exp(r["search-refined"]).mean()),
+                           "search_refined_verified": r["search_refined_verified"]}
+                          if "search-refined" in r else {}) for r in rows}
     if not args.no_refined:
         ver = [r for r in rows if r["verification"]["verified"]]
         unv = [r for r in rows if not r["verification"]["verified"]]
         worse = lambda rs: sum(float(np.exp(r["refined"]).mean()) > float(np.exp(r["local"]).mean()) + 1e-9  # noqa: E731
                                for r in rs)
+        if args.search:
+            res["search_refined_verified_pairs"] = sum(r["search_refined_verified"] for r in rows)
         res["refined_summary"] = {"verified_pairs": len(ver), "unverified_pairs": len(unv),
                                   "verified_refined_worse_than_local": worse(ver),
                                   "unverified_refined_worse_than_local": worse(unv),
@@ -360,13 +376,16 @@ def run_real(args) -> dict:
     titles = {"local": "local map", "search": "local map, window search",
               "refined": "refined (verified geometry, else local)", "global": "global ScaleNet as a constant map",
               "const1": "constant 1", "oracle": "best constant per pair (oracle)",
-              "global-search": "global ScaleNet on the searched windows"}
+              "global-search": "global ScaleNet on the searched windows",
+              "search-refined": "refined from the searched maps (verified geometry, else searched)"}
     print("| set | pairs | " + " | ".join(titles[k] for k in keys) + " |")
     print("|---|---|" + "---|" * len(keys))
     for g, v in res["table"].items():
         print(f"| {g} | {v['pairs']} | " + " | ".join(f"{v[k]:.3f}" for k in keys) + " |")
     if "refined_summary" in res:
         print(f"refined: {res['refined_summary']}")
+    if "search_refined_verified_pairs" in res:
+        print(f"refined from the searched maps: {res['search_refined_verified_pairs']} pairs verified")
     print(f"\nco-visibility IoU (mean over pairs): {res['visibility_iou_mean']}")
     print(f"reliability AUROC (r <= 1.25 vs r > 1.5): {res['reliability_auroc']:.3f}")
     print(f"pair flag: {res['flag']}")
@@ -397,7 +416,8 @@ def main(argv=None) -> int:
     p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
                    help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
     p.add_argument("--search", action="store_true",
-                   help="real mode: also score the window search (localscale.search) and ScaleNet on its windows")
+                   help="real mode: also score the window search (localscale.search), ScaleNet on its windows "
+                        "and the refinement seeded by the searched maps")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:

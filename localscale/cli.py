@@ -395,8 +395,11 @@ def cmd_predict(args) -> int:
         from .features.correction import CorrectionGate
         from .features.pipeline import refine_match
 
-        first_a, first_b = CorrectionGate().apply_predictions(pred, check.backward)
-        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, check.backward.scale,
+        back = check.backward
+        if args.search:   # B's map from its own search, as the searched correction of match does
+            back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
+        first_a, first_b = CorrectionGate().apply_predictions(pred, back)
+        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, back.scale,
                            max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
         v = res.verification
         for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,

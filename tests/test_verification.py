@@ -9,7 +9,7 @@ from localscale.cli import main
 from localscale.features.pipeline import match_pair, refine_match
 from localscale.features.verification import (VerificationConfig, corner_error, homography_auc,
                                               local_affine_scales, refine_scale_map, verify_matches)
-from localscale.geometry import homography_scale_at, homography_scale_map, project
+from localscale.geometry import covisible_mask, homography_scale_at, homography_scale_map, project
 from localscale.io import load_image, read_homography
 
 ASSETS = Path(__file__).resolve().parents[1] / "localscale" / "assets"
@@ -160,6 +160,18 @@ def test_cli_match_and_predict_refine(tmp_path, capsys):
     assert main(["predict", "--pairs", str(tmp_path / "x.txt"), "--refine", "-o", str(tmp_path / "q")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and "--refine" in err[0]
+
+
+def test_cli_predict_search_refine_seeds_the_refinement_with_both_searched_maps(tmp_path, capsys):
+    a, b, h = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
+    assert main(["predict", str(a), str(b), "-o", str(tmp_path), "--search", "--refine"]) == 0
+    err = capsys.readouterr().err
+    assert "window pairs scored; kept" in err
+    assert json.loads((tmp_path / "kodim01_a_kodim01_b_geometry.json").read_text())["verified"]
+    refined = np.load(tmp_path / "kodim01_a_kodim01_b_refined_scale.npy")
+    truth = homography_scale_map(read_homography(h), *refined.shape)
+    inside = covisible_mask(read_homography(h), refined.shape, load_image(b).shape[:2])
+    assert np.exp(np.abs(np.log(refined / truth))[inside]).mean() < 1.05
 
 
 def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
