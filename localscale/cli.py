@@ -187,7 +187,8 @@ def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
                 f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
                     "shape": tuple(int(n) for n in shape)})
             for _, rows in bands:
-                np.ascontiguousarray(rows, np.float32).tofile(f)
+                # f.write, not ndarray.tofile: a SIGTERM raised inside tofile surfaces as a TypeError
+                f.write(np.ascontiguousarray(rows, np.float32).data)
     return Path(path)
 
 
