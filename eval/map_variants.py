@@ -44,6 +44,7 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 
 from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
+from localscale.features.correction import weighted_quantile  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
 from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
 
@@ -57,12 +58,7 @@ PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
 
 
 def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
-    v, w = values.ravel(), weights.ravel()
-    if w.sum() <= 1e-6:
-        return float(np.median(v))
-    order = np.argsort(v)
-    c = np.cumsum(w[order])
-    return float(v[order][np.searchsorted(c, c[-1] / 2)])
+    return weighted_quantile(values.ravel(), weights.ravel(), 0.5)
 
 
 def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray,

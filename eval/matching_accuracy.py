@@ -20,6 +20,7 @@ from localscale.data import list_images, split_images
 from localscale.evaluation.hpatches import (THRESHOLDS, evaluate, gate_from_args, load_hpatches, load_scale_models,
                                            make_pairs, markdown_table)
 from localscale.evaluation.synthetic import make_sequences
+from localscale.features.correction import GATE_WEIGHTINGS
 from localscale.features.pipeline import CORRECTIONS
 
 
@@ -36,7 +37,7 @@ def main(argv=None) -> int:
     p.add_argument("--max-side", type=int, default=None, help="downscale the real sequences (speed)")
     p.add_argument("--gate-pair", type=float, default=None, help="pair-level gate (default: CorrectionGate)")
     p.add_argument("--gate-deadzone", type=float, default=None)
-    p.add_argument("--gate-weighting", choices=("none", "visible", "reliability"), default=None)
+    p.add_argument("--gate-weighting", choices=GATE_WEIGHTINGS, default=None)
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--crop", type=float, default=1.0,

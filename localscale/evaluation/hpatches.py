@@ -63,6 +63,7 @@ import numpy as np
 import torch
 
 from ..errors import HomographyError, LocalScaleError
+from ..features.correction import GATE_WEIGHTINGS
 from ..geometry import covisible_mask, global_scale, orient_homography, perspective_spread
 from ..io import load_image, read_homography
 
@@ -711,7 +712,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--no-consistency", action="store_true", help="gate: skip the A<->B median consistency shift")
     p.add_argument("--gate-min-confidence", type=float, default=None,
                    help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
-    p.add_argument("--gate-weighting", choices=("none", "visible", "reliability"), default=None,
+    p.add_argument("--gate-weighting", choices=GATE_WEIGHTINGS, default=None,
                    help="gate: weight the maps' medians by the predicted visibility or reliability "
                         "(default: CorrectionGate's)")
     p.add_argument("--orientation", choices=("upright", "gradient"), default="upright", help="patch orientation")

@@ -138,7 +138,6 @@ class CorrectionGate:
             return None, None
         return self.apply(scale_a, confidence_a), self.apply(scale_b, confidence_b)
 
-
     def apply_predictions(self, pred_a, pred_b):
         """:meth:`apply_pair` on two ``LocalScalePrediction``s (A->B and B->A): their scale maps,
         confidences and the weights ``weighting`` names."""
