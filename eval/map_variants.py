@@ -9,7 +9,9 @@ co-visible pixels of A, for:
   ``ln s - (median ln S_AB + median ln S_BA) / 2`` (ScaleNet's consistency check, densely);
 * ``symmetric-weighted``: the same with medians weighted by ``reliability x visible``;
 * ``fused``: the local map's shape with ScaleNet's level (the ``fused`` correction);
-* ``global``: ScaleNet's consistency-checked scale as a constant map;
+* ``global``: ScaleNet's consistency-checked scale as a constant map (``ScaleNet.predict``: with
+  quarter turns of A and B when the upright prediction is unreliable); ``global-upright``: the
+  upright prediction alone;
 * ``rotation-search``: B rotated by 0/90/180/270 deg, the prediction with the highest mean
   ``reliability x visible`` kept (a canonicalisation step for rotations beyond training);
 * ``shrink-A``: the map pulled towards its own level, ``c + A (ln s - c)`` with ``c`` the
@@ -48,8 +50,8 @@ from localscale.features.correction import weighted_quantile  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
 from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
 
-VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "rotation-search", "shrink-0",
-            "shrink-0.5", "window-search", "window-search-turns", "const-1")
+VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "global-upright", "rotation-search",
+            "shrink-0", "shrink-0.5", "window-search", "window-search-turns", "const-1")
 PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
              "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
              "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7),
@@ -75,6 +77,13 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
         return out
     ea, eb = local.encode_image(a), local.encode_image(b)
     fwd = local.predict_from_features(ea, eb)
+    if "global-upright" in variants:
+        out["global-upright"] = np.full(a.shape[:2], float(scalenet.predict(a, b, turns=False).scale), np.float32)
+    if "global" in variants and not set(variants) & {"symmetric", "symmetric-weighted", "fused", "rotation-search"}:
+        out["global"] = np.full(a.shape[:2], float(scalenet.predict(a, b).scale), np.float32)
+    variants = [v for v in variants if v not in out]
+    if not variants:
+        return out
     if not set(variants) & {"symmetric", "symmetric-weighted", "fused", "global", "rotation-search"}:
         lf = np.log(fwd.scale)
         c = weighted_median(lf, fwd.reliability * fwd.visible)
@@ -126,7 +135,7 @@ def main(argv=None) -> int:
                     continue
                 per[v].append(float(np.exp(pixel_errors(m, H, b.shape[:2])["err"]).mean()))
         table[name] = {v: float(np.mean(e)) for v, e in per.items()}
-        table[name]["pairs"] = len(per["local"])
+        table[name]["pairs"] = len(per[variants[0]])
     print("| pair set (pairs) | " + " | ".join(variants) + " |")
     print("|---|" + "---|" * len(variants))
     for name, row in table.items():

@@ -548,9 +548,13 @@ def cmd_scale(args) -> int:
     if not p.reliable:
         print(f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
               f"disagree by x{2 ** p.inconsistency_log2:.2f}", file=sys.stderr)
+    if any(p.turns):
+        which = "A" if p.turns[0] else "B"
+        print(f"warning: the upright images gave inconsistent scales; this one comes from {which} turned by "
+              f"{90 * max(p.turns)} deg", file=sys.stderr)
     if args.json:
         print(json.dumps(allow_nan=False, obj={"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
-                          "hard_scale": p.hard_scale, "reliable": p.reliable,
+                          "hard_scale": p.hard_scale, "reliable": p.reliable, "turns": list(p.turns),
                           "inconsistency_log2": p.inconsistency_log2, "probs_ab": p.probs_ab.round(4).tolist()}))
     else:
         print(f"S(A->B) = {p.scale:.4f}  (A->B {p.scale_ab:.4f}, 1/(B->A) {1 / p.scale_ba:.4f}, "

@@ -127,3 +127,60 @@ def test_global_with_cues_is_symmetric_in_structure():
     l_ab, l_ba = g(a, b)
     m_ab, m_ba = g(b, a)
     assert torch.allclose(l_ab, m_ba, atol=1e-4) and torch.allclose(l_ba, m_ab, atol=1e-4)
+
+
+
+def _orientation_sensitive(g):
+    """Replace ScaleNet's encoder by the letterboxed gray image and its head by a function of the
+    two that depends on the images' orientation and keeps the structure of the real head
+    (swapping A and B swaps the directions)."""
+    from localscale.models.base import EncodedImage
+    from localscale.models.scalenet import GlobalScalePrediction
+
+    def encode(image, name="image", bf16=False, original_shape=None):
+        x, lb = g.prepare(image, name, original_shape)
+        return EncodedImage(x.mean(1, keepdim=True), lb)
+
+    def top(e):
+        f = e.features
+        return float(f[..., : f.shape[-2] // 2, :].mean() - f[..., f.shape[-2] // 2:, :].mean())
+
+    def left(e):
+        f = e.features
+        return float(f[..., : f.shape[-1] // 2].mean() - f[..., f.shape[-1] // 2:].mean())
+
+    def head(ea, eb, bf16=False):
+        shared = 100 * left(ea) * left(eb) + 1000 * top(ea) * top(eb)   # common bias: the inconsistency
+        ls_ab, ls_ba = 20 * (top(eb) - top(ea)) + shared, 20 * (top(ea) - top(eb)) + shared
+        probs = np.full(13, 1 / 13, np.float32)
+        return GlobalScalePrediction(scale=float(np.exp((ls_ab - ls_ba) / 2)), scale_ab=float(np.exp(ls_ab)),
+                                     scale_ba=float(np.exp(ls_ba)), hard_scale=1.0, probs_ab=probs, probs_ba=probs)
+
+    g.encode_image, g.predict_from_features = encode, head
+    return g
+
+
+def test_global_quarter_turns_keep_the_most_consistent_prediction(photos):
+    torch.manual_seed(0)
+    g = _orientation_sensitive(ScaleNet(**TINY).eval())
+    a, b = photos["coffee"][:, :200], photos["chelsea"][:150]
+    upright = g.predict(a, b, turns=False)
+    assert not upright.reliable and upright.turns == (0, 0)
+    rot = lambda x, k: np.ascontiguousarray(np.rot90(x, k))  # noqa: E731
+    candidates = [upright] + [g.predict(a, rot(b, k), turns=False) for k in (1, 2, 3)] \
+        + [g.predict(rot(a, k), b, turns=False) for k in (1, 2, 3)]
+    incs = [c.inconsistency_log2 for c in candidates]
+    assert max(incs) - min(incs) > 0.1, "the turns must matter for this test"
+    p = g.predict(a, b)
+    assert p.inconsistency_log2 == pytest.approx(min(incs), abs=1e-9) and p.inconsistency_log2 < incs[0]
+    assert p.scale == pytest.approx(candidates[int(np.argmin(incs))].scale, rel=1e-6)
+    k = max(p.turns)
+    assert k in (1, 2, 3) and p.turns in ((0, k), (k, 0))
+    # turns of A and of B are both tried, so swapping A and B still inverts the scale exactly
+    q = g.predict(b, a)
+    assert p.scale * q.scale == pytest.approx(1, rel=1e-6) and q.turns == p.turns[::-1]
+    # a reliable upright prediction is kept as it is
+    g.TURN_MARGIN_LOG2 = incs[0] - min(incs) + 0.01    # not better by the margin: the upright one stays
+    assert g.predict(a, b).turns == (0, 0) and g.predict(a, b).scale == upright.scale
+    kept = g.predict(a, rot(b, 1))
+    assert kept.reliable and kept.turns == (0, 0) and kept.scale == candidates[1].scale

@@ -525,8 +525,12 @@ class _SharedGlobal:
         ev, pair = self._ev, self._pair
         if image_a is not ev.image(pair.image_a)[0] or image_b is not ev.image(pair.image_b)[0]:
             return self._model.predict(image_a, image_b, bf16=bf16)
-        return ev._once(("global", bf16), lambda: self._model.predict_from_features(
-            ev.global_encoding(pair.image_a, bf16), ev.global_encoding(pair.image_b, bf16), bf16))
+        def predict():
+            ea, eb = ev.global_encoding(pair.image_a, bf16), ev.global_encoding(pair.image_b, bf16)
+            first = self._model.predict_from_features(ea, eb, bf16)
+            return self._model.retry_turned(first, image_a, image_b, ea, eb, bf16)
+
+        return ev._once(("global", bf16), predict)
 
     def __getattr__(self, name):
         return getattr(self._model, name)

@@ -159,12 +159,18 @@ class ScaleModel(nn.Module):
             f = self.encode(x)
         return EncodedImage(f.float(), lb)
 
-    def encode_pair(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> tuple[EncodedImage, EncodedImage]:
-        """Encode both images of a pair; when exactly one of them is gray, the other is turned
-        gray too, so that a colour difference is not read as a scale change."""
+    def load_pair(self, image_a: ImageLike, image_b: ImageLike):
+        """Both images as :meth:`load` gives them, ``((rgb_a, (H_A, W_A)), (rgb_b, (H_B, W_B)))``;
+        when exactly one of them is gray, the other is turned gray too, so that a colour
+        difference is not read as a scale change."""
         (a, shape_a), (b, shape_b) = self.load(image_a, "image A"), self.load(image_b, "image B")
         if is_gray(a) != is_gray(b):
             a, b = to_gray3(a), to_gray3(b)
+        return (a, shape_a), (b, shape_b)
+
+    def encode_pair(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> tuple[EncodedImage, EncodedImage]:
+        """Encode both images of a pair (:meth:`load_pair`: a gray image makes the pair gray)."""
+        (a, shape_a), (b, shape_b) = self.load_pair(image_a, image_b)
         return self.encode_image(a, "image A", bf16, shape_a), self.encode_image(b, "image B", bf16, shape_b)
 
     @classmethod
