@@ -72,11 +72,6 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
     if "window-search-turns" in variants:
         turns = WindowSearchConfig(quarter_turns=(1, 2, 3))
         out["window-search-turns"] = search_scale_map(local, a, b, turns).prediction.scale
-    variants = [v for v in variants if v not in out]
-    if not variants:
-        return out
-    ea, eb = local.encode_image(a), local.encode_image(b)
-    fwd = local.predict_from_features(ea, eb)
     if "global-upright" in variants:
         out["global-upright"] = np.full(a.shape[:2], float(scalenet.predict(a, b, turns=False).scale), np.float32)
     if "global" in variants and not set(variants) & {"symmetric", "symmetric-weighted", "fused", "rotation-search"}:
@@ -84,6 +79,8 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
     variants = [v for v in variants if v not in out]
     if not variants:
         return out
+    ea, eb = local.encode_image(a), local.encode_image(b)
+    fwd = local.predict_from_features(ea, eb)
     if not set(variants) & {"symmetric", "symmetric-weighted", "fused", "global", "rotation-search"}:
         lf = np.log(fwd.scale)
         c = weighted_median(lf, fwd.reliability * fwd.visible)

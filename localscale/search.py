@@ -41,7 +41,6 @@ import torch.nn.functional as F
 
 from .errors import LocalScaleError
 from .io import ImageLike
-from .models.base import is_gray, to_gray3
 from .models.local import LocalScaleNet, LocalScalePrediction, reliability
 from .preprocess import Letterbox, letterbox, to_tensor
 from .reliability import pair_statistics
@@ -188,9 +187,7 @@ def _encode(model, rgb: np.ndarray, factor: float, full_shape: tuple[int, int], 
     """Encoding of a (possibly reduced, by ``factor``) image or of one window of it, turned by
     ``turns`` quarter turns; scales stay in the pixels of the full image (``full_shape``)."""
     crop, size = (rgb, full_shape) if win is None else (_crop(rgb, win, factor), (win[3] - win[1], win[2] - win[0]))
-    if turns % 2:
-        size = size[::-1]
-    return model.encode_image(np.ascontiguousarray(np.rot90(crop, turns)), name, bf16, size)
+    return model.encode_image(crop, name, bf16, size, turns)
 
 
 def _encode_windows(model: LocalScaleNet, rgb: np.ndarray, factor: float, windows: list[Window],
@@ -246,9 +243,7 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
     """
     if not model.config.calibration:
         raise LocalScaleError("the window search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
-    (a, shape_a), (b, shape_b) = model.load(image_a, "image A"), model.load(image_b, "image B")
-    if is_gray(a) != is_gray(b):
-        a, b = to_gray3(a), to_gray3(b)
+    (a, shape_a), (b, shape_b) = model.load_pair(image_a, image_b)
     fa, fb = shape_a[0] / a.shape[0], shape_b[0] / b.shape[0]
 
     def encode_a(win=None):
@@ -315,15 +310,12 @@ def search_global_scale(local_model: LocalScaleNet, global_model, image_a: Image
                         cfg: WindowSearchConfig = WindowSearchConfig(), bf16: bool = False):
     """ScaleNet's global ``S_{A->B}`` on the window pair :func:`search_scale_map` keeps.
 
-    Returns ``(GlobalScalePrediction, WindowSearchResult)``. With no window kept, this is
-    ``global_model.predict(A, B)``. The windows are cut from the original images; the scale is
+    Returns ``(GlobalScalePrediction, WindowSearchResult)``. With no window kept, this is the
+    upright ``global_model.predict(A, B, turns=False)`` (B turned as the search kept it). The windows are cut from the original images; the scale is
     in their pixels, which are the images' own.
     """
     res = search_scale_map(local_model, image_a, image_b, cfg, bf16)
-    (a, shape_a), (b, shape_b) = global_model.load(image_a, "image A"), global_model.load(image_b, "image B")
-    if is_gray(a) != is_gray(b):
-        a, b = to_gray3(a), to_gray3(b)
-
+    (a, shape_a), (b, shape_b) = global_model.load_pair(image_a, image_b)
     ea = _encode(global_model, a, shape_a[0] / a.shape[0], shape_a, res.window_a, "image A", bf16)
     eb = _encode(global_model, b, shape_b[0] / b.shape[0], shape_b, res.window_b, "image B", bf16,
                  res.quarter_turns_b)

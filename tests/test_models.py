@@ -137,8 +137,8 @@ def _orientation_sensitive(g):
     from localscale.models.base import EncodedImage
     from localscale.models.scalenet import GlobalScalePrediction
 
-    def encode(image, name="image", bf16=False, original_shape=None):
-        x, lb = g.prepare(image, name, original_shape)
+    def encode(image, name="image", bf16=False, original_shape=None, turns=0):
+        x, lb = g.prepare(image, name, original_shape, turns)
         return EncodedImage(x.mean(1, keepdim=True), lb)
 
     def top(e):

@@ -516,7 +516,7 @@ class _SharedLocal:
 class _SharedGlobal:
     """The global model for one pair: each image is encoded once per run (while it is in the current
     pair), the pair's prediction is made once. ``predict(a, b)`` is ``predict_from_features`` of the
-    two encodings, as in :meth:`ScaleNet.predict`."""
+    two encodings with :meth:`ScaleNet.retry_turned`, as in :meth:`ScaleNet.predict`."""
 
     def __init__(self, ev: _Evaluator, model, pair: PairInfo):
         self._ev, self._model, self._pair = ev, model, pair

@@ -127,12 +127,13 @@ class CorrectionGate:
         if not maps:
             weights_a = weights_b = None
         if self.consistency and maps:
-            la, wa = _finite_log2(scale_a, weights_a)
-            lb, wb = _finite_log2(scale_b, weights_b)
+            log_a, log_b = np.log2(np.asarray(scale_a, np.float64)), np.log2(np.asarray(scale_b, np.float64))
+            la, wa = _finite(log_a, weights_a)
+            lb, wb = _finite(log_b, weights_b)
             if la.size and lb.size:
                 c = weighted_quantile(la, wa, 0.5) + weighted_quantile(lb, wb, 0.5)
-                scale_a = np.exp2(np.log2(np.asarray(scale_a, np.float64)) - c / 2).astype(np.float32)
-                scale_b = np.exp2(np.log2(np.asarray(scale_b, np.float64)) - c / 2).astype(np.float32)
+                scale_a = np.exp2(log_a - c / 2).astype(np.float32)
+                scale_b = np.exp2(log_b - c / 2).astype(np.float32)
         if self.min_pair_log2 > 0 and max(self.magnitude(scale_a, weights_a),
                                           self.magnitude(scale_b, weights_b)) < self.min_pair_log2:
             return None, None
@@ -147,13 +148,18 @@ class CorrectionGate:
 
 def _finite_log2(scale_map, weights=None):
     """``(log2 S, weights)`` over the finite pixels, flattened; weights None stays None."""
-    lm = np.log2(np.asarray(scale_map, np.float64)).ravel()
+    return _finite(np.log2(np.asarray(scale_map, np.float64)), weights)
+
+
+def _finite(log_map: np.ndarray, weights=None):
+    """``(values, weights)`` of a log map over its finite pixels, flattened; weights None stays None."""
+    lm = log_map.ravel()
     keep = np.isfinite(lm)
     if weights is None:
         return lm[keep], None
     w = np.asarray(weights, np.float64)
-    if w.shape != np.shape(scale_map):
-        raise LocalScaleError(f"gate weights have shape {w.shape}, the map {np.shape(scale_map)}")
+    if w.shape != log_map.shape:
+        raise LocalScaleError(f"gate weights have shape {w.shape}, the map {log_map.shape}")
     w = w.ravel()
     keep &= np.isfinite(w)
     return lm[keep], np.clip(w[keep], 0.0, None)

@@ -85,15 +85,20 @@ class ScaleModel(nn.Module):
         size (:func:`~localscale.io.load_image_reduced`), with the size of the full image."""
         return load_image_reduced(image, name, self.input_side)
 
-    def prepare(self, image: ImageLike, name: str = "image",
-                original_shape: tuple[int, int] | None = None) -> tuple[torch.Tensor, Letterbox]:
+    def prepare(self, image: ImageLike, name: str = "image", original_shape: tuple[int, int] | None = None,
+                turns: int = 0) -> tuple[torch.Tensor, Letterbox]:
         """Load/validate an image and letterbox it: ``1 x 3 x P x P`` tensor + placement.
 
-        ``original_shape``: the full ``(H, W)`` when ``image`` is an array reduced by :meth:`load`."""
+        ``original_shape``: the full ``(H, W)`` when ``image`` is an array reduced by :meth:`load`.
+        ``turns``: the image turned by this many quarter turns (counter-clockwise, ``np.rot90``)
+        first; the placement is that of the turned image."""
         if original_shape is None:
             rgb, original_shape = self.load(image, name)
         else:
             rgb = load_image(image, name)
+        if turns % 4:
+            rgb = np.ascontiguousarray(np.rot90(rgb, turns))
+            original_shape = tuple(original_shape[::-1]) if turns % 2 else original_shape
         boxed, lb = letterbox(rgb, self.config.image_size, original_shape)
         return to_tensor(boxed)[None].to(self.device), lb
 
@@ -151,10 +156,10 @@ class ScaleModel(nn.Module):
 
     @torch.inference_mode()
     def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False,
-                     original_shape: tuple[int, int] | None = None) -> EncodedImage:
-        """Encode one image for later pairing (the feature cache's unit); ``original_shape`` as in
-        :meth:`prepare`."""
-        x, lb = self.prepare(image, name, original_shape)
+                     original_shape: tuple[int, int] | None = None, turns: int = 0) -> EncodedImage:
+        """Encode one image for later pairing (the feature cache's unit); ``original_shape`` and
+        ``turns`` as in :meth:`prepare`."""
+        x, lb = self.prepare(image, name, original_shape, turns)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
             f = self.encode(x)
         return EncodedImage(f.float(), lb)

@@ -188,19 +188,13 @@ class ScaleNet(ScaleModel):
         the arrays were reduced (:meth:`load`)."""
         if first.reliable:
             return first
-
-        def turned(img, shape, k, name):
-            shape = shape or img.shape[:2]
-            return self.encode_image(np.ascontiguousarray(np.rot90(img, k)), name, bf16,
-                                     shape[::-1] if k % 2 else shape)
-
         candidates = [first]
         for k in (1, 2, 3):
-            p = self.predict_from_features(ea, turned(b, shape_b, k, "image B"), bf16)
+            p = self.predict_from_features(ea, self.encode_image(b, "image B", bf16, shape_b, k), bf16)
             p.turns = (0, k)
             candidates.append(p)
         for k in (1, 2, 3):
-            p = self.predict_from_features(turned(a, shape_a, k, "image A"), eb, bf16)
+            p = self.predict_from_features(self.encode_image(a, "image A", bf16, shape_a, k), eb, bf16)
             p.turns = (k, 0)
             candidates.append(p)
         best = min((p for p in candidates if math.isfinite(p.scale)), key=lambda p: p.inconsistency_log2, default=first)
