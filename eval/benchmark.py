@@ -10,9 +10,13 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
   only), ScaleNet ``predict``;
 * keypoint detection, patch extraction (local correction), description (HardNet at the default
   chunk size and at 512 patches per call, the former default; RootSIFT), mutual-NN matching;
-* ``match_pair`` end to end per correction (models and descriptor loaded once);
-* one ``eval-hpatches`` pair per method: the methods in a row on one evaluator (shared work, as in
-  ``localscale eval-hpatches``) and each method alone;
+* per matcher of ``--matcher`` (names of :data:`localscale.features.matchers.MATCHERS`, each at
+  ``--num-features``): building the :class:`~localscale.features.matchers.Matcher` (its weights),
+  ``Matcher.extract`` of both images and ``Matcher.match`` without scale maps, ``match_pair`` end to
+  end per correction of ``--corrections`` (models and matcher loaded once), and one
+  ``eval-hpatches`` pair (:func:`localscale.evaluation.hpatches.evaluate`) per method: the methods
+  in a row on one fresh matcher (shared work, as in ``localscale eval-hpatches``) and each method
+  alone;
 * OpenCV's SIFT pipeline on the same images (``cv2.SIFT_create(nfeatures)`` detect + compute
   on both, ``BFMatcher(NORM_L2, crossCheck=True)``) as the reference: every stage is also given
   as a ratio to it;
@@ -23,9 +27,10 @@ on a loaded machine the CPU time is the steadier number. Scale-model throughput 
 cache (1 vs N images, all pairs) is measured with ``--throughput``.
 
     python eval/benchmark.py --repeat 3 --threads 2 --out results/benchmark.json
+    python eval/benchmark.py --matcher hardnet sift aliked-lightglue xfeat-lighterglue --no-cli
 
-Only the public API (and the evaluation's per-pair runner) is used, so the same script times an
-older checkout: ``PYTHONPATH=/path/to/old/checkout python eval/benchmark.py``.
+Only the public API is used, so the same script times another checkout of the same API:
+``PYTHONPATH=/path/to/other/checkout python eval/benchmark.py``.
 """
 from __future__ import annotations
 
@@ -45,24 +50,28 @@ import numpy as np
 import torch
 
 import localscale
-from localscale.features import (HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, get_descriptor,
-                                 image_to_gray_tensor, match_descriptors, match_pair)
-from localscale.features.correction import CORRECTIONS, scale_maps_for_pair
+from localscale.errors import LocalScaleError
+from localscale.features import (HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor,
+                                 match_descriptors, match_pair)
+from localscale.features.correction import CORRECTIONS, get_correction, scale_maps_for_pair
 from localscale.features.detector import HessianDetector
+from localscale.features.matchers import MATCHERS, Matcher, match_config
 from localscale.io import load_image, read_homography
 from localscale.models import LocalScaleNet, ScaleNet
 
 ASSETS = Path(localscale.__file__).resolve().parent / "assets"
 
 
-def timeit(fn, repeat: int, warmup: int = 1) -> dict:
-    """Median / p90 wall ms and median CPU ms (this process, all threads) of ``fn()``."""
+def timeit(fn, repeat: int, warmup: int = 1, setup=None) -> dict:
+    """Median / p90 wall ms and median CPU ms (this process, all threads) of ``fn()``, or of
+    ``fn(setup())`` with ``setup`` run untimed before each call."""
     for _ in range(warmup):
-        fn()
+        fn() if setup is None else fn(setup())
     wall, cpu = [], []
     for _ in range(repeat):
+        arg = None if setup is None else setup()
         t, c = time.perf_counter(), time.process_time()
-        fn()
+        fn() if setup is None else fn(arg)
         wall.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
     wall, cpu = np.array(wall) * 1000, np.array(cpu) * 1000
@@ -102,26 +111,36 @@ def opencv_sift(a: np.ndarray, b: np.ndarray, n: int):
     return cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(da, db)
 
 
-def eval_pair_times(a, b, H, methods, descriptor, local, glob, n, repeat, tmp) -> dict:
-    """One eval-hpatches pair: all methods in a row on one evaluator, and each method alone."""
-    from localscale.evaluation.hpatches import PairInfo, _Evaluator
-    from localscale.features.correction import CorrectionGate
+def matcher_config(name: str, n: int, hardnet):
+    """The :class:`MatchConfig` of matcher ``name`` at ``n`` keypoints; the patch matchers describe
+    with the already loaded ``hardnet`` (on the benchmark's device) when they use HardNet."""
+    cfg = match_config(name, num_features=n)
+    if cfg.extractor == "patches" and cfg.descriptor == "hardnet":
+        cfg = match_config(cfg, descriptor=hardnet)
+    return cfg
+
+
+def eval_pair_times(a, b, H, methods, cfg, device, local, glob, repeat, tmp) -> dict:
+    """One eval-hpatches pair (:func:`evaluate`) with matcher ``cfg``: all methods in a row and
+    each method alone, each run on a fresh :class:`Matcher` (built untimed: its feature cache
+    empty, as at the start of an evaluation)."""
+    from localscale.evaluation.hpatches import PairInfo, evaluate
 
     pa, pb = Path(tmp) / "a.png", Path(tmp) / "b.png"
     cv2.imwrite(str(pa), a[..., ::-1])
     cv2.imwrite(str(pb), b[..., ::-1])
     pair = PairInfo("bench", 2, pa, pb, H)
-    desc = get_descriptor(descriptor)
 
-    def run(ms):
-        ev = _Evaluator(desc, n, local, glob, CorrectionGate(), 16.0, "upright", None)
-        ev._keep = set()
-        return ev.run_pair(pair, ms, [5.0])
+    def run(ms, matcher):
+        return evaluate([pair], ms, matcher, local, glob, progress=False)["records"]
 
-    out = {"all_methods": timeit(lambda: run(methods), repeat)}
-    recs = run(methods)
-    out["mma5"] = {r["method"]: r["mma"][0] for r in recs}
-    out["alone"] = {m: timeit(lambda m=m: run([m]), repeat) for m in methods}
+    fresh = lambda: Matcher(cfg, device)  # noqa: E731
+    out = {"all_methods": timeit(lambda m: run(methods, m), repeat, setup=fresh)}
+    recs = run(methods, fresh())
+    out["mma5"] = {r["method"]: r["mma"][4] for r in recs}
+    out["record_seconds"] = {r["method"]: {"seconds": r["seconds"], "scale_seconds": r["scale_seconds"]}
+                             for r in recs}
+    out["alone"] = {m: timeit(lambda matcher, m=m: run([m], matcher), repeat, setup=fresh) for m in methods}
     out["alone_sum_ms"] = sum(v["ms"] for v in out["alone"].values())
     out["alone_sum_cpu_ms"] = sum(v["cpu_ms"] for v in out["alone"].values())
     return out
@@ -166,22 +185,38 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--repeat", type=int, default=5, help="timed runs per stage (after one warm-up)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image")
+    p.add_argument("--num-features", type=int, default=1000, help="keypoints per image (every matcher)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--methods", nargs="+", default=["none", "local", "gt"], help="eval-hpatches methods timed")
+    p.add_argument("--matcher", nargs="+", default=["hardnet"], choices=list(MATCHERS), metavar="NAME",
+                   help=f"matchers timed: {', '.join(MATCHERS)} (default: hardnet)")
+    p.add_argument("--corrections", nargs="+", default=list(CORRECTIONS), choices=CORRECTIONS, metavar="NAME",
+                   help=f"corrections of the match_pair stages: {', '.join(CORRECTIONS)} (default: all)")
+    p.add_argument("--methods", nargs="+", default=["none", "local", "gt"], choices=CORRECTIONS, metavar="NAME",
+                   help="eval-hpatches methods timed (default: none local gt)")
     p.add_argument("--no-cli", action="store_true", help="skip the subprocess timings (--help, match)")
     p.add_argument("--throughput", action="store_true", help="also time scale-model throughput with the cache")
     p.add_argument("--out", default=None, help="JSON file")
     a = p.parse_args(argv)
+    if a.repeat < 1 or a.num_features < 1:
+        p.error("--repeat and --num-features must be >= 1")
     if a.threads:
         torch.set_num_threads(a.threads)
     rng = np.random.default_rng(0)
     n, rep = a.num_features, a.repeat
+    names = list(dict.fromkeys(a.matcher))
+    try:   # every matcher's weights load before anything is timed
+        hardnet = HardNetDescriptor.from_pretrained(device=a.device)
+        configs = {name: matcher_config(name, n, hardnet) for name in names}
+        matchers = {name: Matcher(cfg, a.device) for name, cfg in configs.items()}
+    except LocalScaleError as e:
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
     img_a, img_b, H = test_pair()
     res = {"device": a.device, "threads": torch.get_num_threads(), "torch": torch.__version__,
            "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
            "load_average_start": os.getloadavg(), "localscale": str(Path(localscale.__file__).parent),
-           "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep}
+           "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep,
+           "matchers": names}
     st = {}   # stage -> timing dict
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -201,7 +236,6 @@ def main(argv=None) -> int:
         st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(device=a.device), rep)
         local = LocalScaleNet.from_pretrained(device=a.device)
         glob = ScaleNet.from_pretrained(device=a.device)
-        hardnet = HardNetDescriptor.from_pretrained(device=a.device)
         sift = SIFTPatchDescriptor().to(a.device).eval()
 
         st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), rep)
@@ -225,21 +259,30 @@ def main(argv=None) -> int:
         da, db = hardnet.describe(pa_), hardnet.describe(pb_)
         st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
 
-        res["matches"] = {}
-        for corr in CORRECTIONS:
-            lm = local if corr in ("local", "fused") else None
-            gm = glob if corr in ("global", "fused") else None
-            st[f"match_pair: {corr}"] = timeit(
-                lambda corr=corr, lm=lm, gm=gm: match_pair(img_a, img_b, corr, H, lm, gm, hardnet, n), rep)
-            r = match_pair(img_a, img_b, corr, H, lm, gm, hardnet, n)
-            res["matches"][corr] = {"matches": int(len(r.matches)), "mma5": r.accuracy(5.0)}
+        res["matches"], res["eval_pair"] = {}, {}
+        for name, m in matchers.items():
+            cfg = configs[name]
+            what = ("HardNet loaded above" if cfg.extractor == "patches" and not isinstance(cfg.descriptor, str)
+                    else "OpenCV" if cfg.extractor == "sift" else "loads its weights")
+            st[f"matcher {name}: build ({what})"] = timeit(lambda cfg=cfg: Matcher(cfg, a.device), rep)
+            st[f"matcher {name}: extract 2 images"] = timeit(lambda m=m: (m.extract(img_a), m.extract(img_b)), rep)
+            st[f"matcher {name}: match (extract + match, no maps)"] = timeit(lambda m=m: m.match(img_a, img_b), rep)
+            res["matches"][name] = {}
+            for corr in a.corrections:
+                needs = get_correction(corr).models
+                lm = local if "local" in needs else None
+                gm = glob if "global" in needs else None
+                run = lambda corr=corr, lm=lm, gm=gm, m=m: match_pair(img_a, img_b, corr, H, lm, gm, m)  # noqa: E731
+                st[f"match_pair {name}: {corr}"] = timeit(run, rep)
+                r = run()
+                res["matches"][name][corr] = {"matches": int(len(r.matches)), "mma5": r.accuracy(5.0)}
 
-        ev = eval_pair_times(img_a, img_b, H, list(a.methods), hardnet, local, glob, n, rep, tmp)
-        st[f"eval pair: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
-        for m, t in ev["alone"].items():
-            st[f"eval pair: {m} alone"] = t
-        res["eval_pair_mma5"] = ev["mma5"]
-        res["eval_pair_alone_sum"] = {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]}
+            ev = eval_pair_times(img_a, img_b, H, list(a.methods), cfg, a.device, local, glob, rep, tmp)
+            st[f"eval pair {name}: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
+            for meth, t in ev["alone"].items():
+                st[f"eval pair {name}: {meth} alone"] = t
+            res["eval_pair"][name] = {"mma5": ev["mma5"], "record_seconds": ev["record_seconds"],
+                                      "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]}}
 
         st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(lambda: opencv_sift(img_a, img_b, n), rep)
         res["opencv_sift_matches"] = len(opencv_sift(img_a, img_b, n))
@@ -261,11 +304,14 @@ def main(argv=None) -> int:
     for name, t in st.items():
         print(f"| {name} | {t['ms']:.1f} | {t['ms_p90']:.1f} | {t['cpu_ms']:.1f} | {t['x_opencv_sift']:.2f} | "
               f"{t['x_opencv_sift_cpu']:.2f} |")
-    s = res["eval_pair_alone_sum"]
-    print(f"\neval pair, methods alone summed: {s['ms']:.0f} ms ({s['cpu_ms']:.0f} CPU ms); "
-          f"MMA@5 {', '.join(f'{k} {v:.3f}' for k, v in res['eval_pair_mma5'].items())}")
-    print("matches: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in res["matches"].items())
-          + f"; OpenCV SIFT {res['opencv_sift_matches']}")
+    print()
+    for name, ev in res["eval_pair"].items():
+        s = ev["alone_sum"]
+        print(f"eval pair {name}, methods alone summed: {s['ms']:.0f} ms ({s['cpu_ms']:.0f} CPU ms); "
+              f"MMA@5 {', '.join(f'{k} {v:.3f}' for k, v in ev['mma5'].items())}")
+    for name, ms in res["matches"].items():
+        print(f"matches {name}: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in ms.items()))
+    print(f"matches OpenCV SIFT: {res['opencv_sift_matches']}")
     if "throughput_local" in res:
         for k, v in res["throughput_local"].items():
             print(f"local model {k}: " + ", ".join(f"{kk} {vv:.1f}" for kk, vv in v.items()))

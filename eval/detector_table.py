@@ -35,8 +35,8 @@ def run_one(pairs, detector, descriptor, methods, models, args) -> dict:
     import kornia
 
     t0 = time.time()
-    res = evaluate(pairs, methods, descriptor, args.num_features, local_model=models.get("local"),
-                   detector=detector, progress=not args.quiet)
+    res = evaluate(pairs, methods, "hardnet", models.get("local"), models.get("global"), max_side=0,
+                   progress=not args.quiet, descriptor=descriptor, num_features=args.num_features, detector=detector)
     return {"detector": detector, "descriptor": descriptor, "methods": list(methods), "root": str(args.root),
             "num_features": args.num_features, "local_weights": args.local_weights or "bundled",
             "versions": {"opencv": cv2.__version__, "torch": torch.__version__, "kornia": kornia.__version__},

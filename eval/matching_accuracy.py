@@ -20,8 +20,7 @@ from localscale.data import list_images, split_images
 from localscale.evaluation.hpatches import (THRESHOLDS, evaluate, gate_from_args, load_hpatches, load_scale_models,
                                            make_pairs, markdown_table)
 from localscale.evaluation.synthetic import make_sequences
-from localscale.features.correction import GATE_WEIGHTINGS
-from localscale.features.pipeline import CORRECTIONS
+from localscale.features.correction import CORRECTIONS, GATE_WEIGHTINGS
 
 
 def main(argv=None) -> int:
@@ -34,7 +33,8 @@ def main(argv=None) -> int:
     p.add_argument("--num-features", type=int, default=1000)
     p.add_argument("--local-weights", default=None)
     p.add_argument("--global-weights", default=None)
-    p.add_argument("--max-side", type=int, default=None, help="downscale the real sequences (speed)")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="downscale the real sequences to this longer side (speed; default: full resolution)")
     p.add_argument("--gate-pair", type=float, default=None, help="pair-level gate (default: CorrectionGate)")
     p.add_argument("--gate-deadzone", type=float, default=None)
     p.add_argument("--gate-weighting", choices=GATE_WEIGHTINGS, default=None)
@@ -64,8 +64,9 @@ def main(argv=None) -> int:
     rows = []
     for dname, pairs in datasets.items():
         for d in a.descriptors:
-            res = evaluate(pairs, methods, d, a.num_features, models.get("local"), models.get("global"), gate,
-                           orientation=a.orientation, max_side=a.max_side if dname == "sequences" else None)
+            res = evaluate(pairs, methods, "hardnet", models.get("local"), models.get("global"),
+                           max_side=(a.max_side or 0) if dname == "sequences" else 0, descriptor=d,
+                           num_features=a.num_features, gate=gate, orientation=a.orientation)
             doc["results"][f"{dname}/{d}"] = res
             (out / f"{dname}_{d}.md").write_text(markdown_table(res["summary"], methods, list(THRESHOLDS),
                                                                 f"{dname} / {d}"))

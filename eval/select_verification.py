@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     for name, a, b, H in synthetic_pairs(held, args.pairs, args.seed, cfg, crop=0.7):
         fwd, bwd = model.predict(a, b), model.predict(b, a)
         fa, fb = CorrectionGate().apply_predictions(fwd, bwd)
-        res = refine_match(a, b, fa, fb, fwd.scale, bwd.scale, config=PERMISSIVE, max_passes=1)
+        res = refine_match(a, b, fa, fb, fwd.scale, bwd.scale, verification=PERMISSIVE, max_passes=1)
         v = res.verification
         r = {"name": name, "local": float(np.exp(pixel_errors(fwd.scale, H, b.shape[:2])["err"]).mean()),
              "model": v.model, "inliers": v.num_inliers, "matches": len(v.inliers), "ratio": v.inlier_ratio,

@@ -28,7 +28,14 @@ from collections import Counter, defaultdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .cli_options import (HelpFormatter, OneLineErrorParser, _LazyArgumentParser, add_hpatches_options,  # noqa: F401
+                          add_match_options, add_model_options, add_refine_options, nonnegative_int,
+                          positive_float, positive_int)
+from . import loading
 from .errors import LocalScaleError
+from .loading import MODEL_KINDS, load_scale_model, resolve_device  # noqa: F401
+from .map_files import scale_map_paths, write_refinement, write_scale_map  # noqa: F401
+from .outputs import ensure_not_input, make_dir, resolved_path, write_image, write_npy, write_npy_bands, write_text  # noqa: F401
 
 if TYPE_CHECKING:
     import numpy as np
@@ -37,86 +44,12 @@ if TYPE_CHECKING:
 # ``localscale --help`` (and argument errors) return without loading them.
 
 ASSETS = Path(__file__).resolve().parent / "assets"   #: the example pair (also in examples/)
-MODEL_KINDS = ("local", "global")
 
 
-class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description/epilog layout and appends ``(default: ...)`` to options whose help
-    does not already state the default (flags, which default to off, are left alone)."""
-
-    def _get_help_string(self, action):
-        text = action.help or ""
-        if "default" in text.lower() or action.default in (None, argparse.SUPPRESS) or action.nargs == 0:
-            return text
-        if action.option_strings or action.nargs in ("?", "*"):
-            return text + " (default: %(default)s)"
-        return text
-
-
-# ---------------------------------------------------------------- devices, models, paths
-
-def resolve_device(device) -> str:
-    """Check that ``device`` names a torch device this installation can use; returns its name.
-
-    Raises :class:`LocalScaleError` (one line) for unknown names (``banana``) and for devices
-    this torch build or machine lacks (``cuda`` on a CPU-only torch, ``cuda:3`` on a one-GPU machine).
-    """
-    import torch
-
-    try:
-        d = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise LocalScaleError(f"unknown device {device!r} (use cpu, cuda, cuda:N or mps)") from None
-    if d.type == "cpu":
-        return str(d)
-    if d.type == "cuda":
-        if not torch.cuda.is_available():
-            raise LocalScaleError(f"device {device!r}: no CUDA device available to this torch "
-                                  f"({torch.__version__}); use --device cpu")
-        if d.index is not None and d.index >= torch.cuda.device_count():
-            raise LocalScaleError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
-        return str(d)
-    if d.type == "mps":
-        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-            raise LocalScaleError(f"device {device!r}: MPS is not available; use --device cpu")
-        return str(d)
-    raise LocalScaleError(f"device {device!r} is not supported (use cpu, cuda, cuda:N or mps)")
-
-
-def load_scale_model(kind: str, weights=None, device: str = "cpu"):
-    """The one model loader of the CLI: ``kind`` ``"local"`` (Local-ScaleNet) or ``"global"``
-    (ScaleNet), from ``weights`` (checkpoint path; None = the bundled weights) on ``device``."""
-    from .models import LocalScaleNet, ScaleNet
-
-    if kind not in MODEL_KINDS:
-        raise LocalScaleError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
-    cls = LocalScaleNet if kind == "local" else ScaleNet
-    return cls.from_pretrained(weights, device=resolve_device(device))
-
-
-def add_model_options(p: argparse.ArgumentParser, local: bool = True, global_: bool = True, bf16: bool = True,
-                      model_alias: str | None = None) -> argparse.ArgumentParser:
-    """Model options, spelled the same for every command: ``--local-weights``, ``--global-weights``,
-    ``--device`` and ``--bf16``. ``model_alias`` (``"local"``/``"global"``) adds the deprecated,
-    hidden ``--model`` for that checkpoint."""
-    g = p.add_argument_group("model options")
-    if local:
-        g.add_argument("--local-weights", metavar="CKPT", default=None,
-                       help="Local-ScaleNet checkpoint (default: the bundled weights)")
-    if global_:
-        g.add_argument("--global-weights", metavar="CKPT", default=None,
-                       help="global ScaleNet checkpoint (default: the bundled weights)")
-    if model_alias:
-        g.add_argument("--model", dest=f"{model_alias}_weights", metavar="CKPT", help=argparse.SUPPRESS)
-    g.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or mps")
-    if bf16:
-        g.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast "
-                                                           "(fast on CPUs with AMX and on recent GPUs)")
-    return p
-
+# ---------------------------------------------------------------- models, paths
 
 def _model(args, kind: str):
-    return load_scale_model(kind, getattr(args, f"{kind}_weights", None), args.device)
+    return loading.load_scale_model(kind, getattr(args, f"{kind}_weights", None), args.device)
 
 
 def check_output_dir(path, names=()) -> Path:
@@ -127,83 +60,11 @@ def check_output_dir(path, names=()) -> Path:
     return check_writable_dir(Path(path), names)
 
 
-def ensure_not_input(path, inputs) -> Path:
-    """Refuse to write ``path`` when it is one of the command's ``inputs``."""
-    path = Path(path)
-    for i in inputs:
-        if i is not None and not hasattr(i, "shape") and _resolved(i) == _resolved(path):
-            raise LocalScaleError(f"refusing to overwrite the input {i} with an output")
-    return path
-
-
-def _mkdir(path: Path) -> Path:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise LocalScaleError(f"cannot create output folder {path}: {e.strerror or e}") from None
-    return path
-
-
-def write_image(path, image_bgr: np.ndarray) -> Path:
-    """``cv2.imwrite`` (atomic: temporary name, then rename) that raises :class:`LocalScaleError`
-    when nothing was written."""
-    import cv2
-
-    from .io import _quiet_decoder
-    from .outputs import atomic_path
-
-    with atomic_path(path) as tmp, _quiet_decoder():   # OpenCV's own warnings stay off the terminal
-        try:
-            ok = cv2.imwrite(str(tmp), image_bgr)
-        except cv2.error as e:
-            raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
-        if not ok:
-            raise LocalScaleError(f"cannot write {path}")
-    return Path(path)
-
-
-def write_npy(path, array: np.ndarray) -> Path:
-    """``np.save`` to ``path`` (atomic: temporary name, then rename)."""
-    import numpy as np
-
-    from .outputs import atomic_path
-
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.save(f, array)
-    return Path(path)
-
-
-def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
-    """A float32 ``.npy`` of ``shape`` written from ``(y0, rows)`` row bands in order, without the
-    whole array in memory (atomic: temporary name, then rename)."""
-    import numpy as np
-
-    from .outputs import atomic_path
-
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.lib.format.write_array_header_1_0(
-                f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
-                    "shape": tuple(int(n) for n in shape)})
-            for _, rows in bands:
-                # f.write, not ndarray.tofile: a SIGTERM raised inside tofile surfaces as a TypeError
-                f.write(np.ascontiguousarray(rows, np.float32).data)
-    return Path(path)
-
-
-def write_text(path, text: str) -> Path:
-    """Write ``text`` to ``path`` (atomic: temporary name, then rename)."""
-    from .outputs import write_text as _write
-
-    return _write(path, text)
-
-
 def image_labels(paths, always_parent: bool = False) -> dict:
     """Short, distinct names of image files for output names: the stem, or ``<parent>-<stem>``
     when another file among ``paths`` has the same stem (``v_churchill/1.ppm`` ->
     ``v_churchill-1``) or when ``always_parent``. Keyed by the resolved path."""
-    uniq = list(dict.fromkeys(_resolved(p) for p in paths))
+    uniq = list(dict.fromkeys(resolved_path(p) for p in paths))
     by_stem = defaultdict(list)
     for p in uniq:
         by_stem[p.stem].append(p)
@@ -218,11 +79,6 @@ def image_labels(paths, always_parent: bool = False) -> dict:
         if counts[labels[p]] > 1:
             labels[p] = with_parent(p, p.name.replace(".", "-"))
     return labels
-
-
-def _resolved(p) -> Path:
-    """Absolute path with symbolic links resolved as far as they go (never raises on a link loop)."""
-    return Path(os.path.realpath(os.path.abspath(p)))
 
 
 def short_name(name: str, room: int = 200) -> str:
@@ -241,49 +97,10 @@ def pair_name(image_a, image_b, always_parent: bool = False) -> str:
     if hasattr(image_a, "shape") or hasattr(image_b, "shape"):
         return "A_B"
     labels = image_labels([image_a, image_b], always_parent)
-    return short_name(f"{labels[_resolved(image_a)]}_{labels[_resolved(image_b)]}")
+    return short_name(f"{labels[resolved_path(image_a)]}_{labels[resolved_path(image_b)]}")
 
 
 # ---------------------------------------------------------------- predict
-
-def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
-    """Write ``<stem>_scale.npy`` (float32), ``_scale.tif`` (float32 TIFF), ``_scale.png`` (colour),
-    ``_confidence.npy`` and, for models that predict it, ``_visible.npy``. ``inputs`` are never
-    overwritten."""
-    import cv2
-    import numpy as np
-
-    from .viz import colorize_log2_scale
-
-    out_dir = _mkdir(Path(out_dir))
-    has_visible = pred.has("visible") if hasattr(pred, "has") else getattr(pred, "visible", None) is not None
-    paths = scale_map_paths(out_dir, stem, has_visible)
-    for p in paths:
-        ensure_not_input(p, inputs)
-    banded = hasattr(pred, "bands")   # read out band by band: only the scale map is ever whole
-    finite = pred.finite() if banded else bool(np.isfinite(pred.scale).all() and np.isfinite(pred.confidence).all())
-    if not finite:
-        raise LocalScaleError(f"the predicted scale map of {stem} is not finite (NaN or inf); nothing written")
-    scale = np.asarray(pred.scale, np.float32)
-    write_npy(paths[0], scale)
-    write_image(paths[1], scale)
-    colour = colorize_log2_scale(scale)
-    write_image(paths[2], cv2.cvtColor(colour, cv2.COLOR_RGB2BGR, dst=colour))   # in place: no second copy
-    del colour
-    for path, name in zip(paths[3:], ("confidence", "visible")):
-        if banded:
-            write_npy_bands(path, scale.shape, pred.bands(name))
-        else:
-            write_npy(path, np.asarray(getattr(pred, name), np.float32))
-    return paths
-
-
-def scale_map_paths(out_dir: Path, stem: str, visible: bool) -> list[Path]:
-    """The files :func:`write_scale_map` writes for ``stem`` (``visible``: with ``_visible.npy``)."""
-    out_dir = Path(out_dir)
-    return [out_dir / f"{stem}_scale.npy", out_dir / f"{stem}_scale.tif", out_dir / f"{stem}_scale.png",
-            out_dir / f"{stem}_confidence.npy"] + ([out_dir / f"{stem}_visible.npy"] if visible else [])
-
 
 PAIRS_FORMAT = ("one pair per line: 'A<TAB>B' (each field taken as written: spaces, '#' and quotes are part "
                 "of the name), or 'A B' with shell-like quoting (\"my photo.jpg\" 'b #2.png'); lines "
@@ -350,7 +167,7 @@ def pairs_output_names(pairs: list[tuple]) -> list[str]:
     """``<index:05d>_<A>_<B>`` per pair: the index is the pair's position in the list (so it does
     not depend on which pairs fail) and the names come from :func:`image_labels` over all images."""
     labels = image_labels([p for pair in pairs for p in pair])
-    return [short_name(f"{i:05d}_{labels[_resolved(a)]}_{labels[_resolved(b)]}") for i, (a, b) in enumerate(pairs)]
+    return [short_name(f"{i:05d}_{labels[resolved_path(a)]}_{labels[resolved_path(b)]}") for i, (a, b) in enumerate(pairs)]
 
 
 def cmd_predict(args) -> int:
@@ -449,7 +266,7 @@ def _predict_pairs(args, out: Path) -> int:
     done = set() if args.overwrite else {i for i, n in enumerate(names)
                                          if _complete(scale_map_paths(out, n, visible))}
     todo = [i for i in range(len(pairs)) if i not in done]
-    _mkdir(out)
+    make_dir(out)
     cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
     status = {i: ("skipped (outputs already complete)", names[i]) for i in done}
     failed = written = 0
@@ -494,7 +311,7 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
     from .viz import plot_scale_prediction
 
     output = ensure_not_input(output, (image_a, image_b, H))
-    model = model or load_scale_model("local")
+    model = model or loading.load_scale_model("local")
     a, to_a = load_working_image(image_a, SHOW_MAX_SIDE, "image A")   # a figure needs no more pixels
     b, to_b = load_working_image(image_b, SHOW_MAX_SIDE, "image B")
     pred = model.predict(a, b, bf16=bf16)
@@ -503,7 +320,7 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
         Hm = to_b @ read_homography(H) @ np.linalg.inv(to_a)
         gt = homography_scale_map(Hm, *a.shape[:2])
         mask = covisible_mask(Hm, a.shape[:2], b.shape[:2])
-    _mkdir(Path(output).parent)
+    make_dir(Path(output).parent)
     try:
         plot_scale_prediction(a, b, pred.scale, pred.confidence, gt, mask, output, title,
                               visible=getattr(pred, "visible", None))
@@ -578,7 +395,7 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     inputs = (image_a, image_b)
     for which in "AB":
         ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
-    model = model or load_scale_model("global")
+    model = model or loading.load_scale_model("global")
     s = float(model.predict(image_a, image_b, bf16=bf16).scale)
     if not (math.isfinite(s) and s > 0):
         raise LocalScaleError(f"ScaleNet predicted a non-finite scale ({s}): the model is broken; nothing written")
@@ -590,7 +407,7 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     resized = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     dst = ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     sidecar = ensure_not_input(out / f"{name}_rectified.json", inputs)
-    _mkdir(out)
+    make_dir(out)
     write_image(dst, resized[..., ::-1])
     record = {"image_a": "array" if hasattr(image_a, "shape") else str(image_a),
               "image_b": "array" if hasattr(image_b, "shape") else str(image_b),
@@ -611,113 +428,106 @@ def cmd_rectify(args) -> int:
     return 0
 
 
-# ---------------------------------------------------------------- refine
-
-def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """``--refine`` and ``--refine-passes`` (``match`` and ``predict``)."""
-    g = p.add_argument_group("verification and refinement")
-    g.add_argument("--refine", action="store_true",
-                   help="verify the matches (MAGSAC homography), refine the scale maps by the verified geometry "
-                        "and match again with the refined maps; also writes refined maps and geometry.json")
-    g.add_argument("--refine-passes", type=int, default=2, metavar="N",
-                   help="with --refine: matching passes at most (stops when the inlier count stops growing)")
-    g.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
-                   help="with --refine: when the first pass is not verified, verify OpenCV SIFT matches instead "
-                        "and refine the maps with their geometry (none: only the first pass's matches)")
-    return p
-
-
-def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None, inputs=()) -> list[Path]:
-    """Write ``<stem>refined_scale.npy`` (float32 ``S_{A->B}``), ``<stem>refined_source.npy`` (geometry
-    weight, 0 network .. 1 geometry), ``<stem>refined_scale.png``, with ``refined_b`` the same for B
-    (``..._b``), and ``<stem>geometry.json`` (the verification: H or F, inliers, verified, reasons)."""
-    import numpy as np
-
-    from .viz import colorize_log2_scale
-
-    out = _mkdir(Path(out))
-    items = [("", refined_a)] + ([("_b", refined_b)] if refined_b is not None else [])
-    paths = []
-    for suffix, r in items:
-        names = [out / f"{stem}refined_scale{suffix}.npy", out / f"{stem}refined_source{suffix}.npy",
-                 out / f"{stem}refined_scale{suffix}.png"]
-        for q in names:
-            ensure_not_input(q, inputs)
-        write_npy(names[0], r.scale.astype(np.float32))
-        write_npy(names[1], r.source.astype(np.float32))
-        write_image(names[2], colorize_log2_scale(r.scale)[..., ::-1])
-        paths += names
-    geo = out / f"{stem}geometry.json"
-    ensure_not_input(geo, inputs)
-    doc = refined_a.verification.to_dict() | {"inliers": np.flatnonzero(refined_a.inliers).tolist()} | (meta or {})
-    write_text(geo, json.dumps(doc, indent=1) + "\n")
-    return paths + [geo]
-
-
 # ---------------------------------------------------------------- match
 
-def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Options of ``localscale match`` (the only definition; :mod:`localscale.features.pipeline` reuses it)."""
-    from .features.correction import CORRECTIONS
+#: options of ``match`` that only the patch matcher (``--matcher hardnet``) reads
+PATCH_OPTIONS = ("descriptor", "detector", "orientation", "ratio")
 
-    p.add_argument("image_a", help="image A (path)")
-    p.add_argument("image_b", help="image B (path)")
-    p.add_argument("-o", "--output", default="out", help="output folder (matches.npz, matches.png)")
-    p.add_argument("--correction", choices=CORRECTIONS, default="local",
-                   help="patch-size correction: none; global (ScaleNet); local (Local-ScaleNet, gated); "
-                        "fused (local map shape + global ScaleNet level); searched (local maps from the windows "
-                        "sharing the most content: strong zoom, low overlap; ~30x slower); gt (map of --H)")
-    p.add_argument("--H", default=None,
-                   help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; "
-                        "colours inliers; default: none)")
-    p.add_argument("--descriptor", default="hardnet", help="hardnet | sift | path to HardNet weights")
-    p.add_argument("--num-features", type=positive_int, default=1000, help="keypoints per image")
-    p.add_argument("--detector", default="hessian", metavar="NAME",
-                   help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze")
-    p.add_argument("--ratio", type=float, default=None,
-                   help="Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
-    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright",
-                   help="patch orientation: upright, or the dominant gradient (for strong in-plane rotation)")
-    p.add_argument("--max-side", type=nonnegative_int, default=2048, metavar="PX",
-                   help="match larger images at this working resolution (longer side; 0: full resolution); "
-                        "keypoints are written in full-image pixels")
-    add_refine_options(p)
-    add_model_options(p, local=True, global_=True, bf16=True)
-    return p
+
+def match_options(args) -> dict:
+    """The :class:`~localscale.features.matchers.MatchConfig` fields that ``match`` / ``eval-hpatches``
+    options set (options left at None keep the matcher's own values)."""
+    opts = {}
+    for name in ("num_features", "max_side"):
+        v = getattr(args, name, None)
+        if v is not None:
+            opts[name] = v or None if name == "max_side" else v
+    if getattr(args, "matcher_weights", None) is not None:
+        opts["weights"] = args.matcher_weights
+    for name in PATCH_OPTIONS:
+        v = getattr(args, name, None)
+        if v is not None:
+            opts[name] = v
+    if getattr(args, "bf16", False):
+        opts["bf16"] = True
+    return opts
 
 
 def cmd_match(args) -> int:
-    from .features.detector import get_detector
-    from .features.pipeline import models_for_correction, run_match
+    from .features.correction import get_correction, models_for_correction
+    from .features.matchers import MATCHERS, match_config
+    from .features.pipeline import get_matcher, run_match
 
     out = check_output_dir(args.output, ["matches.npz", "matches.png"])
-    refine = getattr(args, "refine", False)
-    passes = getattr(args, "refine_passes", 2)
-    if refine and passes < 1:
-        raise LocalScaleError(f"--refine-passes must be >= 1, got {passes}")
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
     resolve_device(args.device)
-    get_detector(args.detector, max(1, args.num_features))
-    uses = {"local": ("local", "fused", "searched"), "global": ("global", "fused")}
+    opts = match_options(args)
+    if args.matcher != "hardnet":
+        used = [f"--{n}" for n in PATCH_OPTIONS if getattr(args, n, None) is not None]
+        if used:
+            raise LocalScaleError(f"{', '.join(used)}: only the hardnet matcher takes patch options, "
+                                  f"not --matcher {args.matcher}")
+    if args.matcher == "hardnet" and getattr(args, "matcher_weights", None) is not None:
+        raise LocalScaleError("--matcher-weights: the hardnet matcher uses our bundled weights "
+                              "(--descriptor PATH for other HardNet weights)")
+    refine = getattr(args, "refine", False)
+    opts.update(refine=refine, max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
+    cfg = match_config(MATCHERS[args.matcher], **opts)
+    needs = get_correction(args.correction).models
     for kind in MODEL_KINDS:
-        w = getattr(args, f"{kind}_weights", None)
-        if w is not None and args.correction not in uses[kind]:
+        if getattr(args, f"{kind}_weights", None) is not None and kind not in needs:
             print(f"note: --{kind}-weights is not used by --correction {args.correction}", file=sys.stderr)
+    matcher = get_matcher(cfg)   # loads the matcher's weights: a missing file fails before the scale models load
     local_model, global_model = models_for_correction(args.correction, args.local_weights, args.global_weights,
                                                       args.device)
-    run_match(args.image_a, args.image_b, out, args.correction, args.H, args.descriptor, args.num_features,
-              args.ratio, device=args.device, orientation=args.orientation, bf16=args.bf16,
-              local_model=local_model, global_model=global_model, detector=args.detector, refine=refine,
-              max_passes=passes, sift_seed=getattr(args, "refine_seed", "sift") == "sift",
-              max_side=getattr(args, "max_side", 2048) or None)
+    run_match(args.image_a, args.image_b, out, args.correction, args.H, local_model, global_model, matcher)
     return 0
 
 
 def cmd_eval_hpatches(args) -> int:
-    from .evaluation.hpatches import run
+    from .evaluation.hpatches import gate_from_args, load_hpatches, load_scale_models, make_pairs, result_tag, run
+    from .features.matchers import MATCHERS, match_config
+    from .features.pipeline import get_matcher
 
-    return run(args) or 0
+    opts = match_options(args)
+    opts.pop("max_side", None)                  # one working resolution for every matcher, below
+    if getattr(args, "base_radius", None) is not None:
+        opts["base_radius"] = args.base_radius
+    patch_opts = {k: opts.pop(k) for k in list(opts) if k in PATCH_OPTIONS + ("base_radius",)}
+    if patch_opts and "hardnet" not in args.matcher:
+        raise LocalScaleError(f"--{', --'.join(k.replace('_', '-') for k in patch_opts)}: only the hardnet matcher "
+                              f"takes patch options")
+    gate = gate_from_args(args)
+    configs = [match_config(MATCHERS[n], gate=gate, **opts, **(patch_opts if n == "hardnet" else {}))
+               for n in dict.fromkeys(args.matcher)]
+    tags = [result_tag(c) for c in configs]
+    check_output_dir(args.out, ["splits.csv", "results.md"] + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
+                     + [f"mma_{t}_rot30-90.png" for t in tags])
+    resolve_device(args.device)
+    matchers = [get_matcher(c) for c in configs]   # a missing weight file fails before any pair runs
+    seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
+    if args.pairs is not None:
+        for s in seqs:
+            s.homographies = {k: H for k, H in s.homographies.items() if k in args.pairs}
+            s.bad = {k: v for k, v in s.bad.items() if k in args.pairs}
+    skipped: list = []
+    pairs = make_pairs(seqs, skipped)
+    if not pairs:
+        raise LocalScaleError(f"no pair of {args.root} can be evaluated ({len(skipped)} skipped; first: "
+                              f"{skipped[0]['pair']}: {skipped[0]['reason']})" if skipped else
+                              f"no pairs in {args.root}")
+    methods = list(dict.fromkeys(args.methods))
+    models, notes = load_scale_models(methods, args.local_weights, args.global_weights, args.device)
+    if not methods:
+        raise LocalScaleError(f"none of the methods {list(args.methods)} can run: {'; '.join(notes)}")
+    for n in notes:
+        print("note:", n)
+    print(f"{len(seqs)} sequences, {len(pairs)} pairs; matchers {[m.name for m in matchers]}; methods {methods}")
+    run(pairs, methods, matchers, args.out, models, notes, skipped, args.max_side,
+        extra={"gate": vars(gate), "args": {k: v for k, v in vars(args).items() if not callable(v)}})
+    print(f"wrote {args.out}/")
+    return 0
 
 
 # ---------------------------------------------------------------- parser
@@ -758,93 +568,6 @@ EXAMPLES = {
   localscale eval-hpatches ROOT -o out/ --methods none local --detector orb
       -> out/results_orb_<descriptor>.{json,md}: the same with one-level ORB keypoints""",
 }
-
-
-def _int_at_least(text: str, low: int) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
-    if v < low:
-        raise argparse.ArgumentTypeError(f"must be >= {low}, got {v}")
-    return v
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    return _int_at_least(text, 1)
-
-
-def nonnegative_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    return _int_at_least(text, 0)
-
-
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return v
-
-
-class OneLineErrorParser(argparse.ArgumentParser):
-    """An argument error is the usage line and one ``error: <prog>: ...`` line, exit code 2."""
-
-    def error(self, message):
-        self.print_usage(sys.stderr)
-        self.exit(2, f"error: {self.prog}: {' '.join(message.split())}\n")
-
-
-class _LazyArgumentParser(OneLineErrorParser):
-    """A sub-command parser whose options are added on first use (parsing or help).
-
-    ``match`` and ``eval-hpatches`` take their choices from modules that import torch and
-    OpenCV; adding their options only when that command is used keeps ``localscale --help``
-    and the other commands free of those imports."""
-
-    def __init__(self, *args, add_options=None, **kwargs):
-        super().__init__(*args, **kwargs)
-        self._add_options = add_options
-
-    def _populate(self) -> None:
-        add, self._add_options = self._add_options, None
-        if add is not None:
-            add(self)
-
-    def parse_known_args(self, args=None, namespace=None):
-        self._populate()
-        return super().parse_known_args(args, namespace)
-
-    def format_help(self):
-        self._populate()
-        return super().format_help()
-
-    def format_usage(self):
-        self._populate()
-        return super().format_usage()
-
-    def set_defaults(self, **kwargs):
-        if self.__dict__.get("_add_options") is None:
-            return super().set_defaults(**kwargs)
-        self.__dict__["_defaults"].update(kwargs)   # options added later take these defaults
-
-    def __getattribute__(self, name):
-        # code that inspects the options (``parser._actions``, ``get_default``) sees them all
-        if name in ("_actions", "_option_string_actions", "_action_groups", "_defaults"):
-            add = object.__getattribute__(self, "__dict__").get("_add_options")
-            if add is not None:
-                object.__getattribute__(self, "_populate")()
-        return super().__getattribute__(name)
-
-
-def _add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    from .evaluation.hpatches import add_arguments
-
-    return add_arguments(p)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -914,14 +637,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_options(sp, local=False, global_=True, model_alias="global")
     sp.set_defaults(func=cmd_rectify)
 
-    sp = command("match", "keypoints + scale-corrected patches + descriptors + mutual NN",
-                 "Detect keypoints, extract patches whose size is corrected by a scale map, describe them\n"
-                 "and match them (mutual nearest neighbours).", add_options=add_match_options)
+    sp = command("match", "match two images: our scale-corrected patches, SIFT, ALIKED/DISK/XFeat + LightGlue",
+                 "Match two images with a matcher (--matcher) and a scale correction (--correction): our\n"
+                 "scale-corrected patches (hardnet: the patch size of each keypoint follows the scale map),\n"
+                 "or SIFT / learned features on a pair rectified to scale 1 (the image whose content is\n"
+                 "bigger is shrunk by the correction's level).", add_options=add_match_options)
     sp.set_defaults(func=cmd_match)
 
     sp = command("eval-hpatches", "HPatches-style MMA evaluation",
                  "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.",
-                 add_options=_add_hpatches_options)
+                 add_options=add_hpatches_options)
     sp.set_defaults(func=cmd_eval_hpatches)
     return p
 

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import torch
 
 
 def grid_points(height: int, width: int, stride: int = 1) -> np.ndarray:
@@ -64,14 +63,6 @@ def homography_scale_map(H: np.ndarray, height: int, width: int, stride: int = 1
     s = homography_scale_at(H, pts)
     s[pts @ H[2, :2] + H[2, 2] <= 0] = np.nan
     return s
-
-
-def homography_scale_map_torch(H: torch.Tensor, height: int, width: int, stride: int = 1) -> torch.Tensor:
-    """Batched torch version of :func:`homography_scale_map`. ``H``: ``B x 3 x 3`` -> ``B x h x w``."""
-    pts = torch.from_numpy(grid_points(height, width, stride)).to(H)
-    w = H[:, 2, 0, None, None] * pts[..., 0] + H[:, 2, 1, None, None] * pts[..., 1] + H[:, 2, 2, None, None]
-    det = torch.linalg.det(H)
-    return torch.sqrt(det.abs()[:, None, None] / w.abs() ** 3)
 
 
 def project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -205,3 +196,14 @@ def warp_image(image: np.ndarray, H: np.ndarray, shape_out: tuple[int, int],
         warped = (warped.astype(np.float32) * v + f.astype(np.float32) * (1 - v))
         warped = warped.round().clip(0, 255).astype(image.dtype) if image.dtype == np.uint8 else warped.astype(image.dtype)
     return warped, valid
+
+
+def homography_rotation(H: np.ndarray, shape_a: tuple[int, int]) -> float:
+    """In-plane rotation (degrees, -180..180) of ``H`` at the centre of image A: the angle of the
+    similarity closest to its Jacobian there (positive: counter-clockwise in the image frame)."""
+    h, w = shape_a
+    c = np.array([[(w - 1) / 2, (h - 1) / 2]])
+    e = 1.0
+    p0, px, py = project(H, c)[0], project(H, c + [[e, 0]])[0], project(H, c + [[0, e]])[0]
+    J = np.stack([(px - p0) / e, (py - p0) / e], axis=1)    # columns: d/dx, d/dy
+    return float(np.degrees(np.arctan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))

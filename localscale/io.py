@@ -385,9 +385,17 @@ def _check_size(height: int, width: int, name: str) -> None:
                          f"larger than the limit of {MAX_PIXELS / 1e6:.0f} MP")
 
 
-def read_homography(path: Union[str, os.PathLike, np.ndarray]) -> np.ndarray:
-    """Read a 3x3 homography (plain text, 3 lines of 3 numbers, HPatches layout) or validate an array."""
+def read_homography(path: Union[str, os.PathLike, np.ndarray, list]) -> np.ndarray:
+    """Read a 3x3 homography (plain text, 3 lines of 3 numbers, HPatches layout) or validate an array
+    (or a nested list of numbers)."""
+    if isinstance(path, (list, tuple)):
+        try:
+            path = np.asarray(path, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise HomographyError("homography: a nested list must hold 3 x 3 numbers") from None
     if isinstance(path, np.ndarray):
+        if not np.issubdtype(path.dtype, np.number):
+            raise HomographyError(f"homography: an array of numbers is needed, got dtype {path.dtype}")
         H, src = path.astype(np.float64), "homography"
     else:
         p = Path(path)

@@ -11,9 +11,12 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 from .errors import LocalScaleError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: longest file name (one path component) written; most file systems allow 255 bytes
 NAME_MAX = 255
@@ -103,4 +106,72 @@ def check_writable_dir(out: Path, names=()) -> Path:
             raise LocalScaleError(f"output file name too long ({len(os.fsencode(n))} bytes, the limit is "
                                   f"{limit}): {n[:40]}...")
     return out
+
+
+
+# ---------------------------------------------------------------- writers of arrays, images, maps
+
+def ensure_not_input(path, inputs) -> Path:
+    """Refuse to write ``path`` when it is one of the command's ``inputs``."""
+    path = Path(path)
+    for i in inputs:
+        if i is not None and not hasattr(i, "shape") and resolved_path(i) == resolved_path(path):
+            raise LocalScaleError(f"refusing to overwrite the input {i} with an output")
+    return path
+
+
+def make_dir(path: Path) -> Path:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise LocalScaleError(f"cannot create output folder {path}: {e.strerror or e}") from None
+    return path
+
+
+def write_image(path, image_bgr: np.ndarray) -> Path:
+    """``cv2.imwrite`` (atomic: temporary name, then rename) that raises :class:`LocalScaleError`
+    when nothing was written."""
+    import cv2
+
+    from .io import _quiet_decoder
+    with atomic_path(path) as tmp, _quiet_decoder():   # OpenCV's own warnings stay off the terminal
+        try:
+            ok = cv2.imwrite(str(tmp), image_bgr)
+        except cv2.error as e:
+            raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
+        if not ok:
+            raise LocalScaleError(f"cannot write {path}")
+    return Path(path)
+
+
+def write_npy(path, array: np.ndarray) -> Path:
+    """``np.save`` to ``path`` (atomic: temporary name, then rename)."""
+    import numpy as np
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
+    return Path(path)
+
+
+def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
+    """A float32 ``.npy`` of ``shape`` written from ``(y0, rows)`` row bands in order, without the
+    whole array in memory (atomic: temporary name, then rename)."""
+    import numpy as np
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
+                    "shape": tuple(int(n) for n in shape)})
+            for _, rows in bands:
+                # f.write, not ndarray.tofile: a SIGTERM raised inside tofile surfaces as a TypeError
+                f.write(np.ascontiguousarray(rows, np.float32).data)
+    return Path(path)
+
+
+def resolved_path(p) -> Path:
+    """Absolute path with symbolic links resolved as far as they go (never raises on a link loop)."""
+    return Path(os.path.realpath(os.path.abspath(p)))
+
 

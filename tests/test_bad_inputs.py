@@ -361,7 +361,6 @@ def _option_cases():
         ("show-H-singular", ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--H", "{in}/H_singular",
                              "--local-weights", "{in}/local.pt"], "singular"),
         ("eval-max-side--5", E + ["--max-side", "-5"], "--max-side"),
-        ("eval-max-side-0", E + ["--max-side", "0"], "--max-side"),
         ("eval-num-features-0", E + ["--num-features", "0"], "--num-features"),
         ("eval-base-radius-nan", E + ["--base-radius", "nan"], "--base-radius"),
         ("eval-bad-method", E + ["--methods", "magic"], "invalid choice"),
@@ -657,12 +656,13 @@ def _pairs_setup(env, tmp_path, n=4):
 
 def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeypatch, capsys):
     import localscale.cli as cli
+    import localscale.map_files as outputs
 
     pairs = _pairs_setup(env, tmp_path)
     out = tmp_path / "out"
     argv = ["predict", "--pairs", str(pairs), "-o", str(out), "--local-weights", str(env["in"] / "local.pt"),
             "--batch-size", "1"]
-    real = cli.write_image
+    real = outputs.write_image
     calls = {"n": 0}
 
     def terminated_on_the_6th_image(path, img):
@@ -671,14 +671,14 @@ def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeyp
             raise cli.Terminated()
         return real(path, img)
 
-    monkeypatch.setattr(cli, "write_image", terminated_on_the_6th_image)
+    monkeypatch.setattr(outputs, "write_image", terminated_on_the_6th_image)
     rc, _, err = _run(main, argv, capsys)
     assert rc == 143 and "terminated" in err and "Traceback" not in err
     for f in out.iterdir():   # every file left is complete; no temporary file is left
         assert not f.name.startswith("."), f
         if f.suffix == ".npy":
             np.load(f)
-    monkeypatch.setattr(cli, "write_image", real)
+    monkeypatch.setattr(outputs, "write_image", real)
     rc, stdout, _ = _run(main, argv, capsys)
     assert rc == 0 and "4 pairs: 2 written, 2 skipped" in stdout   # pairs 0 and 1 were complete
     rc, stdout, _ = _run(main, argv, capsys)
@@ -930,7 +930,7 @@ def test_eval_hpatches_skips_bad_pairs_and_writes_the_rest(env, tmp_path, capsys
     rc, stdout, err = _run(main, ["eval-hpatches", str(root), "-o", str(out), "--methods", "none", "--descriptor",
                                   "sift", "--num-features", "100"], capsys)
     assert rc == 0 and "Traceback" not in err
-    doc = json.loads((out / "results_sift.json").read_text())
+    doc = json.loads((out / "results_hardnet-sift.json").read_text())
     skipped = {s["pair"] for s in doc["skipped"]}
     assert skipped == {"v_trunc/1-2", "v_tiny/1-2", "v_nan/1-2", "v_garbage/1-2", "v_outside/1-2"}
     assert {r["pair"] for r in doc["records"]} == {"v_good/1-2", "v_size/1-2"}

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import localscale.cli as cli
+from localscale import loading
 from localscale import LocalScaleNet, ScaleNet
 from localscale.checkpoint import save_model
 from localscale.cli import main
@@ -233,8 +234,8 @@ def test_rectify_failed_write_is_an_error(models, seqs, tmp_path, capsys):
 
 def test_match_fused_loads_the_given_models(models, pair, tmp_path, monkeypatch):
     calls = []
-    real = cli.load_scale_model
-    monkeypatch.setattr(cli, "load_scale_model", lambda kind, w=None, d="cpu": calls.append((kind, w, d)) or real(kind, w, d))
+    real = loading.load_scale_model
+    monkeypatch.setattr(loading, "load_scale_model", lambda kind, w=None, d="cpu": calls.append((kind, w, d)) or real(kind, w, d))
     L, G = str(models / "local.pt"), str(models / "global.pt")
     assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "fused",
                  "--descriptor", "sift", "--num-features", "64", "--local-weights", L, "--global-weights", G,
@@ -265,7 +266,7 @@ def _spy_loader(monkeypatch, models):
     """Replace the CLI's model loader: record (kind, weights, device) and whether each encoder
     pass ran under bfloat16 autocast."""
     calls, autocast = [], []
-    real = cli.load_scale_model
+    real = loading.load_scale_model
 
     def loader(kind, weights=None, device="cpu"):
         calls.append((kind, weights, device))
@@ -274,7 +275,7 @@ def _spy_loader(monkeypatch, models):
         m.encode = lambda x: autocast.append(torch.is_autocast_enabled("cpu")) or enc(x)
         return m
 
-    monkeypatch.setattr(cli, "load_scale_model", loader)
+    monkeypatch.setattr(loading, "load_scale_model", loader)
     return calls, autocast
 
 
@@ -340,7 +341,7 @@ def test_output_that_is_a_file_is_an_error_before_any_work(name, pair, seqs, tmp
     def no_loading(*a, **k):
         raise AssertionError("a model was loaded although the output is unusable")
 
-    monkeypatch.setattr(cli, "load_scale_model", no_loading)
+    monkeypatch.setattr(loading, "load_scale_model", no_loading)
     assert main([name.split()[0]] + argv + ["-o", str(tmp_path / "taken")]) == 2
     one_line_error(capsys, "taken", "not a folder")
     assert (tmp_path / "taken").read_text() == "keep me"
@@ -397,15 +398,6 @@ def test_wrong_architecture_checkpoint(models, pair, tmp_path, capsys):
     assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path),
                  "--local-weights", str(models / "global.pt")]) == 2
     assert "is a ScaleNet, expected a LocalScaleNet" in capsys.readouterr().err
-
-
-def test_python_module_entry_is_the_same_cli(monkeypatch, capsys):
-    from localscale.features.pipeline import match_main
-
-    with pytest.raises(SystemExit) as e:
-        match_main(["--help"])
-    assert e.value.code == 0 and "--local-weights" in capsys.readouterr().out
-    assert sys.modules["localscale.cli"] is cli
 
 
 def test_visible_map_is_written_when_the_model_predicts_it(tmp_path):

@@ -10,7 +10,7 @@ import torch
 
 from localscale.cli import main as cli_main
 from localscale.errors import LocalScaleError
-from localscale.evaluation import evaluate, load_hpatches, main, make_pairs, make_sequences
+from localscale.evaluation import evaluate, load_hpatches, make_pairs, make_sequences
 from localscale.features import DETECTORS, detect, detect_keypoints, get_detector, match_pair
 
 ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"
@@ -74,17 +74,18 @@ def tiny_root(tmp_path_factory, photos):
 
 def test_eval_with_orb(tiny_root, tmp_path):
     pairs = make_pairs(load_hpatches(tiny_root))
-    res = evaluate(pairs, ["none", "gt"], "sift", num_features=100, detector="orb", progress=False)
+    res = evaluate(pairs, ["none", "gt"], "hardnet", descriptor="sift", num_features=100, detector="orb",
+                   progress=False)
     s = res["summary"]["all"]
     assert all(0 <= v <= 1 for m in ("none", "gt") for v in s[m]["mma"])
     assert 0 < s["none"]["num_features"] <= 100 and s["gt"]["mma"][4] >= s["none"]["mma"][4]
     with pytest.raises(LocalScaleError, match="unknown detector"):
-        evaluate(pairs, ["none"], "sift", detector="nope", progress=False)
+        evaluate(pairs, ["none"], "hardnet", descriptor="sift", detector="nope", progress=False)
     out = tmp_path / "out"
-    assert main([str(tiny_root), "-o", str(out), "--methods", "none", "gt", "--descriptor", "sift",
-                 "--num-features", "100", "--detector", "orb"]) == 0
-    doc = json.loads((out / "results_orb_sift.json").read_text())
-    assert doc["detector"] == "orb" and doc["summary"]["all"]["none"]["num_features"] <= 100
+    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt", "--descriptor", "sift",
+                     "--num-features", "100", "--detector", "orb"]) == 0
+    doc = json.loads((out / "results_hardnet-orb-sift.json").read_text())
+    assert doc["matcher_config"]["detector"] == "orb" and doc["summary"]["all"]["none"]["num_features"] <= 100
 
 
 def test_cli_unknown_detector_is_a_one_line_error(tiny_root, tmp_path, capsys):

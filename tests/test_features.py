@@ -1,6 +1,4 @@
-"""Issue 5: detector, scale-corrected patches, descriptors, matching pipeline."""
-import argparse
-
+"""Detector, scale-corrected patches, descriptors, matching pipeline."""
 import cv2
 import numpy as np
 import pytest
@@ -8,9 +6,9 @@ import torch
 
 from localscale.errors import CheckpointError, ImageError, LocalScaleError
 from localscale.features import (CorrectionGate, HardNetDescriptor, NO_GATE, ScaleCorrectedPatches,
-                                 SIFTPatchDescriptor, add_match_arguments, detect_keypoints, draw_matches,
+                                 SIFTPatchDescriptor, detect_keypoints, draw_matches,
                                  extract, image_to_gray_tensor, match_descriptors, match_pair, patch_radii,
-                                 reprojection_errors, run_match_cli, sample_scale_map, save_matches)
+                                 reprojection_errors, sample_scale_map, save_matches)
 from localscale.geometry import HomographyConfig, homography_scale_map, project, sample_homography, warp_image
 
 
@@ -319,24 +317,40 @@ def test_bad_inputs(photos, tmp_path):
         match_pair(a, b, "gt", H=np.zeros((3, 3)), descriptor="sift")
 
 
-def test_run_match_cli(photos, tmp_path):
+def test_match_cli_writes_matches(photos, tmp_path):
+    from localscale.cli import main
+
     a, b, H = _synthetic_pair(photos["astronaut"])
     cv2.imwrite(str(tmp_path / "a.png"), a[..., ::-1])
     cv2.imwrite(str(tmp_path / "b.png"), b[..., ::-1])
     np.savetxt(tmp_path / "H", H)
-    parser = add_match_arguments(argparse.ArgumentParser())
-    args = parser.parse_args([str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(tmp_path / "out"),
-                              "--correction", "gt", "--H", str(tmp_path / "H"), "--descriptor", "sift",
-                              "--num-features", "200"])
-    assert run_match_cli(args) == 0
+    assert main(["match", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(tmp_path / "out"),
+                 "--correction", "gt", "--H", str(tmp_path / "H"), "--descriptor", "sift",
+                 "--num-features", "200"]) == 0
     assert (tmp_path / "out" / "matches.npz").is_file() and (tmp_path / "out" / "matches.png").is_file()
     z = np.load(tmp_path / "out" / "matches.npz")
-    assert (z["errors"] < 5).mean() > 0.5
-    # the package CLI's spelling of the options (output, local_model, ...)
-    ns = argparse.Namespace(image_a=str(tmp_path / "a.png"), image_b=str(tmp_path / "b.png"),
-                            output=str(tmp_path / "out2"), correction="none", H=None, descriptor="sift",
-                            num_features=100, ratio=0.9, local_model=None, global_model=None, device="cpu")
-    assert run_match_cli(ns) == 0 and (tmp_path / "out2" / "matches.png").is_file()
+    assert (z["errors"] < 5).mean() > 0.5 and str(z["matcher"]) == "hardnet"
+
+
+def test_bad_match_options_and_models(photos, tmp_path):
+    from localscale.models import ScaleNet
+
+    a, b, H = _synthetic_pair(photos["chelsea"])
+    with pytest.raises(LocalScaleError, match="base_radius"):
+        match_pair(a, b, "none", base_radius=float("nan"), descriptor="sift")
+    with pytest.raises(LocalScaleError, match="unknown match option"):
+        match_pair(a, b, "none", num_featrues=10)
+    with pytest.raises(LocalScaleError, match="LocalScaleNet"):
+        match_pair(a, b, "local", local_model=ScaleNet(width=0.125, image_size=64).eval(), descriptor="sift")
+    res = match_pair(a, b, "gt", H=H.tolist(), descriptor="sift", num_features=100)   # H as a nested list
+    assert res.accuracy(5.0) > 0.5
+    with pytest.raises(LocalScaleError, match="an existing folder"):
+        draw_matches(a, b, res, tmp_path)
+    with pytest.raises(LocalScaleError, match="must end in"):
+        draw_matches(a, b, res, tmp_path / "m.xyz")
+    with pytest.raises(LocalScaleError, match="outside image"):
+        draw_matches(a[:100, :100], b[:100, :100], res, tmp_path / "m.png")
+    assert not list(tmp_path.iterdir())
 
 
 def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos):

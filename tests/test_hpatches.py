@@ -1,4 +1,4 @@
-"""Issue 6: HPatches loader, splits, protocol and the synthetic sequence generator."""
+"""HPatches loader, splits, protocol and the synthetic sequence generator."""
 import json
 import shutil
 
@@ -9,8 +9,9 @@ import torch
 
 from localscale.cli import main as cli_main
 from localscale.errors import LocalScaleError
-from localscale.evaluation import (evaluate, load_hpatches, main, make_pairs, make_sequences, perspective_split,
-                                   scale_split)
+from localscale.evaluation import (evaluate, load_hpatches, make_pairs, make_sequences, perspective_split,
+                                   rotation_split, scale_split)
+from localscale.geometry import homography_rotation
 from localscale.features.matching import orient_homography
 
 
@@ -51,7 +52,12 @@ def test_splits_and_sign(tiny_root):
         assert p.perspective_split in ("easy", "medium", "hard") and p.scale_split.startswith("scale")
         assert np.isfinite(p.log2_scale) and p.covisible > 0.2
     assert perspective_split(0.05) == "easy" and perspective_split(0.2) == "medium" and perspective_split(0.3) == "hard"
-    assert scale_split(0.1) == "scale<1.4x" and scale_split(-1.0) == "scale1.4-2.8x" and scale_split(2) == "scale>2.8x"
+    assert scale_split(0.1) == "scale<2x" and scale_split(-1.5) == "scale2-4x" and scale_split(2) == "scale>4x"
+    assert rotation_split(10) == "rot<30" and rotation_split(-60) == "rot30-90" and rotation_split(180) == "rot>90"
+    c, sn = np.cos(np.radians(120)), np.sin(np.radians(120))
+    R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
+    assert abs(homography_rotation(R, (100, 100)) - 120) < 1e-6
+    assert abs(homography_rotation(np.diag([3.0, 3.0, 1.0]), (100, 100))) < 1e-9
     H = np.array([[2.0, 0, 3], [0, 2, 1], [1e-4, 0, 1]])
     assert np.allclose(orient_homography(-H, (100, 100)), H) and np.allclose(orient_homography(H, (100, 100)), H)
 
@@ -62,18 +68,19 @@ def test_whole_eval_tiny(tiny_root, tmp_path):
     torch.manual_seed(0)
     pairs = make_pairs(load_hpatches(tiny_root))
     local = LocalScaleNet(width=0.125, image_size=64).eval()
-    res = evaluate(pairs, ["none", "local", "gt", "pyramid"], "sift", num_features=150, local_model=local,
+    res = evaluate(pairs, ["none", "local", "gt"], "hardnet", descriptor="sift", num_features=150, local_model=local,
                    progress=False)
     s = res["summary"]
-    assert s["all"]["num_pairs"] == 4 and len(res["records"]) == 16
-    for m in ("none", "local", "gt", "pyramid"):
+    assert s["all"]["num_pairs"] == 4 and len(res["records"]) == 12
+    assert all(r["seconds"] > 0 and r["matcher"] == "hardnet" for r in res["records"])
+    for m in ("none", "local", "gt"):
         mma = s["all"][m]["mma"]
         assert len(mma) == 10 and all(0 <= v <= 1 for v in mma) and np.all(np.diff(mma) >= -1e-9)
     assert s["all"]["gt"]["mma"][4] > s["all"]["none"]["mma"][4]
     with pytest.raises(LocalScaleError):
-        evaluate(pairs, ["local"], "sift")
+        evaluate(pairs, ["local"], "hardnet")
     from localscale.models import ScaleNet
-    res = evaluate(pairs[:1], ["global", "gt_gated"], "sift", num_features=100,
+    res = evaluate(pairs[:1], ["global", "gt_gated"], "hardnet", descriptor="sift", num_features=100,
                    global_model=ScaleNet(width=0.125, image_size=64).eval(), progress=False)
     assert set(res["summary"]["all"]) >= {"global", "gt_gated"}
 
@@ -85,21 +92,26 @@ def test_main_writes_outputs(tiny_root, tmp_path):
                      "--descriptor", "sift", "--num-features", "100",
                      "--local-weights", str(tmp_path / "missing.pt")]) == 2
     assert not out.exists()
-    assert main([str(tiny_root), "-o", str(out), "--methods", "none", "gt", "--descriptor", "sift",
-                 "--num-features", "100"]) == 0
-    doc = json.loads((out / "results_sift.json").read_text())
+    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt",
+                     "--matcher", "hardnet", "sift", "--descriptor", "sift", "--num-features", "100"]) == 0
+    doc = json.loads((out / "results_hardnet-sift.json").read_text())
     assert doc["methods"] == ["none", "gt"] and doc["skipped"] == []
-    assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_sift.md").is_file()
-    assert (out / "mma_sift_all.png").stat().st_size > 0
+    assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_hardnet-sift.md").is_file()
+    assert (out / "mma_hardnet-sift_all.png").stat().st_size > 0
+    sift = json.loads((out / "results_sift.json").read_text())
+    assert sift["matcher"] == "sift" and sift["matcher_config"]["extractor"] == "sift"
+    assert sift["matcher_config"]["num_features"] == 100                   # --num-features applies to every matcher
+    assert "hardnet-sift" in (out / "results.md").read_text() and "sift" in (out / "results.md").read_text()
 
 
 
 def test_gate_options(tiny_root, tmp_path):
     import argparse
 
-    from localscale.evaluation.hpatches import add_arguments, gate_from_args
+    from localscale.cli_options import add_hpatches_options
+    from localscale.evaluation.hpatches import gate_from_args
 
-    parse = add_arguments(argparse.ArgumentParser()).parse_args
+    parse = add_hpatches_options(argparse.ArgumentParser()).parse_args
     gate = gate_from_args(parse([str(tiny_root)]))
     assert gate.weighting == "reliability" and gate.consistency
     gate = gate_from_args(parse([str(tiny_root), "--gate-weighting", "none", "--gate-pair", "0.5", "--no-consistency"]))
@@ -141,14 +153,14 @@ def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
 
 
 def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
-    from localscale.evaluation.hpatches import markdown_table, opencv_ratio_matches
+    from localscale.evaluation.hpatches import markdown_table
     from localscale.models import LocalScaleNet
 
     torch.manual_seed(0)
     pairs = make_pairs(load_hpatches(tiny_root))[:2]
     local = LocalScaleNet(width=0.125, image_size=64).eval()
-    methods = ["none", "refined", "gt", "opencv-sift"]
-    res = evaluate(pairs, methods, "sift", num_features=150, local_model=local, progress=False)
+    methods = ["none", "refined", "gt"]
+    res = evaluate(pairs, methods, "hardnet", descriptor="sift", num_features=150, local_model=local, progress=False)
     for r in res["records"]:
         assert r["corner_error"] >= 0
     ref = [r for r in res["records"] if r["method"] == "refined"]
@@ -156,10 +168,8 @@ def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
     for m in methods:
         v = res["summary"]["all"][m]
         assert len(v["h_auc"]) == 3 and all(0 <= x <= 1 for x in v["h_auc"]) and 0 <= v["h_solved"] <= 1
-    assert res["summary"]["all"]["opencv-sift"]["h_auc"][2] > 0
+    sift = evaluate(pairs, ["none"], "sift", progress=False)
+    assert sift["summary"]["all"]["none"]["h_auc"][2] > 0
     assert "H AUC@5" in markdown_table(res["summary"], methods, list(range(1, 11)))
-    d = np.random.default_rng(0).normal(size=(50, 128)).astype(np.float32)
-    m = opencv_ratio_matches(d, d[::-1].copy())
-    assert len(m) == 50 and (m[:, 1] == 49 - m[:, 0]).all()
     with pytest.raises(LocalScaleError):
-        evaluate(pairs, ["refined"], "sift")
+        evaluate(pairs, ["refined"], "hardnet")

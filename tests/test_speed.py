@@ -12,6 +12,7 @@ from localscale.features import (NO_GATE, HardNetDescriptor, ScaleCorrectedPatch
                                  image_to_gray_tensor, match_descriptors, match_pair, reprojection_errors,
                                  scale_maps_for_pair)
 from localscale.features.descriptors import default_batch_size
+from localscale.features.matchers import MatchConfig
 from localscale.features.detector import HessianDetector
 from localscale.io import load_image, read_homography
 
@@ -86,7 +87,8 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
     local, glob = tiny_models
     methods = ["none", "global", "local", "fused", "gt", "gt_gated"]
     pairs = make_pairs(load_hpatches(tiny_seqs))
-    res = evaluate(pairs, methods, "sift", 150, local, glob, NO_GATE, progress=False)
+    res = evaluate(pairs, methods, "hardnet", local, glob, None, progress=False, descriptor="sift", num_features=150,
+                   gate=NO_GATE)
     recs = {(r["pair"], r["method"]): r for r in res["records"]}
     desc = SIFTPatchDescriptor().eval()
     cutter = ScaleCorrectedPatches()
@@ -111,32 +113,34 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
     assert corrected >= 4 * len(pairs)
 
 
-def test_evaluator_describes_each_radius_once(tiny_seqs):
-    from localscale.evaluation.hpatches import _Evaluator
-    from localscale.features.correction import CorrectionGate
+def test_matcher_describes_each_radius_once(tiny_seqs):
+    from localscale.features.matchers import Matcher
+    from localscale.io import load_image
 
     path = sorted(tiny_seqs.glob("*/1.png"))[0]
-    ev = _Evaluator("sift", 120, None, None, CorrectionGate(), 16.0, "upright", None)
-    ev._keep = {path}
-    g, kps = ev.keypoints(path)
-    n = len(kps)
-    k0, d0 = ev.describe(path, None)
-    assert ev.described == n
-    smap = np.full(g.shape[-2:], 0.5, np.float32)
-    smap[:, : g.shape[-1] // 2] = 2.0         # left half S > 1: base radius, reused
-    _, d1 = ev.describe(path, smap)
-    left = kps[:, 0] < g.shape[-1] / 2 - 2
-    right = kps[:, 0] > g.shape[-1] / 2 + 2
-    assert n < ev.described < 2 * n
-    torch.testing.assert_close(d1[left], d0[left])
-    cutter = ScaleCorrectedPatches()
-    direct = SIFTPatchDescriptor().eval().describe(cutter(g, kps, smap)[0])
-    torch.testing.assert_close(d1, direct, atol=1e-5, rtol=0)
-    assert not torch.allclose(d1[right], d0[right])
-    before = ev.described
-    ev.describe(path, smap)
-    ev.describe(path, 1.0)
-    assert ev.described == before
+    img = load_image(path)
+    m = Matcher(MatchConfig(descriptor="sift", num_features=120))
+    f0 = m.extract(img, None, key=str(path))
+    n = len(f0)
+    assert m.described == n
+    smap = np.full(img.shape[:2], 0.5, np.float32)
+    smap[:, : img.shape[1] // 2] = 2.0         # left half S > 1: base radius, reused
+    f1 = m.extract(img, smap, key=str(path))
+    kps = torch.from_numpy(f0.keypoints)
+    left = kps[:, 0] < img.shape[1] / 2 - 2
+    right = kps[:, 0] > img.shape[1] / 2 + 2
+    assert n < m.described < 2 * n
+    torch.testing.assert_close(f1.descriptors[left], f0.descriptors[left])
+    g = image_to_gray_tensor(img)
+    direct = SIFTPatchDescriptor().eval().describe(ScaleCorrectedPatches()(g, kps, smap)[0])
+    torch.testing.assert_close(f1.descriptors, direct, atol=1e-5, rtol=0)
+    assert not torch.allclose(f1.descriptors[right], f0.descriptors[right])
+    before = m.described
+    again = m.extract(img, smap, key=str(path))
+    m.extract(img, 1.0, key=str(path))
+    assert m.described == before and again.seconds > 0      # cached features still carry their cost
+    m.extract(img, smap)                                      # no key: no cache
+    assert m.described == before + n
 
 
 def test_corrections_beat_no_correction_on_the_bundled_pair():

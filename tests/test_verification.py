@@ -177,7 +177,7 @@ def test_cli_predict_search_refine_seeds_the_refinement_with_both_searched_maps(
 def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
     import torch
 
-    from localscale.features.verification import refine_matching
+    from localscale.features.verification import describe_and_match, refine_matching
 
     a, b, H = example
     kp = rng.uniform([0, 0], [639, 426], (300, 2))
@@ -189,11 +189,11 @@ def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
 
     pa, pb = _points(H, a.shape[:2], 100, rng)
     net = np.ones(a.shape[:2], np.float32)
-    out = refine_matching(describe, describe, a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb))
+    out = refine_matching(describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb))
     assert out.seed is not None and out.seed.verified and out.refined_a.verified
     assert out.passes == 2 and calls[2] is out.refined_a.scale      # second pass cut with the refined maps
     gt = homography_scale_map(H, *a.shape[:2])
     sup = out.refined_a.source > 0.999
     assert np.nanmax(np.abs(np.log2(out.refined_a.scale[sup] / gt[sup]))) < 1e-3
-    no = refine_matching(describe, describe, a.shape[:2], b.shape[:2], None, None, net, net)
+    no = refine_matching(describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net)
     assert no.passes == 1 and not no.refined_a.verified and (no.refined_a.source == 0).all()

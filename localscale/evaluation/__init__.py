@@ -1,8 +1,8 @@
 """Evaluation protocols: HPatches-style MMA with patch-size correction."""
-from .hpatches import (HIGH_RES, METHODS, PairInfo, evaluate, load_hpatches, main, make_pairs, markdown_table,
-                       perspective_split, scale_split, summarise, write_outputs)
+from .hpatches import (HIGH_RES, METHODS, PairInfo, evaluate, load_hpatches, make_pairs, markdown_table,
+                       perspective_split, rotation_split, run, scale_split, summarise, write_outputs)
 from .synthetic import STRONG, make_sequences, random_pair
 
-__all__ = ["load_hpatches", "make_pairs", "evaluate", "summarise", "markdown_table", "write_outputs", "main",
-           "perspective_split", "scale_split", "PairInfo", "HIGH_RES", "METHODS", "make_sequences", "random_pair",
+__all__ = ["load_hpatches", "make_pairs", "evaluate", "summarise", "markdown_table", "write_outputs", "run",
+           "perspective_split", "scale_split", "rotation_split", "PairInfo", "HIGH_RES", "METHODS", "make_sequences", "random_pair",
            "STRONG"]

@@ -63,20 +63,21 @@ import numpy as np
 import torch
 
 from ..errors import HomographyError, LocalScaleError
-from ..features.correction import GATE_WEIGHTINGS
-from ..geometry import covisible_mask, global_scale, orient_homography, perspective_spread
+from ..features.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
+from ..geometry import covisible_mask, global_scale, homography_rotation, orient_homography, perspective_spread
 from ..io import load_image, read_homography
 
 HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
             "v_astronautis", "v_talent")
 IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-METHODS = ("none", "global", "local", "fused", "searched", "gt", "gt_gated", "pyramid", "refined", "opencv-sift")
+METHODS = CORRECTIONS   #: the correction methods (one registry: localscale.features.correction)
 H_AUC_THRESHOLDS = (3.0, 5.0, 10.0)
 SOLVED_PX = 10.0
 SIFT_RATIO = 0.8
 THRESHOLDS = tuple(range(1, 11))
 PERSPECTIVE_EDGES = (0.1, 0.25)
-SCALE_EDGES = (0.5, 1.5)
+SCALE_EDGES = (1.0, 2.0)
+ROTATION_EDGES = (30.0, 90.0)
 
 
 @dataclass
@@ -99,6 +100,8 @@ class PairInfo:
     perspective_split: str = ""
     scale_split: str = ""
     covisible: float = 0.0
+    rotation: float = 0.0
+    rotation_split: str = ""
 
     @property
     def name(self) -> str:
@@ -168,7 +171,12 @@ def perspective_split(spread: float) -> str:
 
 def scale_split(log2_scale: float) -> str:
     g = abs(log2_scale)
-    return "scale<1.4x" if g < SCALE_EDGES[0] else ("scale1.4-2.8x" if g < SCALE_EDGES[1] else "scale>2.8x")
+    return "scale<2x" if g < SCALE_EDGES[0] else ("scale2-4x" if g < SCALE_EDGES[1] else "scale>4x")
+
+
+def rotation_split(degrees: float) -> str:
+    r = abs(degrees)
+    return "rot<30" if r < ROTATION_EDGES[0] else ("rot30-90" if r <= ROTATION_EDGES[1] else "rot>90")
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -242,7 +250,9 @@ def make_pairs(seqs: Sequence[HSequence], skipped: Optional[list] = None) -> lis
             except ValueError:
                 p.log2_scale = float("nan")
             p.covisible = covisible
+            p.rotation = homography_rotation(H, sa)
             p.perspective_split, p.scale_split = perspective_split(p.spread), scale_split(p.log2_scale)
+            p.rotation_split = rotation_split(p.rotation)
             pairs.append(p)
     return pairs
 
@@ -282,212 +292,122 @@ def content_agreement(a: np.ndarray, b: np.ndarray, H: np.ndarray, side: int = 1
     return float((x * y).sum() / den) if den > 0 else 1.0
 
 
-def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float]:
-    if not max_side or max(img.shape[:2]) <= max_side:
-        return img, 1.0
-    f = max_side / max(img.shape[:2])
-    return cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA), f
+class _PairScales:
+    """The maps of the correction methods for the pairs of a run, sharing the networks' work:
+    each image is encoded once while it is in the current pair (image 1 of a sequence is in
+    every pair of it), each pair's global scale and local maps are predicted once (``global`` and
+    ``fused`` share ScaleNet's, ``local``, ``fused`` and ``refined`` the local maps). Each map
+    keeps the seconds it took, so the time of a method is what it costs on its own."""
 
+    def __init__(self, local_model, global_model, gate):
+        self.local_model, self.global_model, self.gate = local_model, global_model, gate
+        self._enc, self._genc, self._memo, self._maps = {}, {}, {}, {}
+        self._pair = None
 
-class _Evaluator:
-    """Caches images, keypoints, network encodings and descriptors across the methods and pairs of a run.
+    def start(self, pair: PairInfo, a: np.ndarray, b: np.ndarray) -> None:
+        """Begin a pair (its images at the working resolution); drops what other images kept."""
+        self._pair, self._images = pair, {pair.image_a: a, pair.image_b: b}
+        keep = set(self._images)
+        self._enc = {k: v for k, v in self._enc.items() if k[0] in keep}
+        self._genc = {k: v for k, v in self._genc.items() if k[0] in keep}
+        self._memo, self._maps = {}, {}
 
-    Work shared between methods (results are the same as computing each method on its own):
-
-    * keypoints and the local / global networks' encodings of an image are computed once
-      (image 1 of a sequence is in every pair of it);
-    * the global scale of a pair is predicted once (``global`` and ``fused``), and so are the
-      two local maps (``local`` and ``fused``);
-    * descriptors: a keypoint's patch depends only on the image, the keypoint and its radius,
-      so a keypoint whose corrected radius equals one already described for this image
-      (e.g. the base radius of ``none``, kept wherever ``S >= 1``) reuses that descriptor;
-      only the keypoints with a new radius are cut and described.
-    """
-
-    def __init__(self, descriptor, num_features, local_model, global_model, gate, base_radius, orientation,
-                 max_side, levels=4, detector="hessian"):
-        from ..features.descriptors import get_descriptor
-        from ..features.detector import get_detector
-        self.desc = get_descriptor(descriptor)
-        get_detector(detector)                      # an unknown name fails before the first pair
-        self.detector = detector
-        self.num_features, self.local_model, self.global_model = num_features, local_model, global_model
-        self.gate, self.base_radius, self.orientation, self.max_side = gate, base_radius, orientation, max_side
-        self.levels = levels
-        self._keep = set()
-        self._img, self._kps, self._enc, self._genc, self._desc = {}, {}, {}, {}, {}
-        self._memo = {}
-        self.described = 0    #: patches described so far (the rest were reused)
-        self.suspicious = {}  #: pair -> content agreement, for pairs below :data:`MIN_AGREEMENT`
-        self.refine_passes = 2
-        self.sift_seed = True
-
-    def image(self, path):
-        if path not in self._img:
-            self._img = {k: v for k, v in self._img.items() if k in self._keep}
-            self._img[path] = _resize(load_image(path), self.max_side)
-        return self._img[path]
-
-    def keypoints(self, path):
-        from ..features.detector import get_detector, image_to_gray_tensor
-        if path not in self._kps:
-            img, _ = self.image(path)
-            g = image_to_gray_tensor(img)
-            kps, _ = get_detector(self.detector, self.num_features)(g)
-            self._kps[path] = (g, kps)
-        return self._kps[path]
+    def _key(self, path):
+        return (path, self._images[path].shape)
 
     def encoding(self, path):
-        if path not in self._enc:
-            self._enc[path] = self.local_model.encode_image(self.image(path)[0])
-        return self._enc[path]
+        k = self._key(path)
+        if k not in self._enc:
+            self._enc[k] = self.local_model.encode_image(self._images[path])
+        return self._enc[k]
 
-    def global_encoding(self, path, bf16=False):
-        if (path, bf16) not in self._genc:
-            self._genc[(path, bf16)] = self.global_model.encode_image(self.image(path)[0], "image", bf16)
-        return self._genc[(path, bf16)]
+    def global_encoding(self, path):
+        k = self._key(path)
+        if k not in self._genc:
+            self._genc[k] = self.global_model.encode_image(self._images[path], "image")
+        return self._genc[k]
 
-    def describe(self, path, scale_map):
-        """``(keypoints N x 2, descriptors N x D)`` of an image with the patch radii of ``scale_map``."""
-        from ..features.patches import ScaleCorrectedPatches, patch_radii
-        g, kps = self.keypoints(path)
-        cutter = ScaleCorrectedPatches(self.base_radius, self.desc.patch_size, self.orientation)
-        radii = patch_radii(kps, scale_map, self.base_radius, tuple(g.shape[-2:]), cutter.deadzone_log2)
-        known = self._desc.setdefault(path, [])
-        desc = torch.zeros(len(kps), self.desc.dim)
-        todo = torch.ones(len(kps), dtype=torch.bool)
-        for r, d in known:
-            same = todo & (r == radii)
-            desc[same] = d[same]
-            todo &= ~same
-        if todo.any():
-            idx = torch.nonzero(todo).flatten()
-            patches, _ = cutter.patches_from_radii(g, kps[idx], radii[idx])
-            desc[idx] = self.desc.describe(patches)
-            self.described += len(idx)
-            known.append((radii, desc))
-        return kps.numpy(), desc
-
-    def pyramid(self, path):
-        """Keypoints + descriptors on a sqrt(2)-step pyramid, coordinates in level 0."""
-        from ..features.detector import get_detector, image_to_gray_tensor
-        from ..features.patches import ScaleCorrectedPatches
-        img, _ = self.image(path)
-        kps_all, desc_all = [], []
-        per = max(1, self.num_features // self.levels)
-        for lvl in range(self.levels):
-            f = 2 ** (-lvl / 2)
-            im = img if lvl == 0 else cv2.resize(img, (max(16, round(img.shape[1] * f)), max(16, round(img.shape[0] * f))),
-                                                 interpolation=cv2.INTER_AREA)
-            g = image_to_gray_tensor(im)
-            k, _ = get_detector(self.detector, per)(g)
-            p, _, _ = ScaleCorrectedPatches(self.base_radius, 32, self.orientation)(g, k, None)
-            fx, fy = img.shape[1] / im.shape[1], img.shape[0] / im.shape[0]
-            kps_all.append(k.numpy() * np.array([fx, fy], np.float32) + np.array([(fx - 1) / 2, (fy - 1) / 2], np.float32))
-            desc_all.append(self.desc.describe(p))
-        return np.concatenate(kps_all), torch.cat(desc_all)
-
-    def refined(self, pair: PairInfo, a, b, H):
-        """Keypoints, descriptors' matches and verification of ``refined`` (``local`` maps as the first
-        pass and as the prior of the refined maps)."""
-        from ..features.verification import VerificationConfig, refine_matching
-        sa, sb = self.scale_maps(pair, "local", a, b, H)
-        local = _SharedLocal(self, self.local_model)
-        ea, eb = self.encoding(pair.image_a), self.encoding(pair.image_b)
-        pa = local.predict_from_features(ea, eb, bf16=False).scale
-        pb = local.predict_from_features(eb, ea, bf16=False).scale
-        def seed():
-            (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
-            m = opencv_ratio_matches(da, db, SIFT_RATIO)
-            return ka[m[:, 0]], kb[m[:, 1]]
-
-        return refine_matching(lambda s: self.describe(pair.image_a, s), lambda s: self.describe(pair.image_b, s),
-                               a.shape[:2], b.shape[:2], sa, sb, pa, pb, VerificationConfig(), self.refine_passes,
-                               seed=seed if self.sift_seed else None)
-
-    def opencv_sift(self, path):
-        """OpenCV DoG keypoints (top ``num_features``) and SIFT descriptors of an image."""
-        if ("sift", path) not in self._memo:
-            img, _ = self.image(path)
-            gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
-            kps, desc = cv2.SIFT_create(nfeatures=self.num_features).detectAndCompute(gray, None)
-            xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
-            self._memo[("sift", path)] = (xy, np.zeros((0, 128), np.float32) if desc is None else desc)
-        return self._memo[("sift", path)]
-
-    def _once(self, key, fn):
+    def once(self, key, fn):
         if key not in self._memo:
             self._memo[key] = fn()
         return self._memo[key]
 
-    def scale_maps(self, pair: PairInfo, m: str, a, b, H):
-        """The maps of method ``m`` for the pair (:func:`scale_maps_for_pair` with shared work)."""
-        from ..features.correction import CORRECTIONS, scale_maps_for_pair
-        if m == "gt_gated":
-            return self.gate.apply_pair(*scale_maps_for_pair(a, b, "gt", H))
-        if m not in CORRECTIONS:
-            raise LocalScaleError(f"unknown method {m!r}; choose from {METHODS}")
-        enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if m in ("local", "fused") else None
-        # the search makes and drops many encodings: keyed by id(), the shared cache could mix them up
-        local = (self.local_model if m == "searched" else _SharedLocal(self, self.local_model)) \
-            if self.local_model is not None else None
-        glob = _SharedGlobal(self, self.global_model, pair) if self.global_model is not None else None
-        return scale_maps_for_pair(a, b, m, H, local, glob, self.gate, enc)
+    def maps(self, method: str, H) -> tuple:
+        """``(map of A, map of B, seconds)`` of ``method`` (:func:`scale_maps_for_pair`)."""
+        from ..features.correction import get_correction, scale_maps_for_pair
 
-    def run_pair(self, pair: PairInfo, methods, thresholds) -> list[dict]:
-        from ..features.matching import match_descriptors, matching_accuracy, reprojection_errors
-        self._keep = {pair.image_a, pair.image_b}
-        self._memo = {}
-        for cache in (self._kps, self._enc, self._desc):
-            for p in [p for p in cache if p not in self._keep]:
-                del cache[p]
-        self._genc = {k: v for k, v in self._genc.items() if k[0] in self._keep}
-        a, fa = self.image(pair.image_a)
-        b, fb = self.image(pair.image_b)
-        H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
-        agreement = content_agreement(a, b, H)
-        if agreement < MIN_AGREEMENT and pair.name not in self.suspicious:
-            self.suspicious[pair.name] = round(agreement, 3)
-            _warn(f"pair {pair.name}: image {pair.k} warped by H_1_{pair.k} does not look like image 1 "
-                  f"(correlation {agreement:.2f}); check that H and the image sizes belong together")
-        recs = []
-        for m in methods:
-            t0 = time.time()
-            extra = {}
-            if m == "refined":
-                rm = self.refined(pair, a, b, H)
-                ka, kb, idx = rm.keypoints_a, rm.keypoints_b, rm.matches
-                extra = {"verified": bool(rm.refined_a.verified), "passes": rm.passes,
-                         "inlier_counts": list(rm.inlier_counts),
-                         "seed_verified": None if rm.seed is None else bool(rm.seed.verified)}
-            elif m == "opencv-sift":
-                (ka, da), (kb, db) = self.opencv_sift(pair.image_a), self.opencv_sift(pair.image_b)
-                idx = opencv_ratio_matches(da, db, SIFT_RATIO)
-            else:
-                if m == "pyramid":
-                    ka, da = self.pyramid(pair.image_a)
-                    kb, db = self.pyramid(pair.image_b)
-                else:
-                    sa, sb = self.scale_maps(pair, m, a, b, H)
-                    ka, da = self.describe(pair.image_a, sa)
-                    kb, db = self.describe(pair.image_b, sb)
-                _, idx = match_descriptors(da, db)
-                idx = idx.numpy()
-            err = reprojection_errors(ka, kb, idx, H)
-            mma = matching_accuracy(err, thresholds)
-            recs.append({"pair": pair.name, "method": m, "num_features_a": int(len(ka)), "num_features_b": int(len(kb)),
-                         "num_matches": int(len(idx)), "num_correct_5px": int((err < 5).sum()),
-                         "mma": [float(v) for v in mma], "corner_error": homography_corner_error(ka, kb, idx, H, a.shape),
-                         "seconds": round(time.time() - t0, 2),
-                         "perspective_split": pair.perspective_split, "scale_split": pair.scale_split, **extra})
-        return recs
+        pair = self._pair
+        a, b = self._images[pair.image_a], self._images[pair.image_b]
+        key = (method, a.shape, b.shape)
+        if key not in self._maps:
+            needs = get_correction(method).models
+            t0 = time.perf_counter()
+            enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) \
+                if method in ("local", "fused", "refined") else None
+            # the search makes and drops many encodings: keyed by id(), the shared cache could mix them up
+            local = None if "local" not in needs else \
+                (self.local_model if method == "searched" else _SharedLocal(self, self.local_model))
+            glob = _SharedGlobal(self, self.global_model, pair) if "global" in needs else None
+            sa, sb = scale_maps_for_pair(a, b, method, H, local, glob, self.gate, enc)
+            self._maps[key] = (sa, sb, time.perf_counter() - t0)
+        return self._maps[key]
 
 
-def opencv_ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = SIFT_RATIO) -> np.ndarray:
-    """Mutual nearest neighbours that pass Lowe's ratio test
-    (:func:`localscale.features.verification.ratio_mutual_matches`); ``K x 2`` int64 indices."""
-    from ..features.verification import ratio_mutual_matches
-    return ratio_mutual_matches(desc_a, desc_b, ratio)
+def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float, fb: float, methods,
+                   thresholds) -> list[dict]:
+    """The records of one pair and one matcher: each method's maps, matches, MMA and corner error."""
+    from ..features.matching import matching_accuracy, reprojection_errors
+    from ..features.pipeline import _refined, _result
+    from ..features.correction import get_correction
+
+    H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
+    key_a, key_b = (str(pair.image_a), a.shape), (str(pair.image_b), b.shape)
+    recs = []
+    for m in methods:
+        sa, sb, map_seconds = scales.maps(m, H)
+        t0 = time.perf_counter()
+        extra = {}
+        if get_correction(m).refine or matcher.config.refine:
+            keyed = _Keyed(matcher, key_a, key_b)
+            res = _refined(keyed, a, b, sa, sb, None, None, H, m)
+            extra = {"verified": bool(res.verification.verified), "passes": res.meta["passes"],
+                     "inlier_counts": res.meta["inlier_counts"],
+                     "seed_inliers": res.meta["seed_inliers"]}
+            # every pass's matching on its own, plus verification and refinement
+            seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
+        else:
+            found = matcher.match(a, b, sa, sb, (key_a, key_b))
+            res = _result(matcher, found, H, m)
+            seconds = found.seconds
+        ka, kb, idx = res.keypoints_a, res.keypoints_b, res.matches
+        err = reprojection_errors(ka, kb, idx, H)
+        mma = matching_accuracy(err, thresholds)
+        recs.append({"pair": pair.name, "matcher": matcher.name, "method": m,
+                     "num_features_a": int(len(ka)), "num_features_b": int(len(kb)),
+                     "num_matches": int(len(idx)), "num_correct_3px": int((err < 3).sum()),
+                     "num_correct_5px": int((err < 5).sum()), "mma": [float(v) for v in mma],
+                     "corner_error": homography_corner_error(ka, kb, idx, H, a.shape),
+                     "factors": res.meta["factors"], "seconds": round(seconds, 3),
+                     "scale_seconds": round(map_seconds, 3),
+                     "perspective_split": pair.perspective_split, "scale_split": pair.scale_split,
+                     "rotation_split": pair.rotation_split, **extra})
+    return recs
+
+
+class _Keyed:
+    """A matcher whose ``match`` passes the cache keys of the pair's two images."""
+
+    def __init__(self, matcher, key_a, key_b):
+        self._m, self._keys = matcher, (key_a, key_b)
+        self.config, self.name = matcher.config, matcher.name
+        self.wall = self.standalone = 0.0     #: seconds spent in match, and what they cost on their own
+
+    def match(self, a, b, scale_a=None, scale_b=None, keys=None):
+        t0 = time.perf_counter()
+        found = self._m.match(a, b, scale_a, scale_b, self._keys)
+        self.wall += time.perf_counter() - t0
+        self.standalone += found.seconds
+        return found
 
 
 def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) -> float:
@@ -502,12 +422,12 @@ def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) 
 class _SharedLocal:
     """The local model for one pair: ``predict_from_features`` of an ordered pair of encodings runs once."""
 
-    def __init__(self, ev: _Evaluator, model):
-        self._ev, self._model = ev, model
+    def __init__(self, scales: _PairScales, model):
+        self._scales, self._model = scales, model
 
     def predict_from_features(self, ea, eb, **kw):
         key = ("local", id(ea), id(eb), tuple(sorted(kw.items())))
-        return self._ev._once(key, lambda: self._model.predict_from_features(ea, eb, **kw))
+        return self._scales.once(key, lambda: self._model.predict_from_features(ea, eb, **kw))
 
     def __getattr__(self, name):
         return getattr(self._model, name)
@@ -518,19 +438,20 @@ class _SharedGlobal:
     pair), the pair's prediction is made once. ``predict(a, b)`` is ``predict_from_features`` of the
     two encodings with :meth:`ScaleNet.retry_turned`, as in :meth:`ScaleNet.predict`."""
 
-    def __init__(self, ev: _Evaluator, model, pair: PairInfo):
-        self._ev, self._model, self._pair = ev, model, pair
+    def __init__(self, scales: _PairScales, model, pair: PairInfo):
+        self._scales, self._model, self._pair = scales, model, pair
 
     def predict(self, image_a, image_b, bf16: bool = False):
-        ev, pair = self._ev, self._pair
-        if image_a is not ev.image(pair.image_a)[0] or image_b is not ev.image(pair.image_b)[0]:
+        sc, pair = self._scales, self._pair
+        if image_a is not sc._images[pair.image_a] or image_b is not sc._images[pair.image_b] or bf16:
             return self._model.predict(image_a, image_b, bf16=bf16)
-        def predict():
-            ea, eb = ev.global_encoding(pair.image_a, bf16), ev.global_encoding(pair.image_b, bf16)
-            first = self._model.predict_from_features(ea, eb, bf16)
-            return self._model.retry_turned(first, image_a, image_b, ea, eb, bf16)
 
-        return ev._once(("global", bf16), predict)
+        def predict():
+            ea, eb = sc.global_encoding(pair.image_a), sc.global_encoding(pair.image_b)
+            first = self._model.predict_from_features(ea, eb, False)
+            return self._model.retry_turned(first, image_a, image_b, ea, eb, False)
+
+        return sc.once(("global", image_a.shape, image_b.shape), predict)
 
     def __getattr__(self, name):
         return getattr(self._model, name)
@@ -542,6 +463,7 @@ def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -
     for p in pairs:
         groups.setdefault(p.perspective_split, []).append(p.name)
         groups.setdefault(p.scale_split, []).append(p.name)
+        groups.setdefault(p.rotation_split, []).append(p.name)
     out = {}
     for g, names in groups.items():
         names = set(names)
@@ -552,6 +474,8 @@ def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -
                 continue
             out[g][m] = {"mma": [float(np.mean([r["mma"][i] for r in rs])) for i in range(len(thresholds))],
                          "num_matches": float(np.mean([r["num_matches"] for r in rs])),
+                         "num_correct_3px": float(np.mean([r.get("num_correct_3px", 0) for r in rs])),
+                         "seconds": float(np.mean([r.get("seconds", 0) + r.get("scale_seconds", 0) for r in rs])),
                          "num_features": float(np.mean([(r["num_features_a"] + r["num_features_b"]) / 2 for r in rs]))}
             ce = [r["corner_error"] for r in rs if "corner_error" in r]
             if ce:
@@ -562,16 +486,19 @@ def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -
     return out
 
 
-SPLIT_ORDER = ("all", "easy", "medium", "hard", "scale<1.4x", "scale1.4-2.8x", "scale>2.8x")
+SPLIT_ORDER = ("all", "easy", "medium", "hard", "scale<2x", "scale2-4x", "scale>4x", "rot<30", "rot30-90", "rot>90")
 
 
 def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
+    """One table: a row per split and method (MMA@1/3/5/10, matches, correct at 3 px, features,
+    homography AUC@3/5/10 px, share solved, seconds per pair)."""
     ti = [thresholds.index(t) for t in (1, 3, 5, 10) if t in thresholds]
     head = " | ".join(f"MMA@{thresholds[i]}" for i in ti)
     hh = " | ".join(f"H AUC@{t:g}" for t in H_AUC_THRESHOLDS)
     lines = [f"### {title}" if title else "", "",
-             f"| split (pairs) | method | {head} | matches | features | {hh} | solved (<{SOLVED_PX:g} px) |",
-             "|---|---|" + "---|" * len(ti) + "---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1)]
+             f"| split (pairs) | method | {head} | matches | correct@3 | features | {hh} | "
+             f"solved (<{SOLVED_PX:g} px) | s/pair |",
+             "|---|---|" + "---|" * len(ti) + "---|---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1) + "---|"]
     for g in [s for s in SPLIT_ORDER if s in summary] + [s for s in summary if s not in SPLIT_ORDER]:
         for m in methods:
             if m not in summary[g]:
@@ -581,7 +508,8 @@ def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
             hv = " | ".join(f"{x:.3f}" for x in v["h_auc"]) + f" | {v['h_solved']:.3f}" if "h_auc" in v \
                 else " | ".join("-" for _ in range(len(H_AUC_THRESHOLDS) + 1))
             lines.append(f"| {g} ({summary[g]['num_pairs']}) | {m} | {vals} | {v['num_matches']:.0f} | "
-                         f"{v['num_features']:.0f} | {hv} |")
+                         f"{v.get('num_correct_3px', 0):.0f} | {v['num_features']:.0f} | {hv} | "
+                         f"{v.get('seconds', 0):.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -615,35 +543,68 @@ def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> li
     return files
 
 
-def evaluate(pairs: list[PairInfo], methods=("none", "gt"), descriptor="sift", num_features: int = 1000,
-             local_model=None, global_model=None, gate=None, base_radius: float = 16.0, orientation: str = "upright",
-             max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True,
-             detector: str = "hessian") -> dict:
-    """Run the protocol on ``pairs``; returns ``{"records": [...], "summary": {...}}``.
+def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", local_model=None,
+             global_model=None, max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True,
+             **options) -> dict:
+    """Run the protocol on ``pairs`` with one matcher; returns ``{"records", "summary", "skipped",
+    "suspicious"}``.
 
-    ``detector`` is one of :data:`localscale.features.detector.DETECTORS` (default: the single-scale
-    Hessian); patch sizes come from ``base_radius`` and each method's maps whatever the detector."""
-    from ..features.pipeline import CorrectionGate
+    Args:
+        methods: names of :data:`localscale.features.correction.CORRECTIONS`.
+        matcher: a name of :data:`localscale.features.matchers.MATCHERS`, a ``MatchConfig`` or a ``Matcher``.
+        local_model, global_model: the models the methods need.
+        max_side: working resolution of every image (longer side; None: the matcher's own; 0: full size).
+        **options: ``MatchConfig`` fields replacing the matcher's (``descriptor="sift"``, ``num_features``, ``gate``).
+    """
     from tqdm import tqdm
-    for m in ("local", "fused", "searched", "refined"):
-        if m in methods and local_model is None:
+
+    from ..features.correction import get_correction
+    from ..features.pipeline import get_matcher
+
+    for m in methods:
+        needs = get_correction(m).models
+        if "local" in needs and local_model is None:
             raise LocalScaleError(f"method '{m}' needs a local model")
-    if "global" in methods and global_model is None:
-        raise LocalScaleError("method 'global' needs a global model")
-    gate = gate if gate is not None else CorrectionGate()
-    ev = _Evaluator(descriptor, num_features, local_model, global_model, gate, base_radius, orientation, max_side,
-                    detector=detector)
-    records, skipped, done = [], [], []
-    for p in tqdm(pairs, desc=f"eval {ev.desc.name}", disable=not progress, mininterval=5):
+        if "global" in needs and global_model is None:
+            raise LocalScaleError(f"method '{m}' needs a global model")
+    if max_side is not None:
+        options["max_side"] = max_side or None         # 0: full resolution
+    if options and hasattr(matcher, "config"):      # a built Matcher with other options: rebuilt
+        from ..features.matchers import Matcher, match_config
+
+        matcher = Matcher(match_config(matcher.config, **options), matcher.device)
+        options = {}
+    matcher = get_matcher(matcher, **options)
+    scales = _PairScales(local_model, global_model, matcher.config.gate)
+    side = matcher.config.max_side
+    records, skipped, done, suspicious = [], [], [], {}
+    for p in tqdm(pairs, desc=f"eval {result_tag(matcher.config)}", disable=not progress, mininterval=5):
         try:
-            records += ev.run_pair(p, methods, list(thresholds))
+            a, fa = _resize(load_image(p.image_a), side)
+            b, fb = _resize(load_image(p.image_b), side)
+            H = np.diag([fb, fb, 1.0]) @ p.H @ np.diag([1 / fa, 1 / fa, 1.0])
+            agreement = content_agreement(a, b, H)
+            if agreement < MIN_AGREEMENT:
+                suspicious[p.name] = round(agreement, 3)
+                _warn(f"pair {p.name}: image {p.k} warped by H_1_{p.k} does not look like image 1 "
+                      f"(correlation {agreement:.2f}); check that H and the image sizes belong together")
+            scales.start(p, a, b)
+            records += _evaluate_pair(matcher, scales, p, a, b, fa, fb, methods, list(thresholds))
             done.append(p)
         except LocalScaleError as e:   # e.g. an image that is truncated after its header
             reason = " ".join(str(e).split())
             _warn(f"pair {p.name} skipped: {reason}")
             skipped.append({"pair": p.name, "reason": reason})
-    return {"records": records, "summary": summarise(records, done, methods, list(thresholds)),
-            "skipped": skipped, "suspicious": ev.suspicious}
+    return {"matcher": matcher.name, "records": records,
+            "summary": summarise(records, done, methods, list(thresholds)),
+            "skipped": skipped, "suspicious": suspicious}
+
+
+def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float]:
+    if not max_side or max(img.shape[:2]) <= max_side:
+        return img, 1.0
+    f = max_side / max(img.shape[:2])
+    return cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA), f
 
 
 def _plain(x):
@@ -667,8 +628,9 @@ def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     splits = [{"pair": p.name, "spread_log2": round(p.spread, 4), "log2_global_scale": round(p.log2_scale, 4),
-               "covisible": round(p.covisible, 3), "perspective_split": p.perspective_split,
-               "scale_split": p.scale_split} for p in pairs]
+               "covisible": round(p.covisible, 3), "rotation_deg": round(p.rotation, 2),
+               "perspective_split": p.perspective_split, "scale_split": p.scale_split,
+               "rotation_split": p.rotation_split} for p in pairs]
     from ..outputs import write_text
 
     buf = io.StringIO(newline="")
@@ -677,7 +639,8 @@ def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=
     w.writerows(splits)
     write_text(out / "splits.csv", buf.getvalue())
     doc = {"thresholds": list(thresholds), "methods": list(methods), "splits": splits,
-           "split_rules": {"perspective_edges_std_log2": PERSPECTIVE_EDGES, "scale_edges_abs_log2": SCALE_EDGES},
+           "split_rules": {"perspective_edges_std_log2": PERSPECTIVE_EDGES, "scale_edges_abs_log2": SCALE_EDGES,
+                           "rotation_edges_deg": ROTATION_EDGES},
            **(extra or {}), **result}
     name = f"results{'_' + tag if tag else ''}"
     write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))
@@ -687,81 +650,37 @@ def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=
     return doc
 
 
-def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of ``localscale eval-hpatches`` (model options shared with the other commands)."""
-    from ..cli import add_model_options, positive_float, positive_int
-
-    p.add_argument("root", help="folder of sequences (HPatches layout)")
-    p.add_argument("-o", "--output", "--out", dest="out", default="hpatches_eval",
-                   help="output folder (results*.json, results*.md, splits.csv, mma_*.png)")
-    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"], choices=METHODS,
-                   help="correction methods to compare")
-    p.add_argument("--descriptor", nargs="+", default=["hardnet"], help="hardnet | sift | weights path (several ok)")
-    p.add_argument("--num-features", type=positive_int, default=1000, help="keypoints per image")
-    p.add_argument("--detector", default="hessian", metavar="NAME",
-                   help="single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb | akaze "
-                        "(results files get a NAME_ prefix unless hessian)")
-    add_model_options(p, local=True, global_=True, bf16=False)
-    p.add_argument("--include-illumination", action="store_true", help="also evaluate i_* sequences")
-    p.add_argument("--exclude-hires", action="store_true", help=f"skip {', '.join(HIGH_RES)}")
-    p.add_argument("--exclude", nargs="*", default=[], help="sequence names to skip")
-    p.add_argument("--sequences", nargs="*", default=None, help="only these sequences (default: all)")
-    p.add_argument("--max-side", type=positive_int, default=None,
-                   help="downscale images (and H) to this longer side (default: full size)")
-    p.add_argument("--gate-pair", type=float, default=None,
-                   help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this "
-                        "(default: CorrectionGate's)")
-    p.add_argument("--gate-deadzone", type=float, default=None,
-                   help="per pixel: |log2 S| below this -> 1 (default: CorrectionGate's)")
-    p.add_argument("--no-consistency", action="store_true", help="gate: skip the A<->B median consistency shift")
-    p.add_argument("--gate-min-confidence", type=float, default=None,
-                   help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
-    p.add_argument("--gate-weighting", choices=GATE_WEIGHTINGS, default=None,
-                   help="gate: weight the maps' medians by the predicted visibility or reliability "
-                        "(default: CorrectionGate's)")
-    p.add_argument("--orientation", choices=("upright", "gradient"), default="upright", help="patch orientation")
-    p.add_argument("--base-radius", type=positive_float, default=16.0, help="patch radius (px) at scale 1")
-    return p
-
-
-def build_parser() -> argparse.ArgumentParser:
-    from ..cli import HelpFormatter
-
-    return add_arguments(argparse.ArgumentParser(prog="localscale eval-hpatches", formatter_class=HelpFormatter,
-                                                 description="HPatches-style MMA evaluation"))
-
-
 def load_scale_models(methods: list, local_weights=None, global_weights=None,
                       device: str = "cpu") -> tuple[dict, list]:
-    """Load the models the ``methods`` need (:func:`localscale.cli.load_scale_model`); a method whose
-    weights cannot be loaded is removed from ``methods`` (in place) with a note.
+    """Load the models the ``methods`` need (:func:`localscale.loading.load_scale_model`); a method
+    whose bundled weights cannot be loaded is removed from ``methods`` (in place) with a note.
     Returns ``({"local"|"global": model}, notes)``."""
-    from ..cli import load_scale_model, resolve_device
     from ..errors import CheckpointError
+    from ..features.correction import get_correction
+    from ..loading import load_scale_model, resolve_device
 
     models, notes = {}, []
-    needs = {"local": ("local", "fused", "searched", "refined"), "global": ("global", "fused")}
     device = resolve_device(device)
-    for m, w in (("local", local_weights), ("global", global_weights)):
-        if not any(x in methods for x in needs[m]):
+    for kind, w in (("local", local_weights), ("global", global_weights)):
+        users = [m for m in methods if kind in get_correction(m).models]
+        if not users:
             continue
         try:
-            models[m] = load_scale_model(m, w, device)
+            models[kind] = load_scale_model(kind, w, device)
             if w:
-                notes.append(f"{m}: weights {w}")
+                notes.append(f"{kind}: weights {w}")
         except CheckpointError as e:
             if w is not None:   # weights the user named must load
                 raise
-            removed = [x for x in needs[m] if x in methods]
-            for x in removed:
+            for x in users:
                 methods.remove(x)
-            notes.append(f"{', '.join(removed)} skipped: {e}")
+            notes.append(f"{', '.join(users)} skipped: {e}")
     return models, notes
 
 
 def gate_from_args(args):
     """``CorrectionGate`` with the ``--gate-*`` / ``--no-consistency`` options a parser defined."""
-    from ..features.pipeline import CorrectionGate
+    from ..features.correction import CorrectionGate
 
     gate = CorrectionGate()
     if getattr(args, "gate_pair", None) is not None:
@@ -776,51 +695,43 @@ def gate_from_args(args):
     return gate
 
 
-def main(argv=None) -> int:
-    """Entry of ``localscale eval-hpatches ROOT [options]``; methods whose default weights are
-    missing are skipped with a note."""
-    return run(build_parser().parse_args(argv))
+def result_tag(config) -> str:
+    """The name of a matcher's results files: the matcher's name, with the descriptor and
+    detector of the hardnet matcher when they are not its defaults (``hardnet-sift``, ``hardnet-orb``)."""
+    tag = config.name
+    if config.extractor == "patches":
+        d = config.descriptor if isinstance(config.descriptor, str) else getattr(config.descriptor, "name", "custom")
+        d = d if d in ("hardnet", "sift") else Path(d).stem
+        if config.detector != "hessian":
+            tag += f"-{config.detector}"
+        if d != "hardnet":
+            tag += f"-{d}"
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", tag)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Body of ``localscale eval-hpatches`` for parsed :func:`add_arguments` options."""
-    from ..cli import check_output_dir
-    from ..features.detector import get_detector
-
-    detector = getattr(args, "detector", "hessian")
-    get_detector(detector, max(1, args.num_features))
-    tags = [Path(d).stem if d not in ("hardnet", "sift") else d for d in args.descriptor]
-    tags = tags if detector == "hessian" else [f"{detector}_{t}" for t in tags]
-    check_output_dir(args.out, ["splits.csv"] + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
-                     + [f"mma_{t}_scale1.4-2.8x.png" for t in tags])
-    seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
-    skipped: list = []
-    pairs = make_pairs(seqs, skipped)
-    if not pairs:
-        raise LocalScaleError(f"no pair of {args.root} can be evaluated ({len(skipped)} skipped; first: "
-                              f"{skipped[0]['pair']}: {skipped[0]['reason']})" if skipped else
-                              f"no pairs in {args.root}")
-    methods = list(args.methods)
-    models, notes = load_scale_models(methods, args.local_weights, args.global_weights, args.device)
-    if not methods:
-        raise LocalScaleError(f"none of the methods {list(args.methods)} can run: {'; '.join(notes)}")
-    local_model, global_model = models.get("local"), models.get("global")
-    gate = gate_from_args(args)
-    for n in notes:
-        print("note:", n)
-    print(f"{len(seqs)} sequences, {len(pairs)} pairs; methods {methods}")
-    for d in args.descriptor:
-        res = evaluate(pairs, methods, d, args.num_features, local_model, global_model, gate, args.base_radius,
-                       args.orientation, args.max_side, detector=detector)
+def run(pairs: list[PairInfo], methods: list, configs: list, out, models: dict, notes: list,
+        skipped: list, max_side: Optional[int] = None, extra: Optional[dict] = None) -> dict:
+    """Evaluate every matcher config on ``pairs`` and write the results into ``out``:
+    ``results_<tag>.{json,md}`` and ``mma_<tag>_*.png`` per matcher, ``splits.csv``, and
+    ``results.md`` (all matchers' tables). Returns ``{tag: results}``."""
+    out = Path(out)
+    docs, tables = {}, []
+    for cfg in configs:
+        res = evaluate(pairs, methods, cfg, models.get("local"), models.get("global"), max_side)
         res["skipped"] = skipped + res["skipped"]
         if res["skipped"]:
-            print(f"warning: {len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)",
-                  file=sys.stderr)
-        tag = Path(d).stem if d not in ("hardnet", "sift") else d
-        tag = tag if detector == "hessian" else f"{detector}_{tag}"
-        write_outputs(res, pairs, methods, args.out, tag=tag,
-                      extra={"notes": notes, "gate": vars(gate), "descriptor": d, "detector": detector,
-                             "args": {k: v for k, v in vars(args).items() if not callable(v)}})
-        print(markdown_table(res["summary"], methods, list(THRESHOLDS), f"{args.root} / {tag}"))
-    print(f"wrote {args.out}/")
-    return 0
+            _warn(f"{len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)")
+        conf = getattr(cfg, "config", cfg)
+        tag = result_tag(conf)
+        cfg_doc = {k: (v if isinstance(v, (str, int, float, bool, type(None))) else str(v))
+                   for k, v in vars(conf).items()}
+        write_outputs(res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc,
+                                                               **(extra or {})})
+        table = markdown_table(res["summary"], methods, list(THRESHOLDS), tag)
+        print(table)
+        tables.append(table)
+        docs[tag] = res
+    from ..outputs import write_text
+
+    write_text(out / "results.md", "\n".join(tables))
+    return docs

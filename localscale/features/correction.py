@@ -17,7 +17,13 @@ convention ``scale_map = S_{this->other}``):
   ``search_scale_map(local_model, B, A)`` (:mod:`localscale.search`: the windows of the two
   images that share the most content; for strong zoom and low overlap, ~30x slower); gated
   like ``"local"``;
-* ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``.
+* ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``;
+* ``"gt_gated"``: the ``"gt"`` maps through the same gate as ``"local"`` (what gating costs an oracle);
+* ``"refined"``: the ``"local"`` maps, then the matches are verified, the maps refined by the
+  verified geometry and the pair matched again (:func:`~.verification.refine_matching`).
+
+:data:`CORRECTION_METHODS` holds each method's needs (models, homography, refinement); the CLI
+choices, model loading and the evaluation all come from it.
 
 Example::
 
@@ -35,7 +41,35 @@ from ..errors import LocalScaleError
 from ..geometry import homography_scale_map
 from ..io import read_homography
 
-CORRECTIONS = ("none", "global", "local", "fused", "searched", "gt")
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A correction method: its name, the scale models it needs (``"local"``, ``"global"``),
+    whether it needs the true homography, whether it refines by verified geometry, a help text."""
+
+    name: str
+    models: tuple = ()
+    needs_H: bool = False
+    refine: bool = False
+    help: str = ""
+
+
+#: every correction method, by name
+CORRECTION_METHODS = {c.name: c for c in (
+    Correction("none", help="no correction"),
+    Correction("global", ("global",), help="ScaleNet's consistency-checked factor"),
+    Correction("local", ("local",), help="Local-ScaleNet maps, gated"),
+    Correction("fused", ("local", "global"), help="local map shape + global ScaleNet level"),
+    Correction("searched", ("local",), help="local maps from the windows sharing the most content "
+                                            "(strong zoom, low overlap; ~30x slower)"),
+    Correction("gt", needs_H=True, help="analytic map of the true homography --H"),
+    Correction("gt_gated", needs_H=True, help="the gt map through the gate of local"),
+    Correction("refined", ("local",), refine=True, help="local maps, verified, refined by the geometry, "
+                                                         "matched again (as --refine)"),
+)}
+#: the names of :data:`CORRECTION_METHODS`
+CORRECTIONS = tuple(CORRECTION_METHODS)
 GATE_WEIGHTINGS = ("none", "visible", "reliability")
 
 
@@ -187,16 +221,16 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     ``encodings``: optional cached ``(EncodedImage of A, of B)`` for the local model.
     ``bf16``: run the networks under bfloat16 autocast.
     """
-    if correction not in CORRECTIONS:
-        raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
+    method = get_correction(correction)
     if correction == "none":
         return None, None
-    if correction == "gt":
+    if method.needs_H:
         if H is None:
-            raise LocalScaleError("correction='gt' needs the homography H (A -> B)")
+            raise LocalScaleError(f"correction={correction!r} needs the homography H (A -> B)")
         H = read_homography(H)   # homography_scale_map orients the sign of H itself
-        return (homography_scale_map(H, *image_a.shape[:2]).astype(np.float32),
+        maps = (homography_scale_map(H, *image_a.shape[:2]).astype(np.float32),
                 homography_scale_map(np.linalg.inv(H), *image_b.shape[:2]).astype(np.float32))
+        return gate.apply_pair(*maps) if correction == "gt_gated" else maps
     if correction == "global":
         s = _global_scale(image_a, image_b, global_model, bf16)
         return gate.apply_pair(s, 1.0 / s)
@@ -219,6 +253,23 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
         return gate.apply_pair(*fuse_local_global(pa.scale, pb.scale, s, wa, wb), pa.confidence, pb.confidence,
                                wa, wb)
     return gate.apply_predictions(pa, pb)
+
+
+def get_correction(name: str) -> Correction:
+    """The :class:`Correction` called ``name`` (:class:`LocalScaleError` for an unknown one)."""
+    if not isinstance(name, str) or name not in CORRECTION_METHODS:
+        raise LocalScaleError(f"correction must be one of {', '.join(CORRECTIONS)}, got {name!r}")
+    return CORRECTION_METHODS[name]
+
+
+def models_for_correction(correction: str, local_weights=None, global_weights=None, device: str = "cpu"):
+    """``(local_model, global_model)`` that ``correction`` needs (None for the other), loaded by
+    :func:`localscale.loading.load_scale_model` (``weights`` None = bundled)."""
+    from ..loading import load_scale_model
+
+    needs = get_correction(correction).models
+    return (load_scale_model("local", local_weights, device) if "local" in needs else None,
+            load_scale_model("global", global_weights, device) if "global" in needs else None)
 
 
 def _global_scale(image_a: np.ndarray, image_b: np.ndarray, global_model=None, bf16: bool = False) -> float:

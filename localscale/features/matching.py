@@ -13,7 +13,6 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-import torch.nn as nn
 from kornia.feature import match_mnn, match_smnn
 
 from ..errors import LocalScaleError
@@ -46,17 +45,6 @@ def match_descriptors(desc_a: torch.Tensor, desc_b: torch.Tensor, ratio: Optiona
         else:
             d, idx = match_smnn(desc_a, desc_b, ratio)
     return d.reshape(-1), idx.long().reshape(-1, 2)
-
-
-class MutualNNMatcher(nn.Module):
-    """Module form of :func:`match_descriptors`."""
-
-    def __init__(self, ratio: Optional[float] = None):
-        super().__init__()
-        self.ratio = ratio
-
-    def forward(self, desc_a: torch.Tensor, desc_b: torch.Tensor):
-        return match_descriptors(desc_a, desc_b, self.ratio)
 
 
 def reprojection_errors(keypoints_a: np.ndarray, keypoints_b: np.ndarray, matches: np.ndarray,

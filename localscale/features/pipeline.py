@@ -1,85 +1,40 @@
-"""Detect -> scale-corrected patches -> describe -> match, for one image or a pair.
+"""Match two images with scale maps: load, correct, extract, match, verify; draw and save the result.
 
-The scale map each image gets for a ``correction`` method (``none``, ``global``, ``local``,
-``fused``, ``gt``) comes from :mod:`.correction` (:func:`scale_maps_for_pair`).
+:func:`match_pair` is the whole path for one pair: the images at the matcher's working
+resolution, the maps of a ``correction`` method (:mod:`.correction`), a :class:`~.matchers.Matcher`
+(named configurations in :data:`~.matchers.MATCHERS`), and optionally verification and
+refinement by the verified geometry. Everything in the result is in full-image pixels.
 
 Example::
 
-    res = match_pair("a.png", "b.png", correction="gt", H=H, descriptor="sift")
-    res.accuracy(5.0), len(res.matches)
-    res = match_pair("a.png", "b.png", correction="local", refine=True)   # verify, refine, match again
-    res.verification.verified, res.refined_a.scale
+    res = match_pair("a.png", "b.png", "local")                          # HardNet, scale-corrected patches
+    res = match_pair("a.png", "b.png", "global", matcher="aliked-lightglue")  # B or A shrunk by ScaleNet
+    res = match_pair("a.png", "b.png", "gt", H=H, descriptor="sift")     # options replace MatchConfig fields
+    res = match_pair("a.png", "b.png", "local", refine=True)             # verify, refine, match again
+    res.accuracy(5.0), len(res.matches), res.verification.verified, res.refined_a.scale
     draw_matches("a.png", "b.png", res, "matches.png"); save_matches(res, "matches.npz")
 """
 from __future__ import annotations
 
-import argparse
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
 
 import cv2
 import numpy as np
-import torch
 
 from ..errors import LocalScaleError
 from ..io import load_image, load_working_image, read_homography
-from .correction import (CORRECTIONS, NO_GATE, CorrectionGate, _global_scale, fuse_local_global,  # noqa: F401
-                         scale_maps_for_pair)
-from .descriptors import PatchDescriptor, get_descriptor
-from .detector import HessianDetector, get_detector, image_to_gray_tensor
+from .correction import (CORRECTIONS, NO_GATE, CorrectionGate, fuse_local_global, get_correction,  # noqa: F401
+                         models_for_correction, scale_maps_for_pair)
+from .matchers import MATCHERS, Features, MatchConfig, Matcher, Matches, extract, match_config  # noqa: F401
 from .matching import match_descriptors, matching_accuracy, reprojection_errors
-from .patches import ScaleCorrectedPatches
-from .verification import VerificationConfig, refine_matching, sift_seed_points
+from .verification import refine_matching, sift_seed_points
 
-#: default working resolution of :func:`match_pair` (longer side, pixels)
+#: default working resolution of the ``hardnet`` matcher and of pictures (longer side, pixels)
 MAX_SIDE = 2048
-
-
-@dataclass
-class Features:
-    """Local features of one image.
-
-    Attributes:
-        keypoints: ``N x 2`` float32 ``(x, y)``; responses: ``N``.
-        lafs: ``1 x N x 2 x 3`` (kornia LAFs, radius = scale).
-        descriptors: ``N x D`` float32, L2-normalised.
-        radii: ``N`` float32 patch radii after scale correction.
-        image_shape: ``(H, W)``.
-    """
-
-    keypoints: np.ndarray
-    responses: np.ndarray
-    lafs: torch.Tensor
-    descriptors: torch.Tensor
-    radii: np.ndarray
-    image_shape: tuple
-
-    def __len__(self) -> int:
-        return len(self.keypoints)
-
-
-def extract(image, scale_map=None, num_features: int = 1000, descriptor: Union[str, PatchDescriptor] = "hardnet",
-            base_radius: float = 16.0, orientation: str = "upright", detector_sigma: float = 2.0,
-            detector: str = "hessian") -> Features:
-    """Detect up to ``num_features`` keypoints and describe scale-corrected patches.
-
-    Args:
-        image: path, ``H x W x 3`` uint8 array or ``1 x H x W`` float tensor.
-        scale_map: ``S_{this->other}`` (``H x W``), a float, or ``None``.
-        descriptor: ``"hardnet"``, ``"sift"``, a weights path or a :class:`PatchDescriptor`.
-        detector_sigma: detection scale of the ``hessian`` detector.
-        detector: a single-scale detector of :data:`localscale.features.detector.DETECTORS`; its
-            keypoint positions are used, the patch radii come from ``base_radius`` and ``scale_map``.
-    """
-    gray = image_to_gray_tensor(image)
-    desc = get_descriptor(descriptor)
-    det = (HessianDetector(num_features, detector_sigma) if detector == "hessian"
-           else get_detector(detector, num_features))
-    kps, resp = det(gray)
-    patches, lafs, radii = ScaleCorrectedPatches(base_radius, desc.patch_size, orientation)(gray, kps, scale_map)
-    return Features(kps.numpy(), resp.numpy(), lafs, desc.describe(patches), radii.numpy(), tuple(gray.shape[-2:]))
+#: file types :func:`draw_matches` writes
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 
 
 @dataclass
@@ -87,11 +42,13 @@ class MatchResult:
     """Matches between two images.
 
     Attributes:
-        keypoints_a, keypoints_b: ``N_A x 2``, ``N_B x 2``.
-        matches: ``K x 2`` int64 indices (A, B); distances: ``K`` descriptor distances.
+        keypoints_a, keypoints_b: ``N_A x 2``, ``N_B x 2`` float32, full-image pixels.
+        matches: ``K x 2`` int64 indices (A, B); distances: ``K`` match costs (lower is better).
         errors: ``K`` reprojection errors ``|H x_A - x_B|`` (pixels of B) when ``H`` was given, else ``None``.
-        radii_a, radii_b: patch radii of all keypoints; correction: the method used.
-        scale_a, scale_b: the (gated) maps / floats used, for inspection.
+        radii_a, radii_b: patch radii of all keypoints (``patches`` extractor; else ``None``).
+        correction: the method used; H: the true homography when given.
+        scale_a, scale_b: the (gated) maps / floats used, in the working frame, for inspection.
+        meta: matcher name, feature counts, working scales, resize factors, passes.
         verification: :class:`~.verification.VerificationResult` of the matches (``refine=True``).
         refined_a, refined_b: :class:`~.verification.RefinedScale` of A and B (``refine=True``).
     """
@@ -101,8 +58,8 @@ class MatchResult:
     matches: np.ndarray
     distances: np.ndarray
     errors: Optional[np.ndarray]
-    radii_a: np.ndarray
-    radii_b: np.ndarray
+    radii_a: Optional[np.ndarray]
+    radii_b: Optional[np.ndarray]
     correction: str
     H: Optional[np.ndarray] = None
     scale_a: object = None
@@ -125,6 +82,7 @@ class MatchResult:
 
 def match_features(fa: Features, fb: Features, H=None, ratio: Optional[float] = None,
                    correction: str = "none") -> MatchResult:
+    """Mutual nearest neighbours (with Lowe's ``ratio`` if given) of two feature sets."""
     d, idx = match_descriptors(fa.descriptors, fb.descriptors, ratio)
     m = idx.numpy().astype(np.int64)
     errors = None
@@ -134,51 +92,113 @@ def match_features(fa: Features, fb: Features, H=None, ratio: Optional[float] = 
     return MatchResult(fa.keypoints, fb.keypoints, m, d.numpy(), errors, fa.radii, fb.radii, correction, H)
 
 
+def get_matcher(matcher: Union[str, MatchConfig, Matcher, None] = "hardnet", **options) -> Matcher:
+    """A :class:`Matcher` from a name of :data:`MATCHERS`, a :class:`MatchConfig` (``options``
+    replace its fields) or a :class:`Matcher` (returned as it is; no options then)."""
+    if isinstance(matcher, Matcher):
+        if options:
+            raise LocalScaleError(f"match options ({', '.join(sorted(options))}) cannot change a built Matcher; "
+                                  "give a name or a MatchConfig instead")
+        return matcher
+    return Matcher(match_config(matcher, **options))
+
+
+def _check_models(correction: str, local_model, global_model) -> None:
+    from ..models import LocalScaleNet, ScaleNet
+
+    needs = get_correction(correction).models
+    if "local" in needs and local_model is not None and not isinstance(local_model, LocalScaleNet):
+        raise LocalScaleError(f"correction {correction!r}: local_model must be a LocalScaleNet, "
+                              f"got {type(local_model).__name__}")
+    if "global" in needs and global_model is not None and not isinstance(global_model, ScaleNet):
+        raise LocalScaleError(f"correction {correction!r}: global_model must be a ScaleNet, "
+                              f"got {type(global_model).__name__}")
+
+
 def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=None, global_model=None,
-               descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
-               ratio: Optional[float] = None, gate: CorrectionGate = CorrectionGate(),
-               base_radius: float = 16.0, orientation: str = "upright", bf16: bool = False,
-               detector: str = "hessian", refine: bool = False, verification: Optional[VerificationConfig] = None,
-               max_passes: int = 2, sift_seed: bool = True, max_side: Optional[int] = MAX_SIDE) -> MatchResult:
-    """Detect, correct, describe and mutually match two images.
+               matcher: Union[str, MatchConfig, Matcher] = "hardnet", **options) -> MatchResult:
+    """Correct, extract and match two images (optionally verify, refine and match again).
 
-    Images larger than ``max_side`` (longer side) are matched at that working resolution (a large
-    JPEG is decoded at a reduced size); keypoints, radii and errors are returned in pixels of the
-    full images, the maps (``scale_a``, ``refined_a``, ...) stay in the working frame
-    (``meta["working_scale"]``: working pixels per full-image pixel of A and B).
+    Images larger than the matcher's ``max_side`` (longer side) are matched at that working
+    resolution (a large JPEG is decoded at a reduced size); keypoints, radii and errors are
+    returned in pixels of the full images, the maps (``scale_a``, ``refined_a``, ...) stay in the
+    working frame (``meta["working_scale"]``: working pixels per full-image pixel of A and B).
 
-    With ``refine``: the matches are verified (:func:`~.verification.verify_matches`), both maps are
-    refined by the verified geometry (:func:`~.verification.refine_scale_map`, the correction's maps
-    as the prior; 1 where the method gives none), the patches are re-cut with the refined maps and
-    matched again, up to ``max_passes`` passes while the inlier count grows; the pass with the most
-    inliers is returned, with ``verification``, ``refined_a`` and ``refined_b`` set. With
-    ``sift_seed``, a first pass that is not verified is followed by the verification of OpenCV SIFT
-    matches (:func:`~.verification.sift_seed_points`), whose geometry, if verified, refines the maps.
+    With ``refine`` (or ``correction="refined"``): the matches are verified
+    (:func:`~.verification.verify_matches`), both maps are refined by the verified geometry, the
+    pair is matched again with the refined maps, up to ``max_passes`` passes while the inlier
+    count grows; the pass with the most inliers is returned, with ``verification``,
+    ``refined_a`` and ``refined_b`` set. With ``sift_seed``, a first pass that is not verified is
+    followed by the verification of OpenCV SIFT matches, whose geometry, if verified, refines the maps.
 
     Args:
         image_a, image_b: paths or ``H x W x 3`` uint8 arrays.
-        correction: ``"none" | "global" | "local" | "fused" | "gt"`` (module docstring).
-        H: homography A -> B (array or file); needed for ``"gt"``, gives reprojection errors.
-        local_model, global_model: models for ``"local"`` / ``"global"`` / ``"fused"`` (default: bundled weights).
-        gate: gating of predicted maps (``NO_GATE`` to disable; not applied to ``"gt"``).
-        bf16: run the scale networks under bfloat16 autocast.
-        detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
-        refine, verification, max_passes, sift_seed: second pass with verified, refined maps (above);
-            ``verification`` holds the thresholds (default :class:`~.verification.VerificationConfig`).
-        max_side: working resolution (None: full resolution).
+        correction: a name of :data:`~.correction.CORRECTIONS` (:mod:`.correction`).
+        H: homography A -> B (array, nested list or file); needed for ``"gt"``, gives reprojection errors.
+        local_model, global_model: the models the correction needs (default: bundled weights).
+        matcher: a name of :data:`~.matchers.MATCHERS`, a :class:`~.matchers.MatchConfig` or a
+            :class:`~.matchers.Matcher`.
+        **options: fields of :class:`~.matchers.MatchConfig` replacing the matcher's
+            (``num_features=500``, ``descriptor="sift"``, ``refine=True``, ``max_side=None``, ...).
     """
-    get_detector(detector, max(1, num_features))
-    a, to_work_a = load_working_image(image_a, max_side, "image A")
-    b, to_work_b = load_working_image(image_b, max_side, "image B")
+    method = get_correction(correction)
+    _check_models(correction, local_model, global_model)
+    m = get_matcher(matcher, **options)
+    cfg = m.config
+    a, to_work_a = load_working_image(image_a, cfg.max_side, "image A")
+    b, to_work_b = load_working_image(image_b, cfg.max_side, "image B")
     H_full = None if H is None else read_homography(H)
     H = None if H is None else to_work_b @ H_full @ np.linalg.inv(to_work_a)
-    res = _match_loaded(a, b, correction, H, local_model, global_model, descriptor, num_features, ratio, gate,
-                        base_radius, orientation, bf16, detector, refine, verification, max_passes, sift_seed)
+    sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, cfg.gate, bf16=cfg.bf16)
+    if cfg.refine or method.refine:
+        res = _refined(m, a, b, sa, sb, None, None, H, correction)
+    else:
+        res = _result(m, m.match(a, b, sa, sb), H, correction)
+    res.scale_a, res.scale_b = sa, sb
     return _to_full_frame(res, to_work_a, to_work_b, H_full)
+
+
+def _result(m: Matcher, found: Matches, H, correction: str) -> MatchResult:
+    errors = None if H is None else reprojection_errors(found.keypoints_a, found.keypoints_b, found.matches, H)
+    res = MatchResult(found.keypoints_a, found.keypoints_b, found.matches, found.distances, errors,
+                      found.radii_a, found.radii_b, correction, H)
+    res.meta = {"matcher": m.name, "num_features_a": len(found.keypoints_a),
+                "num_features_b": len(found.keypoints_b), "factors": [float(f) for f in found.factors]}
+    if m.config.extractor == "patches":
+        desc = m.config.descriptor
+        res.meta.update(descriptor=desc if isinstance(desc, str) else getattr(desc, "name", "custom"),
+                        detector=m.config.detector)
+    return res
+
+
+def _refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, correction: str) -> MatchResult:
+    """Match with ``first_*``, verify, refine the maps (from ``prior_*``, default ``first_*``; 1
+    where both are None) and match again (:func:`~.verification.refine_matching`)."""
+    cfg = m.config
+    history = []
+
+    def run(map_a, map_b):
+        found = m.match(a, b, map_a, map_b)
+        history.append((found, map_a, map_b))
+        return found.keypoints_a, found.keypoints_b, found.matches, found.distances
+
+    pa = _as_map(first_a if prior_a is None else prior_a, a.shape[:2])
+    pb = _as_map(first_b if prior_b is None else prior_b, b.shape[:2])
+    seed = (lambda: sift_seed_points(a, b, max(cfg.num_features, 1000))) if cfg.sift_seed else None
+    out = refine_matching(run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification,
+                          cfg.max_passes, seed)
+    found, used_a, used_b = history[out.best_pass]
+    res = _result(m, found, H, correction)
+    res.scale_a, res.scale_b = used_a, used_b
+    res.verification, res.refined_a, res.refined_b = out.refined_a.verification, out.refined_a, out.refined_b
+    res.meta.update(passes=out.passes, best_pass=out.best_pass, inlier_counts=list(out.inlier_counts),
+                    seed_inliers=None if out.seed is None else int(out.seed.num_inliers))
+    return res
 
 
 def _to_full_frame(res: MatchResult, to_work_a: np.ndarray, to_work_b: np.ndarray, H_full) -> MatchResult:
     """Keypoints, radii and errors of a result computed at a working resolution, in full-image pixels."""
+    res.H = H_full
     if np.array_equal(to_work_a, np.eye(3)) and np.array_equal(to_work_b, np.eye(3)):
         return res
 
@@ -187,28 +207,11 @@ def _to_full_frame(res: MatchResult, to_work_a: np.ndarray, to_work_b: np.ndarra
 
     fa, fb = (float(np.sqrt(S[0, 0] * S[1, 1])) for S in (to_work_a, to_work_b))
     res.keypoints_a, res.keypoints_b = back(res.keypoints_a, to_work_a), back(res.keypoints_b, to_work_b)
-    res.radii_a, res.radii_b = res.radii_a / fa, res.radii_b / fb
-    res.H = H_full
+    if res.radii_a is not None:
+        res.radii_a, res.radii_b = res.radii_a / fa, res.radii_b / fb
     if H_full is not None:
         res.errors = reprojection_errors(res.keypoints_a, res.keypoints_b, res.matches, H_full)
     res.meta["working_scale"] = [fa, fb]
-    return res
-
-
-def _match_loaded(a, b, correction, H, local_model, global_model, descriptor, num_features, ratio, gate,
-                  base_radius, orientation, bf16, detector, refine, verification, max_passes, sift_seed):
-    desc = get_descriptor(descriptor)
-    sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, gate, bf16=bf16)
-    if refine:
-        return refine_match(a, b, sa, sb, H=H, descriptor=desc, num_features=num_features, ratio=ratio,
-                            base_radius=base_radius, orientation=orientation, config=verification,
-                            max_passes=max_passes, correction=correction, sift_seed=sift_seed,
-                            detector=detector)
-    fa = extract(a, sa, num_features, desc, base_radius, orientation, detector=detector)
-    fb = extract(b, sb, num_features, desc, base_radius, orientation, detector=detector)
-    res = match_features(fa, fb, H, ratio, correction)
-    res.scale_a, res.scale_b = sa, sb
-    res.meta = {"num_features_a": len(fa), "num_features_b": len(fb), "descriptor": desc.name, "detector": detector}
     return res
 
 
@@ -222,19 +225,15 @@ def _as_map(scale, shape):
 
 
 def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, prior_b=None, H=None,
-                 descriptor: Union[str, PatchDescriptor] = "hardnet", num_features: int = 1000,
-                 ratio: Optional[float] = None, base_radius: float = 16.0, orientation: str = "upright",
-                 config: Optional[VerificationConfig] = None, max_passes: int = 2,
-                 correction: str = "refined", sift_seed: bool = True, detector: str = "hessian") -> MatchResult:
-    """Match with given maps, verify, refine the maps and match again (:func:`~.verification.refine_matching`).
+                 matcher: Union[str, MatchConfig, Matcher] = "hardnet", **options) -> MatchResult:
+    """Match with given maps, verify, refine the maps and match again (full resolution).
 
     Args:
         image_a, image_b: paths or ``H x W x 3`` uint8 arrays.
         scale_a, scale_b: maps (or floats, or ``None``) of the first pass (e.g. the gated network maps).
         prior_a, prior_b: network maps the refined maps start from (default: ``scale_*``; ``None`` = 1).
         H: ground-truth homography A -> B for reprojection errors (optional).
-        sift_seed: when the first pass is not verified, try OpenCV SIFT matches as the geometry's seed.
-        detector: the keypoint detector (:data:`localscale.features.detector.DETECTORS`).
+        matcher, options: as in :func:`match_pair`.
     Returns:
         :class:`MatchResult` of the pass with the most inliers; ``scale_a`` / ``scale_b`` are the maps
         that pass used, ``refined_a`` / ``refined_b`` the refined maps, ``verification`` the geometry
@@ -242,37 +241,10 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
     """
     a = load_image(image_a, "image A")
     b = load_image(image_b, "image B")
-    desc = get_descriptor(descriptor)
-    ga, gb = image_to_gray_tensor(a), image_to_gray_tensor(b)
-    det = get_detector(detector, num_features)
-    cutter = ScaleCorrectedPatches(base_radius, desc.patch_size, orientation)
-    kps = {0: det(ga)[0], 1: det(gb)[0]}
-    history = {0: [], 1: []}   # per image, per pass: (map, radii)
-
-    def describer(i, gray):
-        def describe(scale_map):
-            patches, _, r = cutter(gray, kps[i], scale_map)
-            history[i].append((scale_map, r.numpy()))
-            return kps[i].numpy(), desc.describe(patches)
-        return describe
-
-    pa = _as_map(scale_a if prior_a is None else prior_a, a.shape[:2])
-    pb = _as_map(scale_b if prior_b is None else prior_b, b.shape[:2])
-    seed = (lambda: sift_seed_points(a, b, num_features)) if sift_seed else None
-    out = refine_matching(describer(0, ga), describer(1, gb), a.shape[:2], b.shape[:2], scale_a, scale_b,
-                          pa, pb, config or VerificationConfig(), max_passes, ratio, seed)
-    (used_a, radii_a), (used_b, radii_b) = history[0][out.best_pass], history[1][out.best_pass]
-    errors = None
-    if H is not None:
-        H = read_homography(H)
-        errors = reprojection_errors(out.keypoints_a, out.keypoints_b, out.matches, H)
-    res = MatchResult(out.keypoints_a, out.keypoints_b, out.matches, out.distances, errors, radii_a, radii_b,
-                      correction, H, used_a, used_b)
-    res.verification, res.refined_a, res.refined_b = out.refined_a.verification, out.refined_a, out.refined_b
-    res.meta = {"num_features_a": len(out.keypoints_a), "num_features_b": len(out.keypoints_b),
-                "descriptor": desc.name, "passes": out.passes, "best_pass": out.best_pass,
-                "inlier_counts": list(out.inlier_counts),
-                "seed_inliers": None if out.seed is None else int(out.seed.num_inliers)}
+    m = get_matcher(matcher, **options)
+    H = None if H is None else read_homography(H)
+    res = _refined(m, a, b, scale_a, scale_b, prior_a, prior_b, H, "refined")
+    res.H = H
     return res
 
 
@@ -280,9 +252,24 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
                  threshold: float = 5.0, max_lines: int = 500, max_side: Optional[int] = MAX_SIDE) -> np.ndarray:
     """Side-by-side picture; with ``H`` inliers (error < ``threshold``) green, outliers red,
     else all matches yellow. Images larger than ``max_side`` are drawn at that size. Returns the
-    RGB canvas and writes it to ``path`` if given."""
+    RGB canvas and writes it to ``path`` (``.png``, ``.jpg``, ``.tif``, ``.bmp``, ``.webp``) if given.
+
+    Raises :class:`LocalScaleError` when ``path`` is a folder or has another extension, and when
+    the result's keypoints do not fit these images (a result of another pair)."""
+    if path is not None:
+        path = Path(path)
+        if path.is_dir():
+            raise LocalScaleError(f"cannot write picture {path}: an existing folder has that name (give a file name)")
+        if path.suffix.lower() not in PICTURE_SUFFIXES:
+            raise LocalScaleError(f"picture {path}: the name must end in one of {', '.join(PICTURE_SUFFIXES)}")
     a, to_a = load_working_image(image_a, max_side, "image A")
     b, to_b = load_working_image(image_b, max_side, "image B")
+    for name, kp, S, img in (("A", result.keypoints_a, to_a, a), ("B", result.keypoints_b, to_b, b)):
+        full_w, full_h = (img.shape[1] + 1) / S[0, 0] - 1, (img.shape[0] + 1) / S[1, 1] - 1
+        kp = np.asarray(kp, np.float64).reshape(-1, 2)
+        if len(kp) and (kp.min() < -2 or kp[:, 0].max() > full_w + 2 or kp[:, 1].max() > full_h + 2):
+            raise LocalScaleError(f"the result's keypoints of {name} lie outside image {name} "
+                                  f"({full_w + 1:.0f} x {full_h + 1:.0f} px): it belongs to other images")
     h = max(a.shape[0], b.shape[0])
     canvas = np.zeros((h, a.shape[1] + b.shape[1], 3), np.uint8)
     canvas[:a.shape[0], :a.shape[1]] = a
@@ -307,17 +294,17 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
         cv2.line(canvas, pa, pb, colour, lw, cv2.LINE_AA)
         cv2.circle(canvas, pa, 2 * lw, colour, -1)
         cv2.circle(canvas, pb, 2 * lw, colour, -1)
+    label = " / ".join(str(x) for x in (result.meta.get("matcher"), result.correction) if x)
+    cv2.putText(canvas, f"{label}: {len(result.matches)} matches", (8, 8 + 14 * lw), cv2.FONT_HERSHEY_SIMPLEX,
+                0.5 * lw, (255, 255, 255), lw, cv2.LINE_AA)
     if path is not None:
-        path = Path(path)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
-        from ..outputs import atomic_path
+        from ..outputs import write_image
 
-        with atomic_path(path) as tmp:   # complete file or none
-            if not cv2.imwrite(str(tmp), canvas[..., ::-1]):
-                raise LocalScaleError(f"cannot write picture {path}")
+        write_image(path, canvas[..., ::-1])
     return canvas
 
 
@@ -330,8 +317,10 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
     except OSError as e:
         raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
     data = dict(keypoints_a=result.keypoints_a, keypoints_b=result.keypoints_b, matches=result.matches,
-                distances=result.distances, radii_a=result.radii_a, radii_b=result.radii_b,
-                correction=np.array(result.correction))
+                distances=result.distances, correction=np.array(result.correction),
+                matcher=np.array(str(result.meta.get("matcher", ""))))
+    if result.radii_a is not None:
+        data.update(radii_a=result.radii_a, radii_b=result.radii_b)
     if result.errors is not None:
         data["errors"] = result.errors
     if result.H is not None:
@@ -343,86 +332,34 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
             np.savez(f, **data)
 
 
-def models_for_correction(correction: str, local_weights=None, global_weights=None, device: str = "cpu"):
-    """``(local_model, global_model)`` that ``correction`` needs (None for the other), loaded with
-    :func:`localscale.cli.load_scale_model` (``weights`` None = bundled)."""
-    from ..cli import load_scale_model
+def run_match(image_a, image_b, out, correction: str = "local", H=None, local_model=None, global_model=None,
+              matcher: Union[str, MatchConfig, Matcher] = "hardnet", verbose: bool = True, **options) -> MatchResult:
+    """:func:`match_pair`, then write ``out/matches.npz`` and ``out/matches.png``; returns the result.
 
-    if correction not in CORRECTIONS:
-        raise LocalScaleError(f"correction must be one of {CORRECTIONS}, got {correction!r}")
-    local_model = load_scale_model("local", local_weights, device) if correction in ("local", "fused", "searched") else None
-    global_model = load_scale_model("global", global_weights, device) if correction in ("global", "fused") else None
-    return local_model, global_model
-
-
-def run_match(image_a, image_b, out, correction: str = "local", H=None, descriptor: str = "hardnet",
-              num_features: int = 1000, ratio: Optional[float] = None, local_weights=None, global_weights=None,
-              device: str = "cpu", verbose: bool = True, orientation: str = "upright", bf16: bool = False,
-              local_model=None, global_model=None, detector: str = "hessian", refine: bool = False,
-              max_passes: int = 2, sift_seed: bool = True, max_side: Optional[int] = MAX_SIDE) -> MatchResult:
-    """Match two images and write ``out/matches.npz`` and ``out/matches.png``; returns the result.
-
-    With ``refine`` (:func:`match_pair`): also ``out/refined_scale.npy`` / ``refined_source.npy`` /
-    ``refined_scale.png`` for A, the same with ``_b`` for B, and ``out/geometry.json``.
-
-    The models ``correction`` needs are ``local_model`` / ``global_model`` when given, else loaded
-    from ``local_weights`` / ``global_weights`` (None = bundled) on ``device``.
+    With refinement (``refine=True`` or ``correction="refined"``): also ``out/refined_scale.npy`` /
+    ``refined_source.npy`` / ``refined_scale.png`` for A, the same with ``_b`` for B, and
+    ``out/geometry.json``. The models ``correction`` needs are ``local_model`` / ``global_model``
+    (None: the bundled weights).
     """
-    if local_model is None and global_model is None:
-        local_model, global_model = models_for_correction(correction, local_weights, global_weights, device)
-    H = read_homography(H) if H is not None else None
-    res = match_pair(image_a, image_b, correction, H, local_model, global_model, descriptor, num_features, ratio,
-                     orientation=orientation, bf16=bf16, detector=detector, refine=refine, max_passes=max_passes,
-                     sift_seed=sift_seed, max_side=max_side)
+    from ..map_files import write_refinement
+
+    res = match_pair(image_a, image_b, correction, H, local_model, global_model, matcher, **options)
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
-    if refine:
-        from ..cli import write_refinement
+    if res.refined_a is not None:
         inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
         write_refinement(out, "", res.refined_a, res.refined_b,
                          {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs)
     if verbose:
-        msg = f"{len(res.matches)} matches ({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
+        msg = (f"{res.meta['matcher']}: {len(res.matches)} matches "
+               f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)")
         if res.errors is not None:
             msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
         print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
-        if refine:
+        if res.refined_a is not None:
             v = res.verification
             state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"
             print(f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
                   f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}")
     return res
-
-
-def add_match_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Deprecated: the options of ``localscale match`` (defined once, in :mod:`localscale.cli`)."""
-    from ..cli import add_match_options
-
-    return add_match_options(parser)
-
-
-def run_match_cli(args: argparse.Namespace) -> int:
-    """Deprecated: body of ``localscale match`` (:func:`localscale.cli.cmd_match`) for a namespace
-    built by :func:`add_match_arguments`; options it lacks take the parser's defaults."""
-    from ..cli import add_match_options, cmd_match
-
-    ns = add_match_options(argparse.ArgumentParser()).parse_args([str(args.image_a), str(args.image_b)])
-    for old, new in (("out", "output"), ("local_model", "local_weights"), ("global_model", "global_weights")):
-        if getattr(args, old, None) is not None:
-            setattr(ns, new, getattr(args, old))
-    for k, v in vars(args).items():
-        if hasattr(ns, k) and v is not None:
-            setattr(ns, k, v)
-    return cmd_match(ns)
-
-
-def match_main(argv=None) -> int:
-    """Stand-alone entry: ``python -m localscale.features.pipeline A B -o OUT ...`` (same as ``localscale match``)."""
-    from ..cli import main
-
-    return main(["match"] + list(sys.argv[1:] if argv is None else argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(match_main())

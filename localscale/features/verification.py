@@ -519,22 +519,22 @@ class RefinedMatching:
     seed: Optional[VerificationResult] = None
 
 
-def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, shape_b: tuple,
+def refine_matching(match: Callable, shape_a: tuple, shape_b: tuple,
                     first_a=None, first_b=None, prior_a=None, prior_b=None,
                     config: VerificationConfig = VerificationConfig(), max_passes: int = 2,
-                    ratio: Optional[float] = None, seed: Optional[Callable] = None) -> RefinedMatching:
-    """Match, verify, refine both maps, re-cut and match again while the inlier count grows.
+                    seed: Optional[Callable] = None) -> RefinedMatching:
+    """Match, verify, refine both maps and match again with them while the inlier count grows.
 
     Args:
-        describe_a, describe_b: ``f(scale_map) -> (keypoints N x 2 np, descriptors N x D tensor)``
-            for image A / B with patches cut at the radii of ``scale_map`` (``None`` = no correction).
+        match: ``f(map_a, map_b) -> (keypoints_a N_A x 2, keypoints_b N_B x 2, matches K x 2, costs K)``,
+            the pair matched with these scale maps (``None`` = no correction), e.g.
+            :meth:`localscale.features.matchers.Matcher.match` or :func:`describe_and_match`.
         shape_a, shape_b: ``(height, width)``.
         first_a, first_b: maps of the first matching pass (e.g. the gated network maps).
         prior_a, prior_b: network maps the refined maps start from (default: ``first_*``).
         config: :class:`VerificationConfig`.
         max_passes: matching passes at most (1 = no second pass); passes stop early when the
             inlier count does not grow or verification fails.
-        ratio: Lowe ratio on top of mutual NN (``None``: mutual NN only).
         seed: ``f() -> (points_a K x 2, points_b K x 2)``, another match set of the pair, verified
             (same thresholds) when the first pass is not; its geometry then refines the maps.
     Returns:
@@ -542,8 +542,6 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
         ties); the refined maps of the last verified geometry of a pass that grew the inlier count
         (or of the seed), else the priors unchanged.
     """
-    from .matching import match_descriptors
-
     if max_passes < 1:
         raise LocalScaleError(f"max_passes must be >= 1, got {max_passes}")
     prior_a = first_a if prior_a is None else prior_a
@@ -551,16 +549,14 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
     maps = (first_a, first_b)
     best, counts, geometry, seeded = None, [], None, None
     for i in range(max_passes):
-        ka, da = describe_a(maps[0])
-        kb, db = describe_b(maps[1])
-        dist, idx = match_descriptors(da, db, ratio)
-        m = idx.numpy().astype(np.int64).reshape(-1, 2)
-        ka, kb = np.asarray(ka), np.asarray(kb)
+        ka, kb, m, dist = match(maps[0], maps[1])
+        m = np.asarray(m, np.int64).reshape(-1, 2)
+        ka, kb, dist = np.asarray(ka), np.asarray(kb), np.asarray(dist)
         v = verify_matches(ka[m[:, 0]], kb[m[:, 1]], shape_a, shape_b, prior_a, config)
         counts.append(v.num_inliers)
         grew = best is None or v.num_inliers > best.verification.num_inliers
         if grew:
-            best = RefinedMatching(ka, kb, m, dist.numpy(), v, None, None, i + 1, counts, i)
+            best = RefinedMatching(ka, kb, m, dist, v, None, None, i + 1, counts, i)
         if grew and v.verified:
             geometry = v
         elif i == 0 and seed is not None:
@@ -579,6 +575,20 @@ def refine_matching(describe_a: Callable, describe_b: Callable, shape_a: tuple, 
             if geometry is None else refine_pair_maps(prior_a, prior_b, geometry, config)
     best.passes, best.inlier_counts, best.seed = len(counts), counts, seeded
     return best
+
+
+def describe_and_match(describe_a: Callable, describe_b: Callable, ratio: Optional[float] = None) -> Callable:
+    """The ``match`` of :func:`refine_matching` from two describers ``f(scale_map) -> (keypoints
+    N x 2, descriptors N x D)``: mutual nearest neighbours (with Lowe's ``ratio`` if given)."""
+    from .matching import match_descriptors
+
+    def match(map_a, map_b):
+        ka, da = describe_a(map_a)
+        kb, db = describe_b(map_b)
+        dist, idx = match_descriptors(da, db, ratio)
+        return ka, kb, idx.numpy(), dist.numpy()
+
+    return match
 
 
 def sift_seed_points(image_a, image_b, num_features: int = 1000, ratio: float = 0.8):
