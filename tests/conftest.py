@@ -35,3 +35,16 @@ def image_dir(tmp_path_factory, photos):
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(autouse=True)
+def no_network(monkeypatch):
+    """Every test runs offline: opening a network connection (a weight download) fails the test."""
+    import socket
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a test tried to open a network connection (a download?)")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)

