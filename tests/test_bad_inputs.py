@@ -33,6 +33,7 @@ from localscale import LocalScaleNet, ScaleNet, training
 from localscale.checkpoint import checkpoint_dict, load_model, save_model
 from localscale.cli import main
 from localscale.errors import CheckpointError, LocalScaleError
+from localscale.reliability import check_pair
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 
@@ -491,7 +492,10 @@ TRAIN_CASES = [
     ("init-extractor-truncated", ["--init-extractor", "{ck:truncated}"], "cannot read checkpoint"),
     ("out-is-a-file", ["--out", "{in}/afile"], "is not a folder"),
     ("out-name-too-long", ["--out", "{out}/" + "o" * 300], "name too long"),
-]
+    ("device-banana", ["--device", "banana"], "unknown device 'banana'"),
+    ("device-cuda-99", ["--device", "cuda:99"], "'cuda:99'"),
+    ("device-meta", ["--device", "meta"], "'meta' is not supported"),
+] + ([] if torch.cuda.is_available() else [("device-cuda", ["--device", "cuda"], "no CUDA device available")])
 
 
 @pytest.mark.parametrize("case", TRAIN_CASES, ids=[c[0] for c in TRAIN_CASES])
@@ -576,7 +580,22 @@ API_CASES = [
     ("from-pretrained-format", lambda m, e: LocalScaleNet.from_pretrained(e["ck"]["format_99"][0]), "format version 99"),
     ("save-nan", lambda m, e: save_model(_nan_model(), e["root"] / "saved_nan.pt"), "not saved"),
     ("predict-pairs-bad-pair", lambda m, e: _first_pair_error(m, e), "file not found"),
-]
+    ("from-pretrained-cuda-99", lambda m, e: LocalScaleNet.from_pretrained(device="cuda:99"), "'cuda:99'"),
+    ("from-pretrained-bogus", lambda m, e: LocalScaleNet.from_pretrained(device="bogus"), "unknown device 'bogus'"),
+    ("from-pretrained-meta", lambda m, e: ScaleNet.from_pretrained(device="meta"), "'meta' is not supported"),
+    ("load-model-device-object", lambda m, e: load_model(e["in"] / "local.pt", device=torch.device("meta")),
+     "'meta' is not supported"),
+    ("predict-meta-tensor", lambda m, e: m.predict(torch.zeros(3, 64, 64, device="meta"), e["in"] / "b.png"),
+     "image A: tensor on the meta device"),
+    ("predict-batch-meta-tensor", lambda m, e: m.predict_batch(torch.zeros(2, 3, 64, 64),
+                                                               torch.zeros(2, 3, 64, 64, device="meta")),
+     "images B: tensor on the meta device"),
+    ("check-pair-scalenet", lambda m, e: check_pair(ScaleNet(**TINY), e["in"] / "a.png", e["in"] / "b.png"),
+     "check_pair needs a LocalScaleNet"),
+    ("check-pair-none", lambda m, e: check_pair(None, e["in"] / "a.png", e["in"] / "b.png"), "got NoneType"),
+] + ([] if torch.cuda.is_available() else [
+    ("from-pretrained-cuda", lambda m, e: LocalScaleNet.from_pretrained(device="cuda"), "no CUDA device available"),
+])
 
 
 def _nan_model():
