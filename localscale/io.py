@@ -221,7 +221,8 @@ def _stat_file(path: Path, name: str) -> os.stat_result:
             if path.is_symlink():
                 raise ImageError(f"{name}: broken symbolic link (its target does not exist): {path}") from None
             raise ImageError(f"{name}: file not found: {path}") from None
-        raise ImageError(f"{name}: cannot access {path} ({e.strerror})") from None
+        shown = str(path) if len(str(path)) <= 300 else f"{str(path)[:120]}... ({len(str(path))} characters)"
+        raise ImageError(f"{name}: cannot access {shown} ({e.strerror})") from None
 
 
 def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
@@ -286,12 +287,26 @@ def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
     return load_image_array(image, name).shape[:2]
 
 
-def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
+_FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a character device"),
+               (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_image_file(path: str | os.PathLike, name: str = "image") -> None:
+    """The checks of an image file that need no read (one ``stat``): it exists, is a regular file
+    (a named pipe would block the read) and is not empty. Raises :class:`ImageError` (one line)."""
+    path = Path(path)
     st = _stat_file(path, name)
     if stat.S_ISDIR(st.st_mode):
         raise ImageError(f"{name}: is a directory, not an image file: {path}")
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((k for test, k in _FILE_KINDS if test(st.st_mode)), "a special file")
+        raise ImageError(f"{name}: not a regular file ({kind}): {path}")
     if st.st_size == 0:
         raise ImageError(f"{name}: empty file (0 bytes): {path}")
+
+
+def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
+    check_image_file(path, name)
     try:
         header = _header(path)
     except OSError as e:
