@@ -1138,3 +1138,16 @@ def test_a_full_disk_stops_a_pairs_run_that_a_rerun_resumes(env, tmp_path, monke
     monkeypatch.setattr(np, "save", real_save)
     rc, stdout, err = _run(main, argv, capsys)
     assert rc == 0 and "2 written, 1 skipped" in stdout, err
+
+
+def test_pairs_that_all_fail_while_running_are_one_error_and_nothing_written(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for n in ("c1.png", "c2.png"):   # they pass the up-front check (regular, not empty) but do not decode
+        (d / n).write_bytes((env["in"] / "truncated.png").read_bytes())
+    (d / "pairs.txt").write_text("c1.png c2.png\nc2.png c1.png\n")
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
+                                  str(env["in"] / "local.pt")], capsys)
+    assert_clean_error(rc, err, ["all 2 pairs failed", "nothing written"], out)
+    assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ") and "cannot decode" in ln]) == 2
