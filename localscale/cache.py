@@ -76,7 +76,7 @@ def encode_batch(model: ScaleModel, images: list, bf16: bool = False) -> list[En
     """Encode several images (paths or arrays) in one backbone pass."""
     tensors, boxes = [], []
     for im in images:
-        rgb, shape = model.load(im, name=str(im) if not hasattr(im, "shape") else "image")
+        rgb, shape = model.load(im, name="image")   # a file's messages name its path once
         boxed, lb = letterbox(rgb, model.config.image_size, shape)
         tensors.append(to_tensor(boxed))
         boxes.append(lb)

@@ -161,7 +161,12 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
 
     Args:
         arch: if given, the checkpoint must be of this architecture.
+        device: checked first (:func:`~localscale.devices.resolve_device`): an unknown or
+            unavailable device is a :class:`LocalScaleError` before the checkpoint is read.
     """
+    from .devices import resolve_device
+
+    device = resolve_device(device)
     ckpt = read_checkpoint(path)
     found = ckpt.get("arch")
     if arch is not None and found != arch:

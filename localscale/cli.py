@@ -33,7 +33,7 @@ from .cli_options import (HelpFormatter, OneLineErrorParser, _LazyArgumentParser
                           positive_float, positive_int)
 from . import loading
 from .errors import LocalScaleError
-from .loading import MODEL_KINDS, load_scale_model, resolve_device  # noqa: F401
+from .loading import MODEL_KINDS, load_scale_model  # noqa: F401
 from .map_files import scale_map_paths, write_refinement, write_scale_map  # noqa: F401
 from .outputs import ensure_not_input, make_dir, resolved_path, write_image, write_npy, write_npy_bands, write_text  # noqa: F401
 
@@ -118,10 +118,18 @@ def read_pairs_file(path: str | Path, with_lines: bool = False) -> list[tuple]:
 
     Returns ``[(A, B), ...]``, or ``[(line_number, A, B), ...]`` with ``with_lines``. Bad lines
     (not two fields, unbalanced quotes, not UTF-8) are all reported, by number, in one
-    :class:`LocalScaleError`; so is a pairs file that cannot be read.
+    :class:`LocalScaleError`; so is a pairs file that cannot be read or is not a regular file
+    (a named pipe or a device would block the read). A UTF-8 byte order mark at the start is dropped.
     """
+    import stat
+
     path = Path(path)
     try:
+        mode = path.stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):   # a folder: the read below says so
+            kind = ("a named pipe" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+                    else "a socket" if stat.S_ISSOCK(mode) else "a special file")
+            raise LocalScaleError(f"pairs file is not a regular file ({kind}): {path}")
         data = path.read_bytes()
     except OSError as e:
         import errno
@@ -132,6 +140,8 @@ def read_pairs_file(path: str | Path, with_lines: bool = False) -> list[tuple]:
         if e.errno == errno.ENOENT and path.is_symlink():
             what = "pairs file is a broken symbolic link"
         raise LocalScaleError(f"{what}: {path}") from None
+    if data.startswith(b"\xef\xbb\xbf"):   # UTF-8 byte order mark (some editors write one)
+        data = data[3:]
     pairs, bad = [], []
     for n, raw in enumerate(data.split(b"\n"), 1):
         try:
@@ -228,9 +238,10 @@ def cmd_predict(args) -> int:
     return 0
 
 
-def _complete(paths: list[Path]) -> bool:
+def _complete(paths: list[Path], record_path: Path | None = None, record: dict | None = None) -> bool:
     """True when every output file of a pair exists (files are written atomically, so an existing
-    file is complete) and its ``.npy`` files have a readable header."""
+    file is complete), its ``.npy`` files have a readable header and, with ``record_path``, the
+    record of what made them (:func:`_pair_record`, written last) equals ``record``."""
     import numpy as np
 
     try:
@@ -239,59 +250,144 @@ def _complete(paths: list[Path]) -> bool:
                 return False
             if p.suffix == ".npy":
                 np.load(p, mmap_mode="r")
+        if record_path is not None and json.loads(record_path.read_text(encoding="utf-8")) != record:
+            return False
     except (OSError, ValueError):
         return False
     return True
 
 
+def _file_record(path) -> dict:
+    """An input file as a rerun recognises it: resolved path, size and modification time."""
+    p = resolved_path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        return {"path": str(p), "bytes": None, "mtime_ns": None}
+    return {"path": str(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _pair_record(image_a, image_b, weights, args) -> dict:
+    """What a pair's maps were made from: both images, the weights and the read-out options.
+    Written beside the maps (``<name>_scale.json``); a rerun redoes a pair whose record differs."""
+    return {"image_a": _file_record(image_a), "image_b": _file_record(image_b), "weights": _file_record(weights),
+            "hard": bool(args.hard), "planar": bool(args.planar), "bf16": bool(args.bf16)}
+
+
+def _shown(text: str, room: int = 300) -> str:
+    """``text`` for a message line: a very long path is cut, with its length."""
+    return text if len(text) <= room else f"{text[:room // 2]}... ({len(text)} characters)"
+
+
+def _pair_problem(e: Exception, a, b) -> str:
+    msg = " ".join(str(e).split())
+    for p in (str(a), str(b)):
+        if len(p) > 300:
+            msg = msg.replace(p, _shown(p))
+    return msg
+
+
 def _predict_pairs(args, out: Path) -> int:
-    """``predict --pairs``: resumable. Pairs whose outputs are all present are skipped (unless
+    """``predict --pairs``: resumable. Pairs whose outputs are complete and were made from the same
+    images (size and modification time), weights and read-out options are skipped (unless
     ``--overwrite``); ``index.tsv`` lists every pair's status; the summary counts pairs written,
-    skipped and failed. Exit code 1 when a pair failed."""
+    skipped and failed.
+
+    Every input path is checked (one ``stat`` each) before the model is loaded. A pair that fails
+    gets a ``warning:`` line and its reason in ``index.tsv``; the other pairs still run. Exit code
+    0 when no pair failed, 1 when some did (last line: ``N of M pairs failed, see index.tsv``), 2
+    (one ``error:`` line) when the pairs file cannot be used, every pair failed (nothing written)
+    or an output cannot be written (a full disk: the run stops, a rerun resumes)."""
     from tqdm import tqdm
 
     from .cache import FeatureCache, predict_pairs
+    from .errors import OutputError
+    from .io import check_image_file
 
     rows = read_pairs_file(args.pairs, with_lines=True)
     pairs = [(a, b) for _, a, b in rows]
     names = pairs_output_names(pairs)
+    paths = {n: scale_map_paths(out, n, True) + [out / f"{n}_scale.json"] for n in names}
+    check_output_dir(out, ["index.tsv"] + [p.name for n in names for p in paths[n]])
     inputs = [Path(args.pairs)] + [p for pair in pairs for p in pair]
-    check_output_dir(out, ["index.tsv"] + [p.name for n in names for p in scale_map_paths(out, n, True)])
-    index_path = ensure_not_input(out / "index.tsv", inputs)
-    for n in names:
-        for p in scale_map_paths(out, n, True):
-            ensure_not_input(p, inputs)
+    taken = {resolved_path(p): p for p in inputs}   # resolved once: 10,000 pairs stay fast
+    index_path = out / "index.tsv"
+    for p in [index_path] + [p for n in names for p in paths[n]]:
+        if resolved_path(p) in taken:
+            raise LocalScaleError(f"refusing to overwrite the input {taken[resolved_path(p)]} with an output")
+
+    def where(i: int) -> str:
+        line, a, b = rows[i]
+        return f"pair {i} (line {line}) {_shown(str(a))} {_shown(str(b))}"
+
+    checked: dict = {}
+    problems: dict = {}   # pair -> what is wrong with one of its images
+    for i, (a, b) in enumerate(pairs):   # before any model is loaded
+        for p, which in ((a, "image A"), (b, "image B")):
+            if (p, which) not in checked:
+                try:
+                    check_image_file(p, which)
+                    checked[p, which] = None
+                except LocalScaleError as e:
+                    checked[p, which] = _pair_problem(e, a, b)
+            if checked[p, which]:
+                problems.setdefault(i, checked[p, which])
+    if len(problems) == len(pairs):
+        more = f" (and {len(pairs) - 1} more pair(s), all with a bad image)" if len(pairs) > 1 else ""
+        raise LocalScaleError(f"{args.pairs}: no pair can be run: {where(0)}: {problems[0]}{more}")
+    for i, msg in problems.items():
+        print(f"warning: {where(i)}: {msg}", file=sys.stderr)
+    status = {i: (f"error: {msg}", "") for i, msg in problems.items()}
+    failed = len(status)
     model = _model(args, "local")
     visible = bool(getattr(model.config, "visibility", False))
-    done = set() if args.overwrite else {i for i, n in enumerate(names)
-                                         if _complete(scale_map_paths(out, n, visible))}
-    todo = [i for i in range(len(pairs)) if i not in done]
+    from .models.base import WEIGHTS_DIR
+
+    weights = args.local_weights or WEIGHTS_DIR / getattr(model, "default_weights", "")   # the bundled file
+    records = {i: _pair_record(a, b, weights, args) for i, (a, b) in enumerate(pairs) if i not in problems}
+    done = set() if args.overwrite else {
+        i for i in records if _complete(scale_map_paths(out, names[i], visible), paths[names[i]][-1], records[i])}
+    status.update({i: ("skipped (outputs already complete)", names[i]) for i in done})
+    todo = [i for i in records if i not in done]
     make_dir(out)
     cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
-    status = {i: ("skipped (outputs already complete)", names[i]) for i in done}
-    failed = written = 0
+    written, stopped = 0, None
     results = predict_pairs(model, [pairs[i] for i in todo], cache, args.batch_size, hard=args.hard,
                             planar=args.planar)
-    for i, (_, pred) in zip(todo, tqdm(results, total=len(todo), desc="pairs", unit="pair")):
-        line, a, b = rows[i]
+    for i, (_, pred) in zip(todo, tqdm(results, total=len(todo), desc="pairs", unit="pair", disable=None)):
+        _, a, b = rows[i]
         if not isinstance(pred, Exception):
             try:
-                write_scale_map(pred, out, names[i], inputs)
+                write_scale_map(pred, out, names[i], (args.pairs, a, b))   # all inputs were checked above
+                write_text(paths[names[i]][-1], json.dumps(records[i], indent=1) + "\n")   # last: marks it complete
             except LocalScaleError as e:
                 pred = e
         if isinstance(pred, Exception):
             failed += 1
-            status[i] = (f"error: {' '.join(str(pred).split())}", "")
-            tqdm.write(f"error: pair {i} (line {line}) {a} {b}: {' '.join(str(pred).split())}", file=sys.stderr)
+            msg = _pair_problem(pred, a, b)
+            status[i] = (f"error: {msg}", "")
+            tqdm.write(f"warning: {where(i)}: {msg}", file=sys.stderr)
+            if isinstance(pred, OutputError):   # a full disk or a read-only folder: the next pairs would fail too
+                stopped = msg
+                break
         else:
             written += 1
             status[i] = ("ok", names[i])
+    for i in todo:
+        status.setdefault(i, (f"not run (stopped: {stopped})", ""))
+    if not written and not done and failed == len(pairs):
+        raise LocalScaleError(f"{args.pairs}: all {len(pairs)} pairs failed (see the warnings above); nothing written")
     lines = ["index\tline\timage_a\timage_b\tstatus\toutput"]
     lines += [f"{i}\t{line}\t{a}\t{b}\t{status[i][0]}\t{status[i][1]}" for i, (line, a, b) in enumerate(rows)]
+    make_dir(out)
     write_text(index_path, "\n".join(lines) + "\n")
     print(f"{len(pairs)} pairs: {written} written, {len(done)} skipped (outputs already complete; --overwrite "
           f"redoes them), {failed} failed; outputs in {out} (index: {index_path}; cache: {cache.misses} images "
           f"encoded, {cache.hits} reused)")
+    if stopped:
+        raise LocalScaleError(f"stopped after {written} written pair(s): {stopped}; a rerun resumes (see {index_path})")
+    if failed:
+        print(f"warning: {failed} of {len(pairs)} pairs failed, see {index_path}", file=sys.stderr)
     return 1 if failed else 0
 
 
@@ -461,6 +557,8 @@ def cmd_match(args) -> int:
     out = check_output_dir(args.output, ["matches.npz", "matches.png"])
     for f in ("matches.npz", "matches.png"):
         ensure_not_input(out / f, (args.image_a, args.image_b, args.H))
+    from .devices import resolve_device
+
     resolve_device(args.device)
     opts = match_options(args)
     if args.matcher != "hardnet":
@@ -504,6 +602,8 @@ def cmd_eval_hpatches(args) -> int:
     tags = [result_tag(c) for c in configs]
     check_output_dir(args.out, ["splits.csv", "results.md"] + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
                      + [f"mma_{t}_rot30-90.png" for t in tags])
+    from .devices import resolve_device
+
     resolve_device(args.device)
     matchers = [get_matcher(c) for c in configs]   # a missing weight file fails before any pair runs
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
@@ -542,9 +642,12 @@ EXAMPLES = {
       -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
       quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
-      are comments. A rerun skips pairs whose outputs are complete (--overwrite redoes them).
+      are comments. A rerun skips pairs whose outputs are complete and whose images, weights
+      and options are unchanged (--overwrite redoes them).
       -> out/<index>_<A>_<B>_scale.* (index = the pair's position in the file; <A> is
-         <folder>-<stem> when stems collide) and out/index.tsv (index, line, A, B, status, output)""",
+         <folder>-<stem> when stems collide; _scale.json records the inputs) and out/index.tsv
+         (index, line, A, B, status, output). A bad pair is a 'warning:' line and exit code 1,
+         the other pairs still run; a pairs file with no usable pair is an 'error:', exit 2.""",
     "show": """example:
   localscale show seq/1.ppm seq/2.ppm --H seq/H_1_2 -o figures/
       -> figures/1_2_figure.png""",

@@ -15,3 +15,7 @@ class HomographyError(LocalScaleError):
 
 class CheckpointError(LocalScaleError):
     """A checkpoint is missing, truncated or of another architecture."""
+
+
+class OutputError(LocalScaleError):
+    """An output file cannot be written (full disk, no permission, read-only file system)."""

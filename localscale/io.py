@@ -9,7 +9,9 @@
 * images smaller than :data:`MIN_SIDE` on a side or above :data:`MAX_PIXELS` pixels are
   refused; for files the size is read from the header before anything is decoded, and a
   file whose size cannot be read from its header is refused undecoded;
-* the EXIF orientation tag of a file is applied (a portrait photo stays portrait).
+* the orientation tag of a file (EXIF, TIFF) is applied exactly once (a portrait photo stays
+  portrait): OpenCV's TIFF decoder turns TIFF files itself (OpenCV 5, whatever the flags), the
+  other formats are decoded as stored and turned here.
 
 :func:`load_image_reduced` decodes a file much larger than needed at ``1/2``, ``1/4`` or ``1/8``
 (JPEG through libjpeg's DCT scaling, other formats reduced right after decoding) and returns the
@@ -23,6 +25,7 @@ reported as one Python warning.
 from __future__ import annotations
 
 import errno
+import functools
 import os
 import re
 import stat
@@ -30,6 +33,7 @@ import tempfile
 import threading
 import warnings
 from contextlib import contextmanager
+from io import BytesIO
 from pathlib import Path
 from typing import Iterator, Union
 
@@ -77,7 +81,8 @@ def _text_header_size(head: bytes) -> tuple[int, int] | None:
 
 
 def _pil_header(path: Path) -> tuple[tuple[int, int], int] | None:
-    """``((width, height), exif_orientation)`` read by PIL without decoding pixels (None if unknown)."""
+    """``((width, height), exif_orientation)`` read by PIL without decoding pixels (None if unknown);
+    the size is that of the stored pixels, before the orientation is applied."""
     try:
         from PIL import Image
     except ImportError:  # pragma: no cover
@@ -89,6 +94,8 @@ def _pil_header(path: Path) -> tuple[tuple[int, int], int] | None:
             warnings.simplefilter("ignore")
             with Image.open(path) as im:
                 size = im.size
+                if im.format == "TIFF" and 256 in im.tag_v2 and 257 in im.tag_v2:
+                    size = (int(im.tag_v2[256]), int(im.tag_v2[257]))   # as stored (PIL: upright)
                 orientation = 1
                 try:   # PNG keeps EXIF after the pixels at times: reading it there would decode them
                     if im.format != "PNG" or "exif" in im.info:
@@ -185,6 +192,25 @@ def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
     return arr
 
 
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")   # classic and BigTIFF, both byte orders
+
+
+@functools.lru_cache(maxsize=None)
+def _tiff_decoder_orients() -> bool:
+    """Whether OpenCV's TIFF decoder applies the Orientation tag itself; probed once on a 2 x 4
+    TIFF tagged "rotate 90" (OpenCV 5 does; the answer decides whether :func:`_load_file` turns)."""
+    try:
+        from PIL import Image
+
+        buf = BytesIO()
+        Image.fromarray(np.zeros((2, 4), np.uint8)).save(buf, "TIFF", tiffinfo={0x0112: 6})
+        with _quiet_decoder():
+            arr = cv2.imdecode(np.frombuffer(buf.getvalue(), np.uint8), cv2.IMREAD_UNCHANGED)
+    except Exception:  # pragma: no cover - no PIL TIFF writer: OpenCV >= 5 behaviour
+        return True
+    return arr is not None and arr.shape[:2] == (4, 2)
+
+
 def _stat_file(path: Path, name: str) -> os.stat_result:
     try:
         return path.stat()
@@ -195,7 +221,8 @@ def _stat_file(path: Path, name: str) -> os.stat_result:
             if path.is_symlink():
                 raise ImageError(f"{name}: broken symbolic link (its target does not exist): {path}") from None
             raise ImageError(f"{name}: file not found: {path}") from None
-        raise ImageError(f"{name}: cannot access {path} ({e.strerror})") from None
+        shown = str(path) if len(str(path)) <= 300 else f"{str(path)[:120]}... ({len(str(path))} characters)"
+        raise ImageError(f"{name}: cannot access {shown} ({e.strerror})") from None
 
 
 def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
@@ -260,12 +287,26 @@ def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
     return load_image_array(image, name).shape[:2]
 
 
-def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
+_FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a character device"),
+               (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_image_file(path: str | os.PathLike, name: str = "image") -> None:
+    """The checks of an image file that need no read (one ``stat``): it exists, is a regular file
+    (a named pipe would block the read) and is not empty. Raises :class:`ImageError` (one line)."""
+    path = Path(path)
     st = _stat_file(path, name)
     if stat.S_ISDIR(st.st_mode):
         raise ImageError(f"{name}: is a directory, not an image file: {path}")
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((k for test, k in _FILE_KINDS if test(st.st_mode)), "a special file")
+        raise ImageError(f"{name}: not a regular file ({kind}): {path}")
     if st.st_size == 0:
         raise ImageError(f"{name}: empty file (0 bytes): {path}")
+
+
+def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
+    check_image_file(path, name)
     try:
         header = _header(path)
     except OSError as e:
@@ -287,6 +328,7 @@ def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.nda
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     k = reduction_factor(height, width, min_long_side)
     jpeg_reduced = k > 1 and bytes(data[:3]) == b"\xff\xd8\xff"
+    tiff = bytes(data[:4]) in _TIFF_MAGIC
     flags = cv2.IMREAD_UNCHANGED
     if jpeg_reduced:
         flags = _REDUCED_COLOR[k] | cv2.IMREAD_IGNORE_ORIENTATION
@@ -308,8 +350,9 @@ def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.nda
         code = cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB
         if arr.shape[2] in (3, 4):
             arr = cv2.cvtColor(arr, code)
-    arr = _apply_orientation(arr, orientation)
     full = (width, height) if orientation in (5, 6, 7, 8) else (height, width)
+    if not (tiff and _tiff_decoder_orients()):   # a TIFF comes out of OpenCV's decoder upright
+        arr = _apply_orientation(arr, orientation)
     return to_rgb_uint8(arr, label, check_size=k == 1), full
 
 
@@ -324,6 +367,8 @@ def load_image_array(image, name: str = "image") -> np.ndarray:
         import torch
 
         if isinstance(image, torch.Tensor):
+            if image.is_meta:
+                raise ImageError(f"{name}: tensor on the meta device (shape only, no data)")
             t = image.detach().cpu()
             if t.dim() == 3 and t.shape[0] in (1, 3, 4) and t.shape[-1] not in (1, 3, 4):
                 t = t.permute(1, 2, 0)

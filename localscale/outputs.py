@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
-from .errors import LocalScaleError
+from .errors import LocalScaleError, OutputError
 
 if TYPE_CHECKING:
     import numpy as np
@@ -41,7 +41,7 @@ def atomic_path(path) -> Iterator[Path]:
 
     On an exception (including ``KeyboardInterrupt``) the temporary file is removed and
     ``path`` is left as it was. An ``OSError`` of the write or the rename becomes a one-line
-    :class:`LocalScaleError` naming ``path``.
+    :class:`~localscale.errors.OutputError` (a :class:`LocalScaleError`) naming ``path``.
     """
     path = Path(path)
     tmp = temporary_name(path)
@@ -50,7 +50,7 @@ def atomic_path(path) -> Iterator[Path]:
         os.replace(tmp, path)
     except OSError as e:
         _remove(tmp)
-        raise LocalScaleError(f"cannot write {path}: {e.strerror or e}") from None
+        raise OutputError(f"cannot write {path}: {e.strerror or e}") from None
     except BaseException:
         _remove(tmp)
         raise

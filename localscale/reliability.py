@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .errors import LocalScaleError
 from .io import ImageLike
 
 
@@ -115,7 +116,15 @@ def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConf
     """Predict ``A->B`` and ``B->A`` with a Local-ScaleNet and decide whether to trust the pair.
 
     ``readout``: options of :meth:`LocalScaleNet.predict_from_features` for the forward map
-    (``hard``, ``planar``); the backward map, used only for the check, is the soft one."""
+    (``hard``, ``planar``); the backward map, used only for the check, is the soft one.
+
+    Raises :class:`LocalScaleError` when ``model`` is not a :class:`LocalScaleNet` (the global
+    ScaleNet predicts no map to check)."""
+    from .models.local import LocalScaleNet
+
+    if not isinstance(model, LocalScaleNet):
+        raise LocalScaleError(f"check_pair needs a LocalScaleNet (a per-pixel scale map model), "
+                              f"got {type(model).__name__}")
     ea, eb = model.encode_pair(image_a, image_b, bf16)
     fwd = model.predict_from_features(ea, eb, bf16=bf16, **readout)
     bwd = model.predict_from_features(eb, ea, bf16=bf16)

@@ -110,6 +110,9 @@ class TrainConfig:
             raise LocalScaleError(f"feature-dim must be >= 1, got {self.feature_dim}")
         if self.model not in ("local", "global"):
             raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
+        from .devices import resolve_device
+
+        resolve_device(self.device)   # cuda on a CPU-only torch, cuda:N beyond the GPUs, unknown names
 
     def pair_config(self) -> PairConfig:
         if not 0 < self.crop_min <= 1:

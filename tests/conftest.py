@@ -39,12 +39,20 @@ def rng():
 
 @pytest.fixture(autouse=True)
 def no_network(monkeypatch):
-    """Every test runs offline: opening a network connection (a weight download) fails the test."""
+    """Every test runs offline: opening an internet connection (a weight download) fails the test.
+    Local sockets (data-loader workers, multiprocessing) are left alone."""
     import socket
 
-    def refuse(*args, **kwargs):
-        raise AssertionError("a test tried to open a network connection (a download?)")
+    real_connect = socket.socket.connect
 
-    monkeypatch.setattr(socket.socket, "connect", refuse)
+    def connect(self, address):
+        if self.family in (socket.AF_INET, socket.AF_INET6):
+            raise AssertionError(f"a test tried to connect to {address!r} (a download?)")
+        return real_connect(self, address)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a test tried to reach the network (a download?)")
+
+    monkeypatch.setattr(socket.socket, "connect", connect)
     monkeypatch.setattr(socket, "create_connection", refuse)
     monkeypatch.setattr(socket, "getaddrinfo", refuse)

@@ -33,6 +33,7 @@ from localscale import LocalScaleNet, ScaleNet, training
 from localscale.checkpoint import checkpoint_dict, load_model, save_model
 from localscale.cli import main
 from localscale.errors import CheckpointError, LocalScaleError
+from localscale.reliability import check_pair
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 
@@ -490,7 +491,10 @@ TRAIN_CASES = [
     ("init-extractor-truncated", ["--init-extractor", "{ck:truncated}"], "cannot read checkpoint"),
     ("out-is-a-file", ["--out", "{in}/afile"], "is not a folder"),
     ("out-name-too-long", ["--out", "{out}/" + "o" * 300], "name too long"),
-]
+    ("device-banana", ["--device", "banana"], "unknown device 'banana'"),
+    ("device-cuda-99", ["--device", "cuda:99"], "'cuda:99'"),
+    ("device-meta", ["--device", "meta"], "'meta' is not supported"),
+] + ([] if torch.cuda.is_available() else [("device-cuda", ["--device", "cuda"], "no CUDA device available")])
 
 
 @pytest.mark.parametrize("case", TRAIN_CASES, ids=[c[0] for c in TRAIN_CASES])
@@ -575,7 +579,22 @@ API_CASES = [
     ("from-pretrained-format", lambda m, e: LocalScaleNet.from_pretrained(e["ck"]["format_99"][0]), "format version 99"),
     ("save-nan", lambda m, e: save_model(_nan_model(), e["root"] / "saved_nan.pt"), "not saved"),
     ("predict-pairs-bad-pair", lambda m, e: _first_pair_error(m, e), "file not found"),
-]
+    ("from-pretrained-cuda-99", lambda m, e: LocalScaleNet.from_pretrained(device="cuda:99"), "'cuda:99'"),
+    ("from-pretrained-bogus", lambda m, e: LocalScaleNet.from_pretrained(device="bogus"), "unknown device 'bogus'"),
+    ("from-pretrained-meta", lambda m, e: ScaleNet.from_pretrained(device="meta"), "'meta' is not supported"),
+    ("load-model-device-object", lambda m, e: load_model(e["in"] / "local.pt", device=torch.device("meta")),
+     "'meta' is not supported"),
+    ("predict-meta-tensor", lambda m, e: m.predict(torch.zeros(3, 64, 64, device="meta"), e["in"] / "b.png"),
+     "image A: tensor on the meta device"),
+    ("predict-batch-meta-tensor", lambda m, e: m.predict_batch(torch.zeros(2, 3, 64, 64),
+                                                               torch.zeros(2, 3, 64, 64, device="meta")),
+     "images B: tensor on the meta device"),
+    ("check-pair-scalenet", lambda m, e: check_pair(ScaleNet(**TINY), e["in"] / "a.png", e["in"] / "b.png"),
+     "check_pair needs a LocalScaleNet"),
+    ("check-pair-none", lambda m, e: check_pair(None, e["in"] / "a.png", e["in"] / "b.png"), "got NoneType"),
+] + ([] if torch.cuda.is_available() else [
+    ("from-pretrained-cuda", lambda m, e: LocalScaleNet.from_pretrained(device="cuda"), "no CUDA device available"),
+])
 
 
 def _nan_model():
@@ -995,7 +1014,140 @@ def test_long_image_names_give_output_names_within_the_limit(env, tmp_path, caps
                                   str(env["in"] / "local.pt")], capsys)
     assert rc == 0, err
     files = [f.name for f in out.iterdir()]
-    assert len(files) == 5 and all(len(f.encode()) <= 255 for f in files)
+    assert len(files) == 6 and all(len(f.encode()) <= 255 for f in files)   # 4 maps, _scale.json, index.tsv
     rc, stdout, err = _run(main, ["predict", str(d / names[0]), str(d / names[1]), "-o", str(out),
                                   "--local-weights", str(env["in"] / "local.pt")], capsys)
     assert rc == 0, err
+
+
+# ---------------------------------------------------------------- predict --pairs: bad pairs, stale outputs
+
+def _stderr_lines(err: str) -> list[str]:
+    return [ln for ln in err.splitlines() if ln.strip()]
+
+
+def test_bad_pairs_are_warnings_and_the_good_pairs_complete(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for n in ("a.png", "b.png"):
+        (d / n).write_bytes((env["in"] / n).read_bytes())
+    (d / "truncated.png").write_bytes((env["in"] / "truncated.png").read_bytes())
+    long_name = "x" * 100_000 + ".png"
+    lines = ["a.png b.png", "missing.png b.png", "truncated.png b.png", "..\tb.png", f"{long_name}\tb.png",
+             "b.png a.png"]
+    (d / "pairs.txt").write_bytes(b"\xef\xbb\xbf" + "\n".join(lines).encode() + b"\n")   # with a byte order mark
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
+                                  str(env["in"] / "local.pt")], capsys)
+    assert rc == 1 and "Traceback" not in err
+    err_lines = _stderr_lines(err)
+    assert not [ln for ln in err_lines if ln.startswith("error:")], err
+    assert all(len(ln) < 1000 for ln in err_lines)   # the 100,000-character name is cut in messages
+    warnings_ = [ln for ln in err_lines if ln.startswith("warning: pair ")]
+    expected = {1: "file not found", 2: "cannot decode", 3: "is a directory", 4: "File name too long"}
+    assert len(warnings_) == len(expected)
+    for i, words in expected.items():
+        mine = [ln for ln in warnings_ if ln.startswith(f"warning: pair {i} (line {i + 1}) ")]
+        assert len(mine) == 1 and words in mine[0], (i, warnings_)
+    assert err_lines[-1] == f"warning: 4 of 6 pairs failed, see {out / 'index.tsv'}"
+    rows = [r.split("\t") for r in (out / "index.tsv").read_text().splitlines()[1:]]
+    assert [r[4].split(":")[0] for r in rows] == ["ok", "error", "error", "error", "error", "ok"]
+    assert rows[0][2] == str(d / "a.png")   # the byte order mark is not part of the first name
+    for r in (rows[0], rows[5]):
+        np.load(out / f"{r[5]}_scale.npy")
+
+
+def test_pairs_file_with_no_usable_pair_is_one_error_before_the_model_loads(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    (d / "pairs.txt").write_text("".join(f"gone_{i}.jpg also_gone_{i}.jpg\n" for i in range(10_000)))
+    out = tmp_path / "out"
+    # the weights do not exist: a model loaded before the inputs are checked would say so instead
+    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
+                                  str(tmp_path / "no_such_weights.pt")], capsys)
+    assert_clean_error(rc, err, ["no pair can be run", "pair 0 (line 1)", "file not found", "9999 more"], out)
+    assert "warning:" not in err
+
+
+def test_special_files_are_refused_not_read(env, tmp_path):
+    """A named pipe as the pairs file or as an image would block a read forever."""
+    d = tmp_path / "imgs"
+    d.mkdir()
+    os.mkfifo(d / "pipe.txt")
+    os.mkfifo(d / "pipe.png")
+    (d / "pairs.txt").write_text(f"pipe.png {env['in'] / 'b.png'}\n")
+    base = [sys.executable, "-m", "localscale", "predict", "-o", str(tmp_path / "out"), "--local-weights",
+            str(env["in"] / "local.pt")]
+    for argv, words in [(["--pairs", str(d / "pipe.txt")], "pairs file is not a regular file (a named pipe)"),
+                        (["--pairs", str(d / "pairs.txt")], "not a regular file (a named pipe)"),
+                        ([str(d / "pipe.png"), str(env["in"] / "b.png")], "not a regular file (a named pipe)")]:
+        r = subprocess.run(base + argv, capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ, OMP_NUM_THREADS="1"))
+        assert_clean_error(r.returncode, r.stderr, words, tmp_path / "out")
+
+
+def test_a_rerun_redoes_pairs_whose_image_or_options_changed(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    cv2.imwrite(str(d / "a.png"), _smooth_image(50))
+    cv2.imwrite(str(d / "b.png"), _smooth_image(51))
+    cv2.imwrite(str(d / "c.png"), _smooth_image(52))
+    (d / "pairs.txt").write_text("a.png b.png\nc.png b.png\n")
+    out = tmp_path / "out"
+    argv = ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")]
+    assert _run(main, argv, capsys)[0] == 0
+    old = np.load(out / "00000_a_b_scale.npy")
+    cv2.imwrite(str(d / "a.png"), _smooth_image(53, 72, 96))   # another image (another size) under the same name
+    st = (d / "a.png").stat()
+    os.utime(d / "a.png", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    rc, stdout, _ = _run(main, argv, capsys)
+    assert rc == 0 and "1 written, 1 skipped" in stdout
+    new = np.load(out / "00000_a_b_scale.npy")
+    assert old.shape == (64, 80) and new.shape == (72, 96)
+    assert main(["predict", str(d / "a.png"), str(d / "b.png"), "-o", str(tmp_path / "single"), "--local-weights",
+                 str(env["in"] / "local.pt")]) == 0
+    assert np.allclose(new, np.load(tmp_path / "single" / "a_b_scale.npy"), rtol=1e-4, atol=1e-5)
+    rc, stdout, _ = _run(main, argv + ["--hard"], capsys)   # another read-out: both redone
+    assert rc == 0 and "2 written, 0 skipped" in stdout
+    rc, stdout, _ = _run(main, argv + ["--hard"], capsys)
+    assert rc == 0 and "0 written, 2 skipped" in stdout
+
+
+def test_a_full_disk_stops_a_pairs_run_that_a_rerun_resumes(env, tmp_path, monkeypatch, capsys):
+    pairs = _pairs_setup(env, tmp_path, n=3)
+    out = tmp_path / "out"
+    argv = ["predict", "--pairs", str(pairs), "-o", str(out), "--local-weights", str(env["in"] / "local.pt"),
+            "--batch-size", "1"]
+    real_save = np.save
+    calls = {"n": 0}
+
+    def disk_full_after_the_first_pair(f, arr, *a, **k):
+        calls["n"] += 1
+        if calls["n"] > 1:   # pair 0's scale map was saved; the disk is full from then on
+            f.write(b"\x93NUMPY partial")
+            raise OSError(28, "No space left on device")
+        return real_save(f, arr, *a, **k)
+
+    monkeypatch.setattr(np, "save", disk_full_after_the_first_pair)
+    rc, stdout, err = _run(main, argv, capsys)
+    assert_clean_error(rc, err, ["No space left on device", "a rerun resumes"])
+    assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ")]) == 1   # it stopped at once
+    assert not [f for f in out.iterdir() if f.name.startswith(".")]
+    rows = [r.split("\t") for r in (out / "index.tsv").read_text().splitlines()[1:]]
+    assert [r[4].split(" ")[0] for r in rows] == ["ok", "error:", "not"]
+    monkeypatch.setattr(np, "save", real_save)
+    rc, stdout, err = _run(main, argv, capsys)
+    assert rc == 0 and "2 written, 1 skipped" in stdout, err
+
+
+def test_pairs_that_all_fail_while_running_are_one_error_and_nothing_written(env, tmp_path, capsys):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for n in ("c1.png", "c2.png"):   # they pass the up-front check (regular, not empty) but do not decode
+        (d / n).write_bytes((env["in"] / "truncated.png").read_bytes())
+    (d / "pairs.txt").write_text("c1.png c2.png\nc2.png c1.png\n")
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
+                                  str(env["in"] / "local.pt")], capsys)
+    assert_clean_error(rc, err, ["all 2 pairs failed", "nothing written"], out)
+    assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ") and "cannot decode" in ln]) == 2

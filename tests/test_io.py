@@ -130,3 +130,52 @@ def test_homography_files(tmp_path):
     nan.write_text("1 0 0\n0 nan 0\n0 0 1\n")
     with pytest.raises(HomographyError, match="NaN"):
         read_homography(nan)
+
+
+def _tagged(path, stored: np.ndarray, orientation: int):
+    """Write ``stored`` (RGB) to ``path`` (TIFF or JPEG, by suffix) with orientation tag ``orientation``."""
+    from PIL import Image
+
+    im = Image.fromarray(stored)
+    if path.suffix == ".tif":
+        im.save(path, "TIFF", tiffinfo={0x0112: orientation})
+    else:
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        im.save(path, "JPEG", quality=95, exif=exif.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".jpg"])
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_orientation_tag_is_applied_exactly_once(tmp_path, photos, suffix, orientation):
+    """TIFF (OpenCV's decoder turns it) and JPEG EXIF (decoded as stored, turned by us) come out
+    as PIL's ``exif_transpose`` shows them: turned once, not twice or not at all."""
+    from PIL import Image, ImageOps
+
+    from localscale.io import image_shape
+
+    stored = cv2.resize(photos["astronaut"], (96, 64), interpolation=cv2.INTER_AREA)   # 64 x 96: not square
+    p = _tagged(tmp_path / f"o{orientation}{suffix}", stored, orientation)
+    with Image.open(p) as im:
+        assert im.getexif().get(0x0112) == orientation
+        expected = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    assert expected.shape[:2] == ((96, 64) if orientation >= 5 else (64, 96))
+    got = load_image(p)
+    assert got.shape == expected.shape and image_shape(p) == got.shape[:2]
+    diff = np.abs(got.astype(int) - expected.astype(int))
+    if suffix == ".tif":
+        assert diff.max() == 0
+    else:   # two JPEG decoders: small rounding differences only
+        assert diff.mean() < 2, diff.mean()
+
+
+def test_predict_on_a_tagged_tiff_gives_the_upright_map(tmp_path, photos):
+    from localscale.cli import main
+
+    stored = cv2.resize(photos["astronaut"], (96, 64), interpolation=cv2.INTER_AREA)
+    a = _tagged(tmp_path / "a.tif", stored, 6)
+    b = tmp_path / "b.png"
+    cv2.imwrite(str(b), stored[..., ::-1])
+    assert main(["predict", str(a), str(b), "-o", str(tmp_path / "out")]) == 0
+    assert np.load(tmp_path / "out" / "a_b_scale.npy").shape == (96, 64)

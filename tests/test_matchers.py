@@ -158,3 +158,12 @@ def test_eval_hpatches_runs_several_matchers(tmp_path, photos):
         assert {r["method"] for r in rec} == {"none", "gt"} and all(r["matcher"] == tag for r in rec)
         assert all(r["seconds"] > 0 and "rotation_split" in r for r in rec)
         assert max(doc["summary"]["all"][m]["mma"][4] for m in ("none", "gt")) > 0.3
+
+
+def test_the_network_guard_refuses_connections():
+    import socket
+
+    with pytest.raises(AssertionError, match="network|connect"):
+        socket.create_connection(("example.com", 443), timeout=1)
+    with pytest.raises(AssertionError, match="connect"):
+        socket.socket(socket.AF_INET, socket.SOCK_STREAM).connect(("127.0.0.1", 9))

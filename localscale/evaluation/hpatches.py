@@ -367,7 +367,15 @@ def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float
         sa, sb, map_seconds = scales.maps(m, H)
         t0 = time.perf_counter()
         extra = {}
-        if get_correction(m).refine or matcher.config.refine:
+        if get_correction(m).auto:
+            from ..features.pipeline import _auto
+
+            keyed = _Keyed(matcher, key_a, key_b)
+            res = _auto(keyed, a, b, scales.local_model, scales.global_model, H, m, (key_a, key_b))
+            auto = res.meta["auto"]
+            extra = {"verified": bool(auto["verified"]), "chosen": auto["chosen"], "trials": auto["trials"]}
+            seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
+        elif get_correction(m).refine or matcher.config.refine:
             keyed = _Keyed(matcher, key_a, key_b)
             res = _refined(keyed, a, b, sa, sb, None, None, H, m)
             extra = {"verified": bool(res.verification.verified), "passes": res.meta["passes"],
@@ -404,7 +412,7 @@ class _Keyed:
 
     def match(self, a, b, scale_a=None, scale_b=None, keys=None):
         t0 = time.perf_counter()
-        found = self._m.match(a, b, scale_a, scale_b, self._keys)
+        found = self._m.match(a, b, scale_a, scale_b, self._keys if keys is None else keys)
         self.wall += time.perf_counter() - t0
         self.standalone += found.seconds
         return found
@@ -657,7 +665,8 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
     Returns ``({"local"|"global": model}, notes)``."""
     from ..errors import CheckpointError
     from ..features.correction import get_correction
-    from ..loading import load_scale_model, resolve_device
+    from ..devices import resolve_device
+    from ..loading import load_scale_model
 
     models, notes = {}, []
     device = resolve_device(device)

@@ -20,7 +20,9 @@ convention ``scale_map = S_{this->other}``):
 * ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``;
 * ``"gt_gated"``: the ``"gt"`` maps through the same gate as ``"local"`` (what gating costs an oracle);
 * ``"refined"``: the ``"local"`` maps, then the matches are verified, the maps refined by the
-  verified geometry and the pair matched again (:func:`~.verification.refine_matching`).
+  verified geometry and the pair matched again (:func:`~.verification.refine_matching`);
+* ``"auto"``: hypotheses of scale and quarter turn from both networks, each matched and verified
+  (:mod:`.auto`); it makes no maps here (``None, None``).
 
 :data:`CORRECTION_METHODS` holds each method's needs (models, homography, refinement); the CLI
 choices, model loading and the evaluation all come from it.
@@ -53,6 +55,7 @@ class Correction:
     needs_H: bool = False
     refine: bool = False
     help: str = ""
+    auto: bool = False
 
 
 #: every correction method, by name
@@ -67,6 +70,9 @@ CORRECTION_METHODS = {c.name: c for c in (
     Correction("gt_gated", needs_H=True, help="the gt map through the gate of local"),
     Correction("refined", ("local",), refine=True, help="local maps, verified, refined by the geometry, "
                                                          "matched again (as --refine)"),
+    Correction("auto", ("local", "global"), auto=True,
+               help="the networks propose scales and quarter turns of B, each is matched and verified by "
+                    "geometry, the first clear one wins (any matcher)"),
 )}
 #: the names of :data:`CORRECTION_METHODS`
 CORRECTIONS = tuple(CORRECTION_METHODS)
@@ -222,7 +228,7 @@ def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: st
     ``bf16``: run the networks under bfloat16 autocast.
     """
     method = get_correction(correction)
-    if correction == "none":
+    if correction == "none" or method.auto:
         return None, None
     if method.needs_H:
         if H is None:

@@ -38,12 +38,13 @@ import numpy as np
 import torch
 
 from ..errors import LocalScaleError
-from ..loading import resolve_device
+from ..devices import resolve_device
 from .correction import CorrectionGate
 from .descriptors import PatchDescriptor, get_descriptor
 from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors
 from .patches import ScaleCorrectedPatches, patch_radii
+from .auto import AutoConfig
 from .verification import VerificationConfig
 from .weights import INSTALL_HINT  # noqa: F401  (the install command, for messages)
 
@@ -78,6 +79,7 @@ class MatchConfig:
         bf16: run the scale networks under bfloat16 autocast.
         refine, max_passes, sift_seed, verification: verify the matches, refine the maps by the
             verified geometry and match again (:func:`~.verification.refine_matching`).
+        auto: the hypothesis loop of ``correction="auto"`` (:class:`~.auto.AutoConfig`: budget, acceptance).
     """
 
     name: str = "hardnet"
@@ -101,6 +103,7 @@ class MatchConfig:
     max_passes: int = 2
     sift_seed: bool = True
     verification: VerificationConfig = field(default_factory=VerificationConfig)
+    auto: AutoConfig = field(default_factory=AutoConfig)
 
     def check(self) -> "MatchConfig":
         """Raise :class:`LocalScaleError` naming the first value that cannot work; returns ``self``."""
@@ -127,6 +130,9 @@ class MatchConfig:
             raise LocalScaleError(f"gate must be a CorrectionGate, got {type(self.gate).__name__}")
         if not isinstance(self.verification, VerificationConfig):
             raise LocalScaleError(f"verification must be a VerificationConfig, got {type(self.verification).__name__}")
+        if not isinstance(self.auto, AutoConfig):
+            raise LocalScaleError(f"auto must be an AutoConfig, got {type(self.auto).__name__}")
+        self.auto.check()
         return self
 
 

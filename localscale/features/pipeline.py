@@ -16,6 +16,7 @@ Example::
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
@@ -149,6 +150,9 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
     b, to_work_b = load_working_image(image_b, cfg.max_side, "image B")
     H_full = None if H is None else read_homography(H)
     H = None if H is None else to_work_b @ H_full @ np.linalg.inv(to_work_a)
+    if method.auto:
+        res = _auto(m, a, b, local_model, global_model, H, correction)
+        return _to_full_frame(res, to_work_a, to_work_b, H_full)
     sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, cfg.gate, bf16=cfg.bf16)
     if cfg.refine or method.refine:
         res = _refined(m, a, b, sa, sb, None, None, H, correction)
@@ -168,6 +172,28 @@ def _result(m: Matcher, found: Matches, H, correction: str) -> MatchResult:
         desc = m.config.descriptor
         res.meta.update(descriptor=desc if isinstance(desc, str) else getattr(desc, "name", "custom"),
                         detector=m.config.detector)
+    return res
+
+
+def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=(None, None)) -> MatchResult:
+    """``correction="auto"``: the hypothesis loop (:func:`~.auto.auto_match`); with ``refine``, the
+    maps are refined by the winner's verified geometry (Local-ScaleNet's maps, or 1, elsewhere)."""
+    from ..models import LocalScaleNet, ScaleNet
+    from .auto import auto_match
+    from .verification import refine_pair_maps
+
+    local_model = local_model if local_model is not None else LocalScaleNet.from_pretrained()
+    global_model = global_model if global_model is not None else ScaleNet.from_pretrained()
+    out = auto_match(m, a, b, local_model, global_model, keys=keys)
+    res = _result(m, out.matches, H, correction)
+    res.verification = out.verification
+    res.meta["auto"] = out.to_dict()
+    res.meta["seconds"] = out.seconds
+    if m.config.refine:
+        prior_a, prior_b = out.network_maps or (None, None)
+        res.refined_a, res.refined_b = refine_pair_maps(_as_map(prior_a, a.shape[:2]), _as_map(prior_b, b.shape[:2]),
+                                                        out.verification, m.config.verification)
+        res.meta.update(passes=len(out.trials), inlier_counts=[t.num_inliers for t in out.trials], seed_inliers=None)
     return res
 
 
@@ -295,6 +321,9 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
         cv2.circle(canvas, pa, 2 * lw, colour, -1)
         cv2.circle(canvas, pb, 2 * lw, colour, -1)
     label = " / ".join(str(x) for x in (result.meta.get("matcher"), result.correction) if x)
+    if "auto" in result.meta:
+        auto = result.meta["auto"]
+        label += f" ({auto['chosen']}{'' if auto['verified'] else ', not verified'})"
     cv2.putText(canvas, f"{label}: {len(result.matches)} matches", (8, 8 + 14 * lw), cv2.FONT_HERSHEY_SIMPLEX,
                 0.5 * lw, (255, 255, 255), lw, cv2.LINE_AA)
     if path is not None:
@@ -347,16 +376,33 @@ def run_match(image_a, image_b, out, correction: str = "local", H=None, local_mo
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
+    inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
     if res.refined_a is not None:
-        inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
-        write_refinement(out, "", res.refined_a, res.refined_b,
-                         {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs)
+        extra = {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}
+        if "auto" in res.meta:
+            extra["auto"] = res.meta["auto"]
+        write_refinement(out, "", res.refined_a, res.refined_b, extra, inputs)
+    elif "auto" in res.meta:
+        import json
+
+        from ..outputs import ensure_not_input, write_text
+
+        geo = ensure_not_input(out / "geometry.json", inputs)
+        write_text(geo, json.dumps(res.verification.to_dict() | {"auto": res.meta["auto"]}, indent=1) + "\n")
     if verbose:
         msg = (f"{res.meta['matcher']}: {len(res.matches)} matches "
                f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)")
         if res.errors is not None:
             msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
         print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
+        if "auto" in res.meta:
+            auto = res.meta["auto"]
+            tried = "; ".join(f"{t['source']} x{t['scale']:.3g} turn {90 * t['turn']}: {t['num_inliers']} inliers"
+                              f"{'' if t['verified'] else ' (not verified)'}" for t in auto["trials"])
+            print(f"auto: chose {auto['chosen']} after {len(auto['trials'])} run(s) [{tried}]; wrote {out / 'geometry.json'}")
+            if not auto["verified"]:
+                print("warning: no hypothesis verified; the matches of the identity are returned unverified",
+                      file=sys.stderr)
         if res.refined_a is not None:
             v = res.verification
             state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"

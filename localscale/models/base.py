@@ -235,6 +235,8 @@ class BatchFormat:
     @classmethod
     def of(cls, images, name: str = "images") -> "BatchFormat":
         if isinstance(images, torch.Tensor):
+            if images.is_meta:
+                raise ImageError(f"{name}: tensor on the meta device (shape only, no data)")
             return cls(False, images.dim() == 3, images.device)
         if isinstance(images, np.ndarray):
             return cls(True, images.ndim == 3, torch.device("cpu"))

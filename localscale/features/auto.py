@@ -1,0 +1,275 @@
+"""Scale- and rotation-aware matching for any matcher: the networks propose, the geometry decides.
+
+``correction="auto"`` (:func:`auto_match`):
+
+1. **Hypotheses** ``(scale S_{A->B}, quarter turn of B)``, in the order of the networks' evidence
+   (:func:`propose`): ScaleNet's consistency-checked scale, with the quarter turn it chose when the
+   upright images disagreed; the Local-ScaleNet maps (their level over the part of A that B shows;
+   the patch matcher uses the maps themselves); the identity; then B's other quarter turns at
+   ScaleNet's scale, ranked by how well ScaleNet's two directions agree on each.
+2. **Verify, don't trust**: for each hypothesis in turn, B is turned, the image whose content is
+   bigger is shrunk by the scale (the patch matcher corrects its patch sizes instead), the matcher
+   runs, the keypoints are mapped back to the original pixels and the matches are verified
+   (:func:`~.verification.verify_matches`, the matcher's :class:`~.verification.VerificationConfig`).
+   The first hypothesis that verifies with a clear margin (:class:`AutoConfig`) is kept; else the
+   verified one with the most inliers; if none verifies, the identity's result, flagged unverified.
+   At most ``budget`` matcher runs per pair.
+
+Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from ..errors import LocalScaleError
+from .verification import VerificationResult, verify_matches
+
+
+@dataclass
+class AutoConfig:
+    """The hypothesis loop of ``correction="auto"``.
+
+    Attributes:
+        budget: matcher runs per pair at most (the identity is always among them).
+        accept_inliers, accept_ratio: a verified hypothesis with at least this many inliers and this
+            inlier ratio ends the loop at once (a clear margin); weaker verified ones are kept while
+            the budget lasts and the one with the most inliers wins.
+        turns: also try B's other quarter turns (ranked by ScaleNet).
+        same_log2: hypotheses whose scales differ by less than this (log2) and have the same turn
+            are tried once.
+    """
+
+    budget: int = 4
+    accept_inliers: int = 60
+    accept_ratio: float = 0.3
+    turns: bool = True
+    same_log2: float = 0.25
+
+    def check(self) -> "AutoConfig":
+        if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
+            raise LocalScaleError(f"auto budget must be an integer >= 1, got {self.budget!r}")
+        if not (isinstance(self.accept_inliers, int) and self.accept_inliers >= 4):
+            raise LocalScaleError(f"auto accept_inliers must be an integer >= 4, got {self.accept_inliers!r}")
+        if not (0 <= self.accept_ratio <= 1):
+            raise LocalScaleError(f"auto accept_ratio must be in [0, 1], got {self.accept_ratio!r}")
+        return self
+
+
+@dataclass
+class Hypothesis:
+    """A guess of the pair's relation: B turned by ``turn`` quarter turns, then ``S_{A->B} = scale``.
+
+    ``maps``: ``(map of A, map of B)`` for the patch matcher (B's in the turned frame); ``None``: the
+    constant ``scale`` and ``1 / scale``."""
+
+    scale: float
+    turn: int
+    source: str
+    maps: Optional[tuple] = None
+
+    def describe(self) -> str:
+        turn = f", B turned {90 * self.turn} deg" if self.turn else ""
+        return f"{self.source}: x{self.scale:.3g}{turn}"
+
+
+@dataclass
+class Trial:
+    """One hypothesis run: its verification's inlier count and ratio, whether it verified, seconds."""
+
+    hypothesis: Hypothesis
+    num_matches: int
+    num_inliers: int
+    inlier_ratio: float
+    verified: bool
+    seconds: float
+
+    def to_dict(self) -> dict:
+        h = self.hypothesis
+        return {"source": h.source, "scale": round(float(h.scale), 5), "turn": int(h.turn),
+                "num_matches": int(self.num_matches), "num_inliers": int(self.num_inliers),
+                "inlier_ratio": round(float(self.inlier_ratio), 4), "verified": bool(self.verified),
+                "seconds": round(float(self.seconds), 3)}
+
+
+@dataclass
+class AutoResult:
+    """What :func:`auto_match` returns: the chosen run's matches in original pixels, its
+    verification, the chosen hypothesis, every trial in the order tried, the seconds of the whole
+    loop, and Local-ScaleNet's ungated maps of A and B (``None`` without a local model)."""
+
+    matches: object
+    verification: VerificationResult
+    chosen: Hypothesis
+    trials: list = field(default_factory=list)
+    seconds: float = 0.0
+    network_maps: Optional[tuple] = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the chosen hypothesis, whether it verified, and every trial."""
+        return {"chosen": self.chosen.describe(), "scale": round(float(self.chosen.scale), 5),
+                "turn": int(self.chosen.turn), "verified": self.verified,
+                "trials": [t.to_dict() for t in self.trials], "seconds": round(self.seconds, 3)}
+
+    @property
+    def verified(self) -> bool:
+        return bool(self.verification.verified)
+
+
+# ---------------------------------------------------------------- quarter turns
+
+def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
+    """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
+    ``np.rot90(image, turn)`` (counter-clockwise quarter turns)."""
+    h, w = shape[:2]
+    k = turn % 4
+    if k == 0:
+        return np.eye(3)
+    if k == 1:
+        return np.array([[0.0, 1, 0], [-1, 0, w - 1], [0, 0, 1]])
+    if k == 2:
+        return np.array([[-1.0, 0, w - 1], [0, -1, h - 1], [0, 0, 1]])
+    return np.array([[0.0, -1, h - 1], [1, 0, 0], [0, 0, 1]])
+
+
+def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    return (p @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
+
+
+# ---------------------------------------------------------------- hypotheses
+
+def _level(pred, gate) -> float:
+    """The level of a Local-ScaleNet map over the part of A that B shows (weighted median, log2)."""
+    from .correction import weighted_quantile
+
+    s = np.asarray(pred.scale, np.float64).ravel()
+    w = gate.weights_of(pred)
+    w = None if w is None else np.asarray(w, np.float64).ravel()
+    ok = np.isfinite(s) & (s > 0)
+    return float(2.0 ** weighted_quantile(np.log2(s[ok]), None if w is None else w[ok], 0.5)) if ok.any() else 1.0
+
+
+def propose(image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None, gate=None,
+            patches: bool = False, bf16: bool = False) -> tuple:
+    """The hypotheses of the networks, strongest evidence first, and a function that ranks B's
+    quarter turns at a scale (called only when the first hypotheses fail).
+
+    Returns ``(hypotheses, more, maps)``: ``more(scale) -> [Hypothesis, ...]`` gives B's three other
+    quarter turns ranked by ScaleNet's consistency on each; ``maps`` are Local-ScaleNet's ungated
+    ``(S_{A->B} on A, S_{B->A} on B)`` (``None`` without a local model).
+    """
+    from .correction import CorrectionGate
+
+    gate = gate or CorrectionGate()
+    out, maps_ab = [], None
+    if global_model is not None:
+        g = global_model.predict(image_a, image_b, bf16=bf16)
+        if math.isfinite(g.scale) and g.scale > 0:
+            turn = (g.turns[1] - g.turns[0]) % 4
+            out.append(Hypothesis(float(g.scale), turn, "ScaleNet" + (" (turned)" if turn else "")))
+    if local_model is not None:
+        pa = local_model.predict(image_a, image_b, bf16=bf16)
+        pb = local_model.predict(image_b, image_a, bf16=bf16)
+        level = math.sqrt(_level(pa, gate) / _level(pb, gate))
+        maps = gate.apply_predictions(pa, pb) if patches else None
+        out.append(Hypothesis(level, 0, "Local-ScaleNet", maps))
+        maps_ab = (np.asarray(pa.scale, np.float32), np.asarray(pb.scale, np.float32))
+    out.append(Hypothesis(1.0, 0, "identity"))
+
+    def more(scale: float) -> list:
+        if global_model is None:
+            return [Hypothesis(scale, k, "turn") for k in (2, 1, 3)]
+        ranked = []
+        for k in (1, 2, 3):
+            p = global_model.predict(image_a, np.rot90(image_b, k), bf16=bf16, turns=False)
+            ranked.append((p.inconsistency_log2 if math.isfinite(p.inconsistency_log2) else math.inf, k,
+                           float(p.scale) if math.isfinite(p.scale) and p.scale > 0 else scale))
+        return [Hypothesis(s, k, "ScaleNet turn") for _, k, s in sorted(ranked)]
+
+    return out, more, maps_ab
+
+
+def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
+    return any(t.turn == h.turn and abs(math.log2(h.scale) - math.log2(t.scale)) < same_log2
+               and (h.maps is None) == (t.maps is None) for t in tried)
+
+
+# ---------------------------------------------------------------- the loop
+
+def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None,
+               config: Optional[AutoConfig] = None, keys: tuple = (None, None)) -> AutoResult:
+    """Match ``image_a`` and ``image_b`` (``H x W x 3`` uint8) with ``matcher`` under the networks'
+    hypotheses, each verified by geometry (module docstring).
+
+    Args:
+        matcher: a :class:`~localscale.features.matchers.Matcher`.
+        local_model, global_model: the networks that propose (either may be None).
+        config: the loop's settings (default: the matcher config's ``auto``).
+        keys: cache keys of the two images (the turn is added to B's).
+    Returns:
+        :class:`AutoResult`; its ``matches`` are a :class:`~localscale.features.matchers.Matches`
+        with keypoints in the pixels of the images given.
+    """
+    t_start = time.perf_counter()
+    config = (config or matcher.config.auto).check()
+    vconf = matcher.config.verification
+    patches = matcher.config.extractor == "patches"
+    hyps, more, network_maps = propose(image_a, image_b, local_model, global_model, matcher.config.gate, patches,
+                         matcher.config.bf16)
+    tried, trials, runs = [], [], []
+    best = identity = None
+    queue, turns_added = list(hyps), False
+    while len(trials) < config.budget:
+        if not queue:
+            if turns_added or not config.turns:
+                break
+            queue, turns_added = more(hyps[0].scale if hyps else 1.0), True
+            continue
+        h = queue.pop(0)
+        if h.maps is None and abs(math.log2(h.scale)) < config.same_log2:
+            h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
+        if _same(h, tried, config.same_log2):
+            continue
+        if identity is None and h.source != "identity" and len(trials) == config.budget - 1:
+            queue.insert(0, h)              # the last run of the budget goes to the identity
+            h = Hypothesis(1.0, 0, "identity")
+        tried.append(h)
+        t0 = time.perf_counter()
+        found, v = _run(matcher, image_a, image_b, h, keys, vconf)
+        trials.append(Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
+                            time.perf_counter() - t0))
+        runs.append((found, v, h))
+        if h.turn % 4 == 0 and h.maps is None and abs(math.log2(h.scale)) < config.same_log2:
+            identity = (found, v, h)        # the identity, or a hypothesis the same as it
+        if v.verified and (best is None or v.num_inliers > best[1].num_inliers):
+            best = (found, v, h)
+        if v.verified and v.num_inliers >= config.accept_inliers and v.inlier_ratio >= config.accept_ratio:
+            break
+    if best is None:   # nothing verified: the identity's result, flagged unverified
+        best = identity if identity is not None else runs[0]
+    found, v, h = best
+    return AutoResult(found, v, h, trials, time.perf_counter() - t_start, network_maps)
+
+
+def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf):
+    """One hypothesis: turn B, match with the hypothesis's maps or scale, map B's keypoints back, verify."""
+    from .matchers import Matches
+
+    bt = np.ascontiguousarray(np.rot90(b, h.turn)) if h.turn % 4 else b
+    if h.maps is not None:
+        sa, sb = h.maps
+    else:
+        sa, sb = h.scale, 1.0 / h.scale
+    key_b = None if keys[1] is None else (keys[1], "turn", h.turn % 4)
+    found = matcher.match(a, bt, sa, sb, (keys[0], key_b))
+    kb = _apply(np.linalg.inv(turn_matrix(h.turn, b.shape)), found.keypoints_b) if h.turn % 4 else found.keypoints_b
+    found = Matches(found.keypoints_a, kb, found.matches, found.distances, found.radii_a, found.radii_b,
+                    found.factors, found.seconds)
+    m = found.matches
+    v = verify_matches(found.keypoints_a[m[:, 0]], kb[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf)
+    return found, v
