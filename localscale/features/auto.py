@@ -10,15 +10,17 @@
 2. **Verify, don't trust**: for each hypothesis in turn, B is turned, the image whose content is
    bigger is shrunk by the scale (the patch matcher corrects its patch sizes instead), the matcher
    runs, the keypoints are mapped back to the original pixels and the matches are verified
-   (:func:`~.verification.verify_matches`, the matcher's :class:`~.verification.VerificationConfig`).
+   (:func:`~.verification.verify_matches`, the matcher's :class:`~.verification.VerificationConfig`,
+   with the inliers' coverage counted in either image).
    The first hypothesis that verifies with a clear margin (:class:`AutoConfig`) is kept; else the
    verified one with the most inliers; if none verifies, the identity's result, flagged unverified.
-   At most ``budget`` matcher runs per pair.
+   At most ``budget`` matcher runs per pair; with a budget of 2 or more, one of them is the identity.
 
 Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -217,7 +219,9 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
     """
     t_start = time.perf_counter()
     config = (config or matcher.config.auto).check()
-    vconf = matcher.config.verification
+    # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
+    # a small part of the wide one, and all of itself
+    vconf = dataclasses.replace(matcher.config.verification, coverage_of="either")
     patches = matcher.config.extractor == "patches"
     hyps, more, network_maps = propose(image_a, image_b, local_model, global_model, matcher.config.gate, patches,
                          matcher.config.bf16)
@@ -235,7 +239,7 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
             h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
         if _same(h, tried, config.same_log2):
             continue
-        if identity is None and h.source != "identity" and len(trials) == config.budget - 1:
+        if identity is None and h.source != "identity" and 2 <= config.budget == len(trials) + 1:
             queue.insert(0, h)              # the last run of the budget goes to the identity
             h = Hypothesis(1.0, 0, "identity")
         tried.append(h)

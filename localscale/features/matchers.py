@@ -4,7 +4,8 @@ Six configurations ship in :data:`MATCHERS` (hloc style: a name, a :class:`Match
 
 * ``hardnet`` (default): single-scale Hessian keypoints, patches whose size is corrected per
   keypoint by the scale maps, our HardNet, mutual nearest neighbours (the paper's path);
-* ``sift``: OpenCV SIFT (DoG keypoints and descriptors), mutual NN passing Lowe's ratio 0.8;
+* ``sift``: OpenCV SIFT (DoG keypoints and descriptors, 4096 at most), Lowe's ratio test 0.8 from A to B,
+  then the mutual nearest-neighbour check;
 * ``aliked-lightglue``, ``disk-lightglue``: kornia's ALIKED (n16) / DISK (depth) with kornia's LightGlue;
 * ``xfeat-lighterglue``: kornia's XFeat with LighterGlue (kornia's LightGlue in XFeat's configuration);
 * ``xfeat``: kornia's XFeat with mutual NN (cosine similarity above 0.82).
@@ -45,7 +46,7 @@ from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors
 from .patches import ScaleCorrectedPatches, patch_radii
 from .auto import AutoConfig
-from .verification import VerificationConfig
+from .verification import VerificationConfig, ratio_mutual_matches
 from .weights import INSTALL_HINT  # noqa: F401  (the install command, for messages)
 
 #: extractors and matching rules a :class:`MatchConfig` can name
@@ -68,7 +69,8 @@ class MatchConfig:
             are returned in full-image pixels.
         descriptor, detector, base_radius, orientation: the ``patches`` extractor
             (:func:`~localscale.features.matchers.extract`).
-        ratio: Lowe's ratio on top of mutual NN (``None``: mutual NN only).
+        ratio: Lowe's ratio on top of mutual NN (``None``: mutual NN only; ``patches``: kornia's
+            symmetric test, ``sift``: from A to B, as OpenCV's ``knnMatch`` users do).
         min_similarity: ``mnn`` of learned descriptors: cosine similarity a match must exceed.
         model: weights of the learned extractor (ALIKED: ``aliked-n16`` / ``-n16rot`` / ``-n32`` / ``-t16``).
         weights: folder (or file) of the pre-trained weight files (None: the installed weight packages).
@@ -465,6 +467,10 @@ class Matcher:
             return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
         if c.matching == "lightglue":
             return self._match_lightglue(fa, fb)
+        if c.extractor == "sift" and c.ratio is not None:    # Lowe's test A -> B, then the mutual check, as OpenCV users do
+            da, db = fa.descriptors.numpy(), fb.descriptors.numpy()
+            m = ratio_mutual_matches(da, db, c.ratio)
+            return m, np.linalg.norm(da[m[:, 0]] - db[m[:, 1]], axis=1).astype(np.float32)
         dist, idx = match_descriptors(fa.descriptors, fb.descriptors, c.ratio)
         m, dist = idx.numpy().astype(np.int64).reshape(-1, 2), dist.numpy().astype(np.float32)
         if c.min_similarity > -1.0 and len(m):

@@ -16,6 +16,7 @@ Example::
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,7 +187,8 @@ def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=
     global_model = global_model if global_model is not None else ScaleNet.from_pretrained()
     out = auto_match(m, a, b, local_model, global_model, keys=keys)
     res = _result(m, out.matches, H, correction)
-    res.verification = out.verification
+    # unverified: the identity's matches, and no geometry to trust
+    res.verification = out.verification if out.verified else dataclasses.replace(out.verification, H=None, F=None)
     res.meta["auto"] = out.to_dict()
     res.meta["seconds"] = out.seconds
     if m.config.refine:

