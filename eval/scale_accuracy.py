@@ -240,7 +240,7 @@ def real_pairs(roots: list[Path]):
 
 
 def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True,
-              search: bool = False) -> dict:
+              search: bool = False, refine_matcher=None) -> dict:
     from localscale.features.correction import CorrectionGate
     from localscale.features.pipeline import refine_match
     from localscale.reliability import pair_statistics
@@ -265,7 +265,16 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
         row["iou"] = float((pv & cov).sum() / max(1, (pv | cov).sum()))
     score = fwd.reliability if fwd.reliability is not None else fwd.confidence
     row["score"] = score[np.ix_(ys, xs)][m]
-    if refine:
+    if refine and refine_matcher is not None:   # geometry from the auto loop of that matcher
+        from localscale.features.pipeline import match_pair
+
+        res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
+        row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
+        v = res.verification
+        row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
+                               "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
+                               "auto": res.meta["auto"]}
+    elif refine:
         first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
         res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
@@ -301,7 +310,7 @@ def run_real(args) -> dict:
     torch.set_num_threads(args.threads) if args.threads else None
     roots = [Path(r) for r in args.real]
     rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift",
-                      search=args.search)
+                      search=args.search, refine_matcher=args.refine_matcher)
             for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
     if not rows:
         raise SystemExit(f"error: no image pairs (1.* + H_1_k) in the sequence folders under {', '.join(map(str, roots))}")
@@ -418,6 +427,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-refined", action="store_true", help="real mode: skip the refined column (no matching)")
     p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
                    help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
+    p.add_argument("--refine-matcher", default=None, metavar="NAME",
+                   help="real mode: refine with the geometry of correction='auto' and this matcher (e.g. "
+                        "aliked-lightglue) instead of the hardnet refinement passes")
     p.add_argument("--search", action="store_true",
                    help="real mode: also score the window search (localscale.search), ScaleNet on its windows "
                         "and the refinement seeded by the searched maps")

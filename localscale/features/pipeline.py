@@ -49,7 +49,8 @@ class MatchResult:
         errors: ``K`` reprojection errors ``|H x_A - x_B|`` (pixels of B) when ``H`` was given, else ``None``.
         radii_a, radii_b: patch radii of all keypoints (``patches`` extractor; else ``None``).
         correction: the method used; H: the true homography when given.
-        scale_a, scale_b: the (gated) maps / floats used, in the working frame, for inspection.
+        scale_a, scale_b: the (gated) maps / floats used, in the working frame, for inspection
+            (``auto``: Local-ScaleNet's ungated maps, the hypotheses come from).
         meta: matcher name, feature counts, working scales, resize factors, passes.
         verification: :class:`~.verification.VerificationResult` of the matches (``refine=True``).
         refined_a, refined_b: :class:`~.verification.RefinedScale` of A and B (``refine=True``).
@@ -153,7 +154,10 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
     H = None if H is None else to_work_b @ H_full @ np.linalg.inv(to_work_a)
     if method.auto:
         res = _auto(m, a, b, local_model, global_model, H, correction)
-        return _to_full_frame(res, to_work_a, to_work_b, H_full)
+        res = _to_full_frame(res, to_work_a, to_work_b, H_full)
+        if res.refined_a is not None and not (np.array_equal(to_work_a, np.eye(3)) and np.array_equal(to_work_b, np.eye(3))):
+            _refine_full_frame(res, image_a, image_b, to_work_a, to_work_b, m.config)
+        return res
     sa, sb = scale_maps_for_pair(a, b, correction, H, local_model, global_model, cfg.gate, bf16=cfg.bf16)
     if cfg.refine or method.refine:
         res = _refined(m, a, b, sa, sb, None, None, H, correction)
@@ -191,12 +195,45 @@ def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=
     res.verification = out.verification if out.verified else dataclasses.replace(out.verification, H=None, F=None)
     res.meta["auto"] = out.to_dict()
     res.meta["seconds"] = out.seconds
+    res.scale_a, res.scale_b = out.network_maps or (None, None)     # Local-ScaleNet's maps, ungated
     if m.config.refine:
         prior_a, prior_b = out.network_maps or (None, None)
         res.refined_a, res.refined_b = refine_pair_maps(_as_map(prior_a, a.shape[:2]), _as_map(prior_b, b.shape[:2]),
-                                                        out.verification, m.config.verification)
+                                                        res.verification, m.config.verification)
         res.meta.update(passes=len(out.trials), inlier_counts=[t.num_inliers for t in out.trials], seed_inliers=None)
     return res
+
+
+def _refine_full_frame(res: MatchResult, image_a, image_b, to_a: np.ndarray, to_b: np.ndarray, cfg) -> None:
+    """Refined maps at the full resolution of A and B from a result matched at a working resolution:
+    the verified geometry and Local-ScaleNet's maps (the priors) taken to full-image pixels."""
+    from ..io import image_shape
+    from .verification import refine_pair_maps
+
+    shape_a, shape_b = image_shape(image_a, "image A"), image_shape(image_b, "image B")
+    fa, fb = (float(np.sqrt(S[0, 0] * S[1, 1])) for S in (to_a, to_b))
+    v = res.verification
+
+    def back(points, S):
+        return (np.asarray(points, np.float64) - S[:2, 2]) / np.diag(S)[:2]
+
+    full = dataclasses.replace(
+        v, H=None if v.H is None else np.linalg.inv(to_b) @ v.H @ to_a,
+        F=None if v.F is None else to_b.T @ v.F @ to_a, points_a=back(v.points_a, to_a),
+        points_b=back(v.points_b, to_b), local_scales=v.local_scales * fa / fb, shape_a=shape_a, shape_b=shape_b)
+
+    def prior(net, shape, factor):
+        if net is None:
+            return None
+        log = cv2.resize(np.log2(np.clip(net, 1e-6, None)).astype(np.float32), (shape[1], shape[0]),
+                         interpolation=cv2.INTER_LINEAR)
+        return np.exp2(log + np.log2(factor)).astype(np.float32)
+
+    # the priors: Local-ScaleNet's maps of the working frame, in full-image pixels
+    pa = prior(res.scale_a, shape_a, fa / fb)
+    pb = prior(res.scale_b, shape_b, fb / fa)
+    res.refined_a, res.refined_b = refine_pair_maps(pa, pb, full, cfg.verification)
+    res.verification = full
 
 
 def _refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, correction: str) -> MatchResult:
