@@ -167,3 +167,17 @@ def test_xfeat_predictions_keep_the_shapes_and_invariants(xfeat_model, photos):
     g = ScaleNet(feature_dim=16, image_size=64, backbone="xfeat").eval()
     s_ab, s_ba = g.predict(a, b).scale, g.predict(b, a).scale
     assert s_ab == pytest.approx(1 / s_ba, rel=1e-4)             # swapping A and B inverts
+
+
+def test_init_head_copies_the_layers_after_the_extractor_across_backbones(xfeat_file, image_dir, tmp_path):
+    base = dict(data=str(image_dir), feature_dim=16, image_size=64, batch_size=2, holdout_every=3, val_pairs=2,
+                val_every=100, ckpt_every=100, workers=0, threads=1, amp="off", topk=8, warp_features=True)
+    train(TrainConfig(out=str(tmp_path / "vgg"), width=0.125, steps=1, **base))
+    train(TrainConfig(out=str(tmp_path / "x"), backbone="xfeat", steps=1, lr=0.0,
+                      init_head=str(tmp_path / "vgg" / "model.pt"), **base))
+    a = read_checkpoint(tmp_path / "vgg" / "last.pt")["state_dict"]
+    b = read_checkpoint(tmp_path / "x" / "last.pt")["state_dict"]
+    conv = [k for k in a if k.endswith("weight") and a[k].dim() == 4 and not k.startswith("extractor.")]
+    assert conv and all(torch.allclose(a[k].float(), b[k].float(), atol=1e-3) for k in conv)   # fp16 export
+    assert b["extractor.aspp.branches.0.0.weight"].shape[1] == 64            # a fresh ASPP on XFeat's 64 channels
+    assert not any(k.startswith("extractor.backbone.") for k in b)
