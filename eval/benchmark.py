@@ -195,6 +195,8 @@ def main(argv=None) -> int:
                    help="eval-hpatches methods timed (default: none local gt)")
     p.add_argument("--no-cli", action="store_true", help="skip the subprocess timings (--help, match)")
     p.add_argument("--throughput", action="store_true", help="also time scale-model throughput with the cache")
+    p.add_argument("--local-weights", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
+    p.add_argument("--global-weights", default=None, help="ScaleNet checkpoint (default: bundled)")
     p.add_argument("--out", default=None, help="JSON file")
     a = p.parse_args(argv)
     if a.repeat < 1 or a.num_features < 1:
@@ -216,7 +218,8 @@ def main(argv=None) -> int:
            "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
            "load_average_start": os.getloadavg(), "localscale": str(Path(localscale.__file__).parent),
            "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep,
-           "matchers": names}
+           "matchers": names,
+           "local_weights": a.local_weights or "bundled", "global_weights": a.global_weights or "bundled"}
     st = {}   # stage -> timing dict
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -231,11 +234,11 @@ def main(argv=None) -> int:
                    "--correction", "local", "--H", str(ph), "--num-features", str(n)]
             st["cli: localscale match (local)"] = subprocess_ms(cmd, max(1, min(rep, 3)), tmp, env)
 
-        st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(device=a.device), rep)
-        st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(device=a.device), rep)
+        st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(a.local_weights, a.device), rep)
+        st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(a.global_weights, a.device), rep)
         st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(device=a.device), rep)
-        local = LocalScaleNet.from_pretrained(device=a.device)
-        glob = ScaleNet.from_pretrained(device=a.device)
+        local = LocalScaleNet.from_pretrained(a.local_weights, a.device)
+        glob = ScaleNet.from_pretrained(a.global_weights, a.device)
         sift = SIFTPatchDescriptor().to(a.device).eval()
 
         st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), rep)

@@ -102,7 +102,7 @@ def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b, planar: np.ndarray | 
     sub = lambda x: x[np.ix_(ys, xs)][m]  # noqa: E731  (pixel nearest to each grid cell centre)
     lg = np.log(gt[m])
     spread = float(np.log2(gt[m]).std()) if m.sum() > 1 else 0.0
-    out = {"log_gt": lg, "err": np.abs(np.log(sub(pred)) - lg), "const1": np.abs(lg),
+    out = {"log_gt": lg, "log_pred": np.log(sub(pred)), "err": np.abs(np.log(sub(pred)) - lg), "const1": np.abs(lg),
            "oracle": np.abs(lg - np.median(lg)), "spread": spread}
     if planar is not None:
         out["planar"] = np.abs(np.log(sub(planar)) - lg)
@@ -257,6 +257,8 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
     cov = covisible_mask(H, (h, w), b.shape[:2], STRIDE)
     m = cov & np.isfinite(gt)
     row = {"name": name, "local": pe["err"], "global": np.abs(math.log(g.scale) - pe["log_gt"]),
+           "gt_median_log2": float(np.median(pe["log_gt"])) / math.log(2),
+           "local_median_log2": float(np.median(pe["log_pred"])) / math.log(2), "global_log2": math.log2(g.scale),
            "const1": pe["const1"], "oracle": pe["oracle"], "log_gt": pe["log_gt"],
            "global_pair_error_log2": abs(math.log2(g.scale) - float(np.mean(pe["log_gt"])) / math.log(2)),
            "global_inconsistency_log2": abs(math.log2(g.scale_ab) + math.log2(g.scale_ba))}
@@ -300,6 +302,21 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
     return row
 
 
+#: a pair's true scale must be at least this far from 1 (log2) for its direction to count
+DIRECTION_MIN_LOG2 = 0.5
+
+
+def direction_errors(rows: list[dict]) -> dict:
+    """Pairs whose true scale (median over the co-visible pixels of A) is at least x1.41 away from
+    1 and whose predicted scale (median of the local map there / ScaleNet's one number) lies on the
+    other side of 1: the correction goes the wrong way."""
+    due = [r for r in rows if abs(r["gt_median_log2"]) >= DIRECTION_MIN_LOG2]
+    wrong = lambda key: [r["name"] for r in due if r[key] * r["gt_median_log2"] < 0]  # noqa: E731
+    return {"pairs_counted": len(due), "rule": f"|log2 true median| >= {DIRECTION_MIN_LOG2}, prediction on the other side of 1",
+            "local": len(wrong("local_median_log2")), "global": len(wrong("global_log2")),
+            "local_pairs": wrong("local_median_log2"), "global_pairs": wrong("global_log2")}
+
+
 def run_real(args) -> dict:
     """All real pairs: local map, global ScaleNet as a constant map, const-1, per-pair oracle;
     co-visibility IoU, reliability AUROC, the pair flag; identity and gray-copy invariants."""
@@ -338,6 +355,8 @@ def run_real(args) -> dict:
                                    "global_mean_r": float(np.exp(r["global"]).mean()),
                                    "const1_mean_r": float(np.exp(r["const1"]).mean()),
                                    "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+                                   "gt_median_log2": r["gt_median_log2"], "local_median_log2": r["local_median_log2"],
+                                   "global_log2": r["global_log2"],
                                    "iou": r.get("iou"), "inconsistency_log2": r["inconsistency_log2"],
                                    "visible_fraction": r["visible_fraction"], "mean_reliability": r["mean_reliability"],
                                    "flag_reasons": flag_reasons(r, cfg)}
@@ -349,6 +368,7 @@ def run_real(args) -> dict:
                        | ({"search_refined_mean_r": float(np.exp(r["search-refined"]).mean()),
                            "search_refined_verified": r["search_refined_verified"]}
                           if "search-refined" in r else {}) for r in rows}
+    res["direction_errors"] = direction_errors(rows)
     if not args.no_refined:
         ver = [r for r in rows if r["verification"]["verified"]]
         unv = [r for r in rows if not r["verification"]["verified"]]
@@ -401,6 +421,8 @@ def run_real(args) -> dict:
     print(f"\nco-visibility IoU (mean over pairs): {res['visibility_iou_mean']}")
     print(f"reliability AUROC (r <= 1.25 vs r > 1.5): {res['reliability_auroc']:.3f}")
     print(f"pair flag: {res['flag']}")
+    d = res["direction_errors"]
+    print(f"wrong direction ({d['rule']}; {d['pairs_counted']} pairs): local {d['local']}, global {d['global']}")
     print("\n| image | predict(A, A) median | predict(gray A, A) median | ScaleNet(A, A) |\n|---|---|---|---|")
     for r in inv:
         print(f"| {r['image']} | {r['identity_median']:.3f} | {r['gray_vs_colour_median']:.3f} | {r['global_identity']:.3f} |")

@@ -3,7 +3,11 @@
 A checkpoint is a ``torch.save``-d dict::
 
     {"localscale_format": 1, "arch": "LocalScaleNet", "config": {...},
-     "state_dict": {...}, "meta": {...}, "train_state": {...}  # optional}
+     "state_dict": {...}, "meta": {...}, "train_state": {...},  # optional
+     "backbone": {"name": "xfeat", "sha256": ..., "licence": ...}}  # frozen pre-trained backbone only
+
+A frozen pre-trained backbone's weights are not in the checkpoint: the model reads them from
+their own file (:mod:`localscale.models.backbones`), which must have the recorded sha256.
 
 Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain data
 (dict, list, tuple, str, numbers, bool, None) are unpickled, so a checkpoint cannot run
@@ -40,8 +44,19 @@ def checkpoint_dict(model: nn.Module, meta: dict | None = None, half: bool = Fal
     sd = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if half:
         sd = {k: v.half() if v.is_floating_point() else v for k, v in sd.items()}
-    return {"localscale_format": FORMAT_VERSION, "arch": model.arch,
+    ckpt = {"localscale_format": FORMAT_VERSION, "arch": model.arch,
             "config": dataclasses.asdict(model.config), "state_dict": sd, "meta": meta or {}}
+    record = backbone_record(model)
+    if record is not None:
+        ckpt["backbone"] = record
+    return ckpt
+
+
+def backbone_record(model: nn.Module) -> dict | None:
+    """What a checkpoint stores about a frozen pre-trained backbone (name, weight file, sha256,
+    licence, source; its weights stay out of the checkpoint), or None for a trainable one."""
+    backbone = getattr(getattr(model, "extractor", None), "backbone", None)
+    return backbone.record() if hasattr(backbone, "record") else None
 
 
 def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, half: bool = False) -> None:
@@ -181,6 +196,8 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
     try:
         config = cls.config_class(**ckpt["config"])
         model = cls(config)
+    except CheckpointError as e:     # a pre-trained backbone's weights are missing or unreadable
+        raise type(e)(f"{path}: {e}") from None
     except Exception as e:
         msg = str(e).strip().splitlines()
         raise CheckpointError(f"{path}: config does not fit {found} "
@@ -192,5 +209,8 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
         first = [line.strip() for line in str(e).splitlines() if line.strip()][1:2]
         raise CheckpointError(f"{path}: weights do not match the {found} architecture "
                               f"({first[0][:160] if first else 'state_dict mismatch'})") from None
+    from .models.backbones import check_record
+
+    check_record(model, ckpt.get("backbone"), path)
     model.meta = ckpt.get("meta", {})
     return model.to(device).eval()

@@ -29,7 +29,8 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, Subset
 
 from . import scales
-from .checkpoint import checkpoint_dict, non_finite_tensors, read_checkpoint, save_atomic, save_model
+from .checkpoint import (checkpoint_dict, non_finite_tensors, read_checkpoint, restore_train_state, save_atomic,
+                         save_model, train_state)
 from .data import PairConfig, SyntheticPairs, collate, list_images, split_images
 from .errors import LocalScaleError
 from .geometry import HomographyConfig
@@ -46,6 +47,7 @@ class TrainConfig:
     model: str = "local"                   #: "local" (Local-ScaleNet) or "global" (ScaleNet)
     data: str = "../shared/data/train_images"
     out: str = "runs/local"
+    backbone: str = "vgg"                  #: "vgg" (trainable) or a frozen pre-trained one ("xfeat", "aliked")
     width: float = 0.25
     feature_dim: int = 128
     image_size: int = 192
@@ -72,6 +74,8 @@ class TrainConfig:
     vgg_weights: str = ""                  #: optional local torchvision VGG16(-BN) state dict (width 1)
     init_weights: str = ""                 #: checkpoint of the same architecture to fine-tune from (new schedule)
     init_extractor: str = ""               #: checkpoint whose feature extractor initialises this model
+    init_head: str = ""                    #: checkpoint whose layers after the feature extractor (reductions,
+                                           #: cues, head) initialise this model (e.g. across backbones)
     freeze_extractor: bool = False         #: train only the correlation/reduction/head layers
     topk: int = 0                          #: extra cue: k largest correlations per pixel
     warp_features: bool = False            #: extra cue: B's features soft-warped onto A
@@ -113,6 +117,12 @@ class TrainConfig:
         from .devices import resolve_device
 
         resolve_device(self.device)   # cuda on a CPU-only torch, cuda:N beyond the GPUs, unknown names
+        from .models.backbones import BACKBONE_NAMES
+
+        if self.backbone not in BACKBONE_NAMES:
+            raise LocalScaleError(f"unknown backbone {self.backbone!r} (choose from {', '.join(BACKBONE_NAMES)})")
+        if self.vgg_weights and self.backbone != "vgg":
+            raise LocalScaleError(f"vgg-weights needs --backbone vgg, got {self.backbone!r}")
 
     def pair_config(self) -> PairConfig:
         if not 0 < self.crop_min <= 1:
@@ -138,10 +148,11 @@ class TrainConfig:
         if self.model == "local":
             return LocalScaleNet(LocalScaleNetConfig(self.width, self.feature_dim, self.image_size,
                                                      topk=self.topk, warp_features=self.warp_features,
-                                                     visibility=self.visibility))
+                                                     visibility=self.visibility, backbone=self.backbone))
         if self.model == "global":
             return ScaleNet(ScaleNetConfig(self.width, self.feature_dim, self.image_size,
-                                           topk=self.topk, warp_features=self.warp_features))
+                                           topk=self.topk, warp_features=self.warp_features,
+                                           backbone=self.backbone))
         raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
 
 
@@ -149,13 +160,15 @@ class TrainConfig:
 NEW_LAYER_PREFIXES = ("head.visible.",)
 
 
-def _load_matching(model, state_dict: dict, source: str) -> tuple[list[str], list[str]]:
-    """Load ``state_dict``; only the optional new layers (:data:`NEW_LAYER_PREFIXES`) may be missing."""
+def _load_matching(model, state_dict: dict, source: str,
+                   may_miss: tuple[str, ...] = NEW_LAYER_PREFIXES) -> tuple[list[str], list[str]]:
+    """Load ``state_dict``; only layers starting with ``may_miss`` (default: the optional new
+    layers, :data:`NEW_LAYER_PREFIXES`) may be missing."""
     try:
         missing, unexpected = model.load_state_dict(state_dict, strict=False)
     except RuntimeError as e:
         raise LocalScaleError(f"{source}: weights do not fit this model ({str(e).splitlines()[0]})") from None
-    bad = [k for k in missing if not k.startswith(NEW_LAYER_PREFIXES)] + list(unexpected)
+    bad = [k for k in missing if not k.startswith(may_miss)] + list(unexpected)
     if bad:
         raise LocalScaleError(f"{source}: weights do not fit this model ({len(bad)} mismatched keys, e.g. {bad[0]})")
     return list(missing), list(unexpected)
@@ -350,6 +363,14 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         if rank == 0 and missing:
             print(f"init from {cfg.init_weights}: new layers {', '.join(sorted({k.rsplit('.', 1)[0] for k in missing}))}",
                   file=sys.stderr)
+    if cfg.init_head:
+        src = read_checkpoint(cfg.init_head)
+        sd = {k: v.float() if v.is_floating_point() else v for k, v in src["state_dict"].items()
+              if not k.startswith("extractor.")}
+        missing, _ = _load_matching(model, sd, cfg.init_head, NEW_LAYER_PREFIXES + ("extractor.",))
+        new = sorted({k.rsplit('.', 1)[0] for k in missing if not k.startswith("extractor.")})
+        if rank == 0 and new:
+            print(f"init from {cfg.init_head}: new layers {', '.join(new)}", file=sys.stderr)
     if cfg.init_extractor:
         src = read_checkpoint(cfg.init_extractor)
         ext = {k[len("extractor."):]: v.float() for k, v in src["state_dict"].items() if k.startswith("extractor.")}
@@ -372,9 +393,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
         ckpt = read_checkpoint(last)
         try:
             model.load_state_dict(ckpt["state_dict"])
-            opt.load_state_dict(ckpt["train_state"]["optimizer"])
-            sched.load_state_dict(ckpt["train_state"]["scheduler"])
-            step = int(ckpt["train_state"]["step"])
+            step = restore_train_state(opt, sched, ckpt["train_state"])
         except (RuntimeError, KeyError, TypeError, ValueError) as e:
             first = [ln.strip() for ln in str(e).splitlines() if ln.strip()][:2]
             raise LocalScaleError(f"{last}: cannot resume, the checkpoint is of another configuration or has no "
@@ -410,7 +429,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
             raise TrainingDiverged(f"weights became NaN or inf at step {step} ({bad[0]}); stopped without "
                                    f"saving them, {kept_checkpoint()}")
         ck = checkpoint_dict(core, meta={"train_config": dataclasses.asdict(cfg)})
-        ck["train_state"] = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "step": step}
+        ck["train_state"] = train_state(opt, sched, step)
         save_atomic(ck, last)
 
     def kept_checkpoint() -> str:

@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from localscale.checkpoint import load_model, read_checkpoint, save_model
+from localscale.checkpoint import backbone_record, load_model, read_checkpoint, save_model
 
 DATA_CARD = {
     "source": "../shared/data/train_images (291 photos, longer side <= 640 px); training used the 'train' split: "
@@ -36,6 +36,17 @@ DATA_CARD = {
 CONTEXT_NOTE = ("; with context (--context): the target is rendered from the whole photo, so around the "
                 "crop's content it shows the photo's real surroundings, and the fill photo covers only what lies "
                 "beyond the photo")
+
+
+def backbone_card(model) -> dict:
+    """The feature backbone: trained here (VGG layout) or frozen pre-trained (name, weight file,
+    sha256, licence, the data it was trained on), with its parameter count."""
+    record = backbone_record(model)
+    n = sum(p.numel() for p in model.extractor.backbone.parameters())
+    if record is None:
+        return {"name": "vgg", "trained": "with the model, from scratch, on the data below", "parameters": n}
+    return dict(record, trained="frozen: pre-trained weights, not changed by our training (not in our .pt; "
+                                "read from the weight file, which must have this sha256)", parameters=n)
 
 
 def main(argv=None) -> int:
@@ -67,13 +78,14 @@ def main(argv=None) -> int:
     card = {
         "name": a.name, "architecture": model.arch, "config": {k: (list(v) if isinstance(v, tuple) else v)
                                                                for k, v in vars(model.config).items()},
-        "parameters": sum(p.numel() for p in model.parameters()),
+        "parameters": sum(p.numel() for p in model.parameters() if p.requires_grad),
         "weights_file": weights.name, "weights_mb": round(weights.stat().st_size / 2**20, 2), "storage": "fp16",
         "training": {"steps": step, "batch_size": train_cfg.get("batch_size"), "config": train_cfg,
                      "command": a.command, "hardware": a.hardware},
         "data": dict(DATA_CARD, pairs=DATA_CARD["pairs"] + (CONTEXT_NOTE if train_cfg.get("context") else "")),
         "validation_history": val,
         "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
+        "backbone": backbone_card(model),
         "convention": "S_{A->B} > 1: content looks bigger in B",
         "notes": a.notes,
     }

@@ -42,7 +42,7 @@ class ScaleModel(nn.Module):
     def __init__(self, config):
         super().__init__()
         self.config = config
-        self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm)
+        self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm, config.backbone)
         self.meta: dict = {}
 
     def _build_cue_branches(self, cells: int) -> int:

@@ -1,7 +1,8 @@
 """Building blocks shared by ScaleNet and Local-ScaleNet.
 
-* :class:`FeatureExtractor`: VGG16-layout backbone to stride 8 (width multiplier) + ASPP
-  (3x3 convs with dilations 2, 3, 4, concatenated, fused by a 1x1 conv), L2-normalised.
+* :class:`FeatureExtractor`: a backbone to stride 8 (the trainable VGG16 layout with a width
+  multiplier, or a frozen pre-trained one from :mod:`.backbones`) + ASPP (3x3 convs with
+  dilations 2, 3, 4, concatenated, fused by a 1x1 conv), L2-normalised.
 * :func:`correlation`: dense (self- or cross-) correlation volume, ReLU + L2 norm.
 * :class:`ReductionBlock`: four Conv-BN-ReLU layers that reduce a correlation volume.
 """
@@ -101,13 +102,19 @@ class ASPP(nn.Module):
 
 
 class FeatureExtractor(nn.Module):
-    """Backbone + ASPP -> L2-normalised ``B x D x H/8 x W/8`` features."""
+    """Backbone + ASPP -> L2-normalised ``B x D x H/8 x W/8`` features.
+
+    ``backbone``: ``"vgg"`` (trainable, ``width`` and ``batch_norm`` apply) or the name of a frozen
+    pre-trained one (:data:`.backbones.BACKBONES`; only the ASPP trains)."""
 
     stride = 8
 
-    def __init__(self, width: float = 0.25, feature_dim: int = 128, batch_norm: bool = True):
+    def __init__(self, width: float = 0.25, feature_dim: int = 128, batch_norm: bool = True,
+                 backbone: str = "vgg"):
         super().__init__()
-        self.backbone = VGGBackbone(width, batch_norm)
+        from .backbones import build_backbone
+
+        self.backbone = build_backbone(backbone, width, batch_norm)
         self.aspp = ASPP(self.backbone.out_channels, feature_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -41,6 +41,7 @@ from ..io import ImageLike
 from ..maps import GridMaps
 from ..planar import planarize
 from ..preprocess import Letterbox
+from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
 from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
                      warped_pair_features)
@@ -65,9 +66,13 @@ class LocalScaleNetConfig:
     #: w_spread)``: ``P(r < 1.25) = sigmoid(bias + w . features)``, fitted on held-out
     #: synthetic pairs after training (empty: not calibrated)
     calibration: tuple[float, ...] = ()
+    #: feature backbone: "vgg" (trainable, ``width`` channels) or a frozen pre-trained one
+    #: (``"xfeat"``, ``"aliked"``; :mod:`localscale.models.backbones`)
+    backbone: str = "vgg"
 
     def __post_init__(self):
         self.reduction = tuple(self.reduction)
+        check_backbone_name(self.backbone)
         self.calibration = tuple(float(c) for c in self.calibration)
         if self.calibration and len(self.calibration) != 4:
             raise ValueError(f"calibration needs 4 coefficients, got {len(self.calibration)}")

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from .. import scales
 from ..checkpoint import register
 from ..io import ImageLike
+from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel
 from .common import (ReductionBlock, correlation, normalise_correlation, topk_profile,
                      transpose_correlation, warped_pair_features)
@@ -48,9 +49,13 @@ class ScaleNetConfig:
     #: position-invariant cues (as in Local-ScaleNet), average-pooled into the FC input
     topk: int = 0
     warp_features: bool = False
+    #: feature backbone: "vgg" (trainable, ``width`` channels) or a frozen pre-trained one
+    #: (``"xfeat"``, ``"aliked"``; :mod:`localscale.models.backbones`)
+    backbone: str = "vgg"
 
     def __post_init__(self):
         self.reduction = tuple(self.reduction)
+        check_backbone_name(self.backbone)
         if self.image_size % 8 or self.image_size < 64:
             raise ValueError(f"image_size must be a multiple of 8 and >= 64, got {self.image_size}")
 
