@@ -529,7 +529,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
 
 
 def parse_args(argv: list[str] | None = None, model: str | None = None) -> TrainConfig:
-    from .cli import OneLineErrorParser
+    from .cli_options import OneLineErrorParser
 
     p = OneLineErrorParser(description="Train Local-ScaleNet or ScaleNet on synthetic homography pairs.")
     for f in dataclasses.fields(TrainConfig):

@@ -262,8 +262,6 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
 
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf):
     """One hypothesis: turn B, match with the hypothesis's maps or scale, map B's keypoints back, verify."""
-    from .matchers import Matches
-
     bt = np.ascontiguousarray(np.rot90(b, h.turn)) if h.turn % 4 else b
     if h.maps is not None:
         sa, sb = h.maps
@@ -272,8 +270,7 @@ def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vcon
     key_b = None if keys[1] is None else (keys[1], "turn", h.turn % 4)
     found = matcher.match(a, bt, sa, sb, (keys[0], key_b))
     kb = _apply(np.linalg.inv(turn_matrix(h.turn, b.shape)), found.keypoints_b) if h.turn % 4 else found.keypoints_b
-    found = Matches(found.keypoints_a, kb, found.matches, found.distances, found.radii_a, found.radii_b,
-                    found.factors, found.seconds)
+    found = dataclasses.replace(found, keypoints_b=kb)
     m = found.matches
     v = verify_matches(found.keypoints_a[m[:, 0]], kb[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf)
     return found, v

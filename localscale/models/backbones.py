@@ -216,16 +216,6 @@ def _keep_frozen_weights(module: FrozenBackbone, state_dict: dict, prefix: str, 
         state_dict[prefix + "net." + k] = v
 
 
-def build_backbone(name: str, width: float = 0.25, batch_norm: bool = True) -> nn.Module:
-    """``"vgg"``: the trainable quarter-width VGG16 (:class:`~localscale.models.common.VGGBackbone`);
-    any other name of :data:`BACKBONE_NAMES`: a :class:`FrozenBackbone`."""
-    if name == "vgg":
-        from .common import VGGBackbone
-
-        return VGGBackbone(width, batch_norm)
-    return FrozenBackbone(name)
-
-
 def check_record(model: nn.Module, record: dict | None, path: str | Path) -> None:
     """Refuse a checkpoint whose recorded backbone weights (sha256) differ from the installed file."""
     backbone = getattr(getattr(model, "extractor", None), "backbone", None)

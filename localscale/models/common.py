@@ -112,9 +112,12 @@ class FeatureExtractor(nn.Module):
     def __init__(self, width: float = 0.25, feature_dim: int = 128, batch_norm: bool = True,
                  backbone: str = "vgg"):
         super().__init__()
-        from .backbones import build_backbone
+        if backbone == "vgg":
+            self.backbone = VGGBackbone(width, batch_norm)
+        else:
+            from .backbones import FrozenBackbone
 
-        self.backbone = build_backbone(backbone, width, batch_norm)
+            self.backbone = FrozenBackbone(backbone)
         self.aspp = ASPP(self.backbone.out_channels, feature_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
