@@ -1,4 +1,4 @@
-"""Saving and loading model checkpoints with architecture checks.
+"""Saving and reading model checkpoints: the file format, its checks, and training state.
 
 A checkpoint is a ``torch.save``-d dict::
 
@@ -7,12 +7,15 @@ A checkpoint is a ``torch.save``-d dict::
      "backbone": {"name": "xfeat", "sha256": ..., "licence": ...}}  # frozen pre-trained backbone only
 
 A frozen pre-trained backbone's weights are not in the checkpoint: the model reads them from
-their own file (:mod:`localscale.models.backbones`), which must have the recorded sha256.
+their own file (the models package's ``backbones`` module), which must have the recorded sha256.
 
 Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain data
 (dict, list, tuple, str, numbers, bool, None) are unpickled, so a checkpoint cannot run
 code when it is loaded. A file holding any other object is refused with a
 :class:`CheckpointError`.
+
+The model a checkpoint names is built, and its weights loaded, by the models package's
+``load_model``; this module knows the file, not the architectures.
 """
 from __future__ import annotations
 
@@ -31,13 +34,6 @@ from .errors import CheckpointError
 from .outputs import atomic_path
 
 FORMAT_VERSION = 1
-_REGISTRY: dict[str, type] = {}
-
-
-def register(cls: type) -> type:
-    """Class decorator: make an architecture loadable by name."""
-    _REGISTRY[cls.arch] = cls
-    return cls
 
 
 def checkpoint_dict(model: nn.Module, meta: dict | None = None, half: bool = False) -> dict[str, Any]:
@@ -169,48 +165,3 @@ def restore_train_state(optimizer: torch.optim.Optimizer, scheduler: Any, state:
         sched["milestones"] = Counter(sched["milestones"])
     scheduler.load_state_dict(sched)
     return int(state["step"])
-
-
-def load_model(path: str | Path, arch: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
-    """Build the model a checkpoint describes and load its weights (fp32, eval mode).
-
-    Args:
-        arch: if given, the checkpoint must be of this architecture.
-        device: checked first (:func:`~localscale.devices.resolve_device`): an unknown or
-            unavailable device is a :class:`LocalScaleError` before the checkpoint is read.
-    """
-    from .devices import resolve_device
-
-    device = resolve_device(device)
-    ckpt = read_checkpoint(path)
-    found = ckpt.get("arch")
-    if arch is not None and found != arch:
-        raise CheckpointError(f"{path}: checkpoint is a {found}, expected a {arch}")
-    from . import models  # noqa: F401  (registers the architectures; the package imports it lazily)
-
-    if found not in _REGISTRY:
-        raise CheckpointError(f"{path}: unknown architecture {found!r}")
-    cls = _REGISTRY[found]
-    if not isinstance(ckpt.get("config"), dict):
-        raise CheckpointError(f"{path}: checkpoint has no valid 'config' (got {type(ckpt.get('config')).__name__})")
-    try:
-        config = cls.config_class(**ckpt["config"])
-        model = cls(config)
-    except CheckpointError as e:     # a pre-trained backbone's weights are missing or unreadable
-        raise type(e)(f"{path}: {e}") from None
-    except Exception as e:
-        msg = str(e).strip().splitlines()
-        raise CheckpointError(f"{path}: config does not fit {found} "
-                              f"({type(e).__name__}: {msg[0][:160] if msg else ''})") from None
-    sd = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
-    try:
-        model.load_state_dict(sd)
-    except RuntimeError as e:
-        first = [line.strip() for line in str(e).splitlines() if line.strip()][1:2]
-        raise CheckpointError(f"{path}: weights do not match the {found} architecture "
-                              f"({first[0][:160] if first else 'state_dict mismatch'})") from None
-    from .models.backbones import check_record
-
-    check_record(model, ckpt.get("backbone"), path)
-    model.meta = ckpt.get("meta", {})
-    return model.to(device).eval()

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from localscale import CheckpointError, LocalScaleNet, ScaleNet
-from localscale.checkpoint import load_model, read_checkpoint, save_model
-from localscale.models import backbones
+from localscale.checkpoint import read_checkpoint, save_model
+from localscale.models import backbones, load_model
 from localscale.models.backbones import BackboneWeightsError, FrozenBackbone
 from localscale.training import TrainConfig, train
 

@@ -30,9 +30,10 @@ import torch
 
 import localscale.io as lio
 from localscale import LocalScaleNet, ScaleNet, training
-from localscale.checkpoint import checkpoint_dict, load_model, save_model
+from localscale.checkpoint import checkpoint_dict, save_model
 from localscale.cli import main
 from localscale.errors import CheckpointError, LocalScaleError
+from localscale.models import load_model
 from localscale.reliability import check_pair
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from localscale import CheckpointError, ImageError, LocalScaleNet, ScaleNet
-from localscale.checkpoint import load_model, save_model
+from localscale.checkpoint import save_model
+from localscale.models import load_model
 from localscale.models.common import correlation, transpose_correlation
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from localscale import LocalScaleNet, ScaleNet
-from localscale.checkpoint import load_model, save_model
+from localscale.checkpoint import save_model
+from localscale.models import load_model
 from localscale.models.local import reliability, reliability_features
 from localscale.models.scalenet import GlobalScalePrediction
 from localscale.reliability import (PairCheckConfig, auroc, check_pair, fit_calibration, flag_reasons,

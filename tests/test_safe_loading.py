@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from localscale.checkpoint import (FORMAT_VERSION, load_model, read_checkpoint, restore_train_state, save_model,
-                                   train_state)
+from localscale.checkpoint import FORMAT_VERSION, read_checkpoint, restore_train_state, save_model, train_state
 from localscale.errors import CheckpointError
 from localscale.features.descriptors import HardNetDescriptor
-from localscale.models import LocalScaleNet
+from localscale.models import LocalScaleNet, load_model
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 WEIGHTS = Path(__file__).resolve().parent.parent / "localscale" / "weights"

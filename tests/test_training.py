@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from localscale import training
-from localscale.checkpoint import load_model, read_checkpoint
+from localscale.checkpoint import read_checkpoint
 from localscale.data import SyntheticPairs, collate, list_images, split_images
 from localscale.errors import LocalScaleError
+from localscale.models import load_model
 from localscale.training import TrainConfig, TrainingDiverged, train
 
 

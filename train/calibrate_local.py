@@ -26,8 +26,9 @@ import torch
 from tqdm import tqdm
 
 from localscale import scales
-from localscale.checkpoint import load_model, read_checkpoint, save_model
+from localscale.checkpoint import read_checkpoint, save_model
 from localscale.data import SyntheticPairs, collate, list_images, split_images
+from localscale.models import load_model
 from localscale.models.local import reliability_features
 from localscale.reliability import auroc, fit_calibration, pair_statistics
 from localscale.training import TrainConfig

@@ -13,7 +13,8 @@ import json
 import sys
 from pathlib import Path
 
-from localscale.checkpoint import backbone_record, load_model, read_checkpoint, save_model
+from localscale.checkpoint import backbone_record, read_checkpoint, save_model
+from localscale.models import load_model
 
 DATA_CARD = {
     "source": "../shared/data/train_images (291 photos, longer side <= 640 px); training used the 'train' split: "

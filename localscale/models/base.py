@@ -12,6 +12,7 @@ from ..errors import ImageError
 from ..io import ImageLike, load_image, load_image_reduced
 from ..preprocess import Letterbox, letterbox, to_tensor
 from .common import FeatureExtractor
+from .registry import load_model
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 
@@ -181,8 +182,6 @@ class ScaleModel(nn.Module):
     @classmethod
     def from_pretrained(cls, path: str | Path | None = None, device: str | torch.device = "cpu"):
         """Load weights; ``path=None`` loads the default model bundled with the package."""
-        from ..checkpoint import load_model
-
         if path is None:
             path = WEIGHTS_DIR / cls.default_weights
         return load_model(path, arch=cls.arch, device=device)

@@ -36,7 +36,6 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .. import scales
-from ..checkpoint import register
 from ..io import ImageLike
 from ..maps import GridMaps
 from ..planar import planarize
@@ -45,6 +44,7 @@ from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
 from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
                      warped_pair_features)
+from .registry import register
 
 
 @dataclass

@@ -29,12 +29,12 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .. import scales
-from ..checkpoint import register
 from ..io import ImageLike
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel
 from .common import (ReductionBlock, correlation, normalise_correlation, topk_profile,
                      transpose_correlation, warped_pair_features)
+from .registry import register
 
 
 @dataclass
