@@ -101,3 +101,45 @@ def test_hardnet_auto_runs_and_reports_trials(photo, tmp_path):
 
     geo = json.loads((out / "geometry.json").read_text())
     assert geo["verified"] and geo["auto"]["trials"] and geo["auto"]["trials"][0]["num_inliers"] > 20
+
+
+def test_a_pair_that_verifies_as_it_is_never_runs_the_networks(photo, monkeypatch):
+    from localscale.models import LocalScaleNet, ScaleNet
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the networks ran although the images as they are verified clearly")
+
+    monkeypatch.setattr(LocalScaleNet, "predict", refuse)
+    monkeypatch.setattr(ScaleNet, "predict", refuse)
+    b, H = _zoom_turn(photo, 1.2, 0)
+    res = match_pair(photo, b, "auto", H=H, matcher="sift")
+    auto = res.meta["auto"]
+    assert auto["verified"] and [t["source"] for t in auto["trials"]] == ["identity"]
+    assert res.accuracy(3.0) > 0.8
+
+
+@pytest.mark.parametrize("zoom,turn", [(3.0, 1), (0.4, 3), (2.0, 2)])
+def test_the_geometry_of_a_verified_result_gives_its_scale_and_the_turn_that_undoes_it(photo, zoom, turn):
+    from localscale.features.auto import geometry_hypothesis
+
+    b, H = _zoom_turn(photo, zoom, turn)
+    from localscale.features.verification import VerificationConfig, verify_matches
+
+    found = match_pair(photo, b, "none", H=H, matcher="sift")
+
+    m = found.matches
+    v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], photo.shape[:2], b.shape[:2], None,
+                       VerificationConfig(coverage_of="either"))
+    g = geometry_hypothesis(v, b.shape)
+    assert v.verified and g is not None
+    assert abs(np.log2(g.scale / zoom)) < 0.1 and g.turn == (4 - turn) % 4, (g, zoom, turn)
+
+
+def test_the_seed_run_is_listed_but_outside_the_budget(photo, photos):
+    other = cv2.resize(photos["coffee"], (photo.shape[1], photo.shape[0]))
+    res = match_pair(photo, other, "auto", matcher="hardnet", auto=AutoConfig(budget=2), num_features=200)
+    sources = [t["source"] for t in res.meta["auto"]["trials"]]
+    assert sources[0] == "identity" and "seed (sift)" in sources
+    assert sum(not s.startswith("seed") for s in sources) == 2 and not res.meta["auto"]["verified"]
+    with pytest.raises(Exception, match="seed"):
+        match_config("hardnet", auto=AutoConfig(seed="orb"))

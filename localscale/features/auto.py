@@ -2,25 +2,30 @@
 
 ``correction="auto"`` (:func:`auto_match`):
 
-1. **Hypotheses** ``(scale S_{A->B}, quarter turn of B)``, in the order of the networks' evidence
-   (:func:`propose`): ScaleNet's consistency-checked scale, with the quarter turn it chose when the
-   upright images disagreed; the Local-ScaleNet maps (their level over the part of A that B shows;
-   the patch matcher uses the maps themselves); the identity; then B's other quarter turns at
-   ScaleNet's scale, ranked by how well ScaleNet's two directions agree on each.
-2. **Verify, don't trust**: for each hypothesis in turn, B is turned, the image whose content is
-   bigger is shrunk by the scale (the patch matcher corrects its patch sizes instead), the matcher
-   runs, the keypoints are mapped back to the original pixels and the matches are verified
+1. **The images as they are** are matched and verified first
    (:func:`~.verification.verify_matches`, the matcher's :class:`~.verification.VerificationConfig`,
-   with the inliers' coverage counted in either image).
-   The first hypothesis that verifies with a clear margin (:class:`AutoConfig`) is kept; else the
-   verified one with the most inliers; if none verifies, the identity's result, flagged unverified.
-   At most ``budget`` matcher runs per pair; with a budget of 2 or more, one of them is the identity.
+   with the inliers' coverage counted in either image). A clear verification (:class:`AutoConfig`)
+   ends the loop there, and the networks never run.
+2. **Hypotheses** ``(scale S_{A->B}, quarter turn of B)`` otherwise: first the geometry of a
+   cheap scale- and rotation-invariant seed matcher (OpenCV SIFT) when it verifies; then, in the
+   order of the networks' evidence (:func:`propose`): ScaleNet's consistency-checked scale, with the quarter turn it chose
+   when the upright images disagreed; the Local-ScaleNet maps (their level over the part of A that
+   B shows; the patch matcher uses the maps themselves); then B's other quarter turns at ScaleNet's
+   scale, ranked by how well ScaleNet's two directions agree on each.
+3. **Verify, don't trust**: for each hypothesis in turn, B is turned, the image whose content is
+   bigger is shrunk by the scale (the patch matcher corrects its patch sizes instead), the matcher
+   runs, the keypoints are mapped back to the original pixels and the matches are verified.
+   A verified result whose own geometry (:func:`geometry_hypothesis`) gives another scale or
+   quarter turn than its hypothesis is matched again at the geometry's, before anything else.
+4. **The choice**: the verified result with the most inliers; if none verifies, the identity's
+   result, flagged unverified. At most ``budget`` matcher runs per pair.
 
 Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -31,19 +36,30 @@ import numpy as np
 from ..errors import LocalScaleError
 from .verification import VerificationResult, verify_matches
 
+#: inliers the seed matcher's geometry needs to be proposed, and the matcher's run at a verified
+#: geometry's scale and turn needs to confirm it
+GEOMETRY_MIN_INLIERS = 10
+
 
 @dataclass
 class AutoConfig:
     """The hypothesis loop of ``correction="auto"``.
 
     Attributes:
-        budget: matcher runs per pair at most (the identity is always among them).
+        budget: matcher runs per pair at most (the first is always the identity).
         accept_inliers, accept_ratio: a verified hypothesis with at least this many inliers and this
             inlier ratio ends the loop at once (a clear margin); weaker verified ones are kept while
             the budget lasts and the one with the most inliers wins.
         turns: also try B's other quarter turns (ranked by ScaleNet).
         same_log2: hypotheses whose scales differ by less than this (log2) and have the same turn
             are tried once.
+        geometry_log2: a verified result whose own geometry differs from its hypothesis by more
+            than this (log2 of the scale), or by a quarter turn, is matched again at the geometry's
+            scale and turn.
+        seed: a name of :data:`~.matchers.MATCHERS` (scale- and rotation-invariant and cheap:
+            ``"sift"``) run once when the identity is not clear; its verified geometry is the first
+            hypothesis of the matcher's. Its run is listed among the trials but is not one of the
+            budget's and never the result. ``None``: no seed.
     """
 
     budget: int = 4
@@ -51,8 +67,18 @@ class AutoConfig:
     accept_ratio: float = 0.3
     turns: bool = True
     same_log2: float = 0.25
+    geometry_log2: float = 0.5
+    seed: Optional[str] = "sift"
 
     def check(self) -> "AutoConfig":
+        if self.seed is not None:
+            from .matchers import MATCHERS
+
+            if self.seed not in MATCHERS:
+                raise LocalScaleError(f"auto seed must be None or one of {', '.join(MATCHERS)}, got {self.seed!r}")
+        if not (self.same_log2 >= 0 and self.geometry_log2 >= 0):
+            raise LocalScaleError(f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, "
+                                  f"{self.geometry_log2!r}")
         if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
             raise LocalScaleError(f"auto budget must be an integer >= 1, got {self.budget!r}")
         if not (isinstance(self.accept_inliers, int) and self.accept_inliers >= 4):
@@ -201,6 +227,37 @@ def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
                and (h.maps is None) == (t.maps is None) for t in tried)
 
 
+# ---------------------------------------------------------------- the geometry's own hypothesis
+
+def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """``2 x 2`` Jacobian of the homography ``H`` at ``point`` (x, y)."""
+    p = np.array([point[0], point[1], 1.0])
+    w = float(H[2] @ p)
+    return (H[:2, :2] - np.outer(H[:2] @ p / w, H[2, :2])) / w
+
+
+def geometry_hypothesis(v: VerificationResult, shape_b: tuple) -> Optional[Hypothesis]:
+    """The ``(scale, quarter turn of B)`` that a verified result's own geometry implies: the
+    median geometric scale at its inliers, and the quarter turn of B that brings the homography's
+    rotation at the inliers' centre closest to none. ``None`` if it did not verify."""
+    if not v.verified or v.num_inliers == 0:
+        return None
+    s = np.asarray(v.local_scales, np.float64)[np.asarray(v.inliers, bool)]
+    s = s[np.isfinite(s) & (s > 0)]
+    if not len(s):
+        return None
+    scale = float(np.exp(np.median(np.log(s))))
+    turn = 0
+    if v.H is not None:
+        centre = np.asarray(v.points_a, np.float64)[np.asarray(v.inliers, bool)].mean(0)
+        angles = []
+        for k in range(4):
+            J = _jacobian(turn_matrix(k, shape_b) @ v.H, centre)
+            angles.append(abs(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))
+        turn = int(np.argmin(angles))
+    return Hypothesis(scale, turn, "geometry")
+
+
 # ---------------------------------------------------------------- the loop
 
 def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None,
@@ -222,42 +279,91 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
     # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
     # a small part of the wide one, and all of itself
     vconf = dataclasses.replace(matcher.config.verification, coverage_of="either")
+    geometric_vconf = dataclasses.replace(vconf, min_inliers=min(vconf.min_inliers, GEOMETRY_MIN_INLIERS))
     patches = matcher.config.extractor == "patches"
-    hyps, more, network_maps = propose(image_a, image_b, local_model, global_model, matcher.config.gate, patches,
-                         matcher.config.bf16)
     tried, trials, runs = [], [], []
-    best = identity = None
-    queue, turns_added = list(hyps), False
-    while len(trials) < config.budget:
-        if not queue:
-            if turns_added or not config.turns:
-                break
-            queue, turns_added = more(hyps[0].scale if hyps else 1.0), True
-            continue
-        h = queue.pop(0)
-        if h.maps is None and abs(math.log2(h.scale)) < config.same_log2:
-            h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
-        if _same(h, tried, config.same_log2):
-            continue
-        if identity is None and h.source != "identity" and 2 <= config.budget == len(trials) + 1:
-            queue.insert(0, h)              # the last run of the budget goes to the identity
-            h = Hypothesis(1.0, 0, "identity")
+    best = None
+
+    def clear(v) -> bool:
+        return bool(v.verified) and v.num_inliers >= config.accept_inliers and v.inlier_ratio >= config.accept_ratio
+
+    def attempt(h: Hypothesis):
+        nonlocal best
         tried.append(h)
         t0 = time.perf_counter()
-        found, v = _run(matcher, image_a, image_b, h, keys, vconf)
+        # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
+        found, v = _run(matcher, image_a, image_b, h, keys, geometric_vconf if h.source.endswith("geometry") else vconf)
         trials.append(Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
                             time.perf_counter() - t0))
         runs.append((found, v, h))
-        if h.turn % 4 == 0 and h.maps is None and abs(math.log2(h.scale)) < config.same_log2:
-            identity = (found, v, h)        # the identity, or a hypothesis the same as it
         if v.verified and (best is None or v.num_inliers > best[1].num_inliers):
             best = (found, v, h)
-        if v.verified and v.num_inliers >= config.accept_inliers and v.inlier_ratio >= config.accept_ratio:
-            break
+        return v
+
+    def settled(v, h) -> bool:
+        """Whether the loop ends after ``h``: on a clear verification, unless the result's own
+        geometry says it was matched at another scale or turn: that hypothesis is then queued
+        first (also after a weak verification), and the loop ends after it if it verifies or
+        anything was clear. The identity's clear verification is final."""
+        if h.source.endswith("geometry"):     # the geometry confirmed by the matcher ends the loop
+            return bool(v.verified) or any(clear(r[1]) for r in runs)
+        g = geometry_hypothesis(v, image_b.shape)
+        if g is not None and not _same(g, tried, config.geometry_log2) and not (clear(v) and h is identity):
+            queue.insert(0, g)
+            return False
+        return clear(v)
+
+    # the images as they are first: a pair that verifies clearly needs no network at all
+    identity = Hypothesis(1.0, 0, "identity")
+    queue: list = []
+    network_maps = None
+    if not settled(attempt(identity), identity):
+        hyps, more, network_maps = propose(image_a, image_b, local_model, global_model, matcher.config.gate,
+                                           patches, matcher.config.bf16)
+        queue += [h for h in hyps if h.source != "identity"]
+        if config.seed and config.seed != matcher.config.name:
+            g = _seed_hypothesis(config.seed, image_a, image_b, keys, vconf, trials)
+            if g is not None and not _same(g, tried, config.geometry_log2):
+                queue.insert(0, g)
+        turns_added = False
+        while sum(not t.hypothesis.source.startswith("seed") for t in trials) < config.budget:
+            if not queue:
+                if turns_added or not config.turns:
+                    break
+                queue, turns_added = more(hyps[0].scale if hyps else 1.0), True
+                continue
+            h = queue.pop(0)
+            if h.maps is None and abs(math.log2(h.scale)) < config.same_log2:
+                h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
+            if _same(h, tried, config.geometry_log2 if h.source.endswith("geometry") else config.same_log2):
+                continue
+            if settled(attempt(h), h):
+                break
     if best is None:   # nothing verified: the identity's result, flagged unverified
-        best = identity if identity is not None else runs[0]
+        best = runs[0]
     found, v, h = best
     return AutoResult(found, v, h, trials, time.perf_counter() - t_start, network_maps)
+
+
+@functools.lru_cache(maxsize=2)
+def _seed_matcher(name: str):
+    from .matchers import Matcher
+
+    return Matcher(name)
+
+
+def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list) -> Optional[Hypothesis]:
+    """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
+    its verified geometry gives (``None`` if it did not verify)."""
+    seed = Hypothesis(1.0, 0, f"seed ({name})")
+    t0 = time.perf_counter()
+    # a proposal only (the matcher's own run at it is verified again): fewer inliers will do
+    vconf = dataclasses.replace(vconf, min_inliers=min(vconf.min_inliers, GEOMETRY_MIN_INLIERS))
+    found, v = _run(_seed_matcher(name), a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf)
+    trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
+                        time.perf_counter() - t0))
+    g = geometry_hypothesis(v, b.shape)
+    return None if g is None else Hypothesis(g.scale, g.turn, f"{name} geometry")
 
 
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf):

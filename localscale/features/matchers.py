@@ -15,8 +15,9 @@ The learned models load pre-trained files from disk (:mod:`.weights`); nothing i
 Scale maps reach the matchers in two ways. The ``patches`` extractor cuts each keypoint's patch
 with the radius its map gives (:mod:`.patches`). Every other extractor is scale-rectified: the
 pair's level ``S_{A->B}`` (:func:`pair_scale`, the median of the maps) shrinks the image whose
-content is bigger by that factor before extraction (:func:`rectify_factors`), and the keypoints
-are mapped back to the given image's pixels.
+content is bigger by that factor before extraction, or, for small images, shrinks it less and
+enlarges the other one (:func:`rectify_factors`); the keypoints are mapped back to the given
+image's pixels.
 
 Example::
 
@@ -67,6 +68,9 @@ class MatchConfig:
         num_features: keypoints per image at most.
         max_side: working resolution, longer side in pixels (None: full resolution); keypoints
             are returned in full-image pixels.
+        rectify_min_side: scale rectification of the learned extractors shrinks the image whose
+            content is bigger down to this longer side at most, and enlarges the other one for
+            the rest, up to ``max_side`` (:func:`rectify_factors`).
         descriptor, detector, base_radius, orientation: the ``patches`` extractor
             (:func:`~localscale.features.matchers.extract`).
         ratio: Lowe's ratio on top of mutual NN (``None``: mutual NN only; ``patches``: kornia's
@@ -89,6 +93,7 @@ class MatchConfig:
     matching: str = "mnn"
     num_features: int = 1000
     max_side: Optional[int] = 2048
+    rectify_min_side: int = 640
     descriptor: Union[str, PatchDescriptor] = "hardnet"
     detector: str = "hessian"
     base_radius: float = 16.0
@@ -118,6 +123,7 @@ class MatchConfig:
         _check_int(self.num_features, "num_features", 1)
         if self.max_side is not None:
             _check_int(self.max_side, "max_side", 16)
+        _check_int(self.rectify_min_side, "rectify_min_side", 0)
         _check_number(self.base_radius, "base_radius", low=0.5)
         if self.ratio is not None:
             _check_number(self.ratio, "ratio", low=0.0, high=1.0)
@@ -264,19 +270,36 @@ def pair_scale(scale_a=None, scale_b=None) -> float:
     return float(2.0 ** (sum(levels) / 2))
 
 
-def rectify_factors(scale: float, min_log2: float = 0.0) -> tuple[float, float]:
-    """Resize factors ``(for A, for B)`` (each <= 1) that bring a pair of scale ``S_{A->B}`` to 1:
-    the image whose content is bigger is shrunk (``S > 1``: B by ``1 / S``; ``S < 1``: A by ``S``).
-    ``|log2 S| <= min_log2`` leaves both images as they are."""
+def rectify_factors(scale: float, min_log2: float = 0.0, shapes: Optional[tuple] = None,
+                    min_side: int = 0, max_side: Optional[int] = None) -> tuple[float, float]:
+    """Resize factors ``(for A, for B)`` that bring a pair of scale ``S_{A->B}`` to 1.
+
+    The image whose content is bigger is shrunk (``S > 1``: B by ``1 / S``; ``S < 1``: A by ``S``).
+    With ``shapes`` (``((h_A, w_A), (h_B, w_B))``) it is shrunk no further than a longer side of
+    ``min_side`` pixels, and the other image is enlarged for the rest, up to a longer side of
+    ``max_side`` (None: no enlargement); past that the shrinking goes on. ``|log2 S| <= min_log2``
+    leaves both images as they are.
+    """
     if not (math.isfinite(scale) and scale > 0) or abs(math.log2(scale)) <= min_log2:
         return 1.0, 1.0
-    return (1.0, 1.0 / scale) if scale > 1 else (scale, 1.0)
+    ratio = scale if scale < 1 else 1.0 / scale        # applied to the image whose content is bigger
+    big_first = scale < 1
+    f_big, f_small = ratio, 1.0
+    if shapes is not None and max_side is not None:
+        big, small = (max(shapes[0][:2]), max(shapes[1][:2])) if big_first else (max(shapes[1][:2]), max(shapes[0][:2]))
+        f_big = min(1.0, max(ratio, min_side / max(1, big)))
+        f_small = min(f_big / ratio, max(1.0, max_side / max(1, small)))
+        f_big = ratio * f_small
+    return (f_big, f_small) if big_first else (f_small, f_big)
 
 
 def _resized(image: np.ndarray, factor: float, min_side: int = 32) -> tuple[np.ndarray, float, float]:
-    """``image`` shrunk by ``factor`` (the shorter side kept >= ``min_side``); returns it and the
-    per-axis factors actually applied."""
+    """``image`` resized by ``factor`` (when shrunk, the shorter side kept >= ``min_side``);
+    returns it and the per-axis factors actually applied."""
     h, w = image.shape[:2]
+    if factor > 1.0:
+        nw, nh = max(1, round(w * factor)), max(1, round(h * factor))
+        return cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR), nw / w, nh / h
     factor = max(factor, min(1.0, min_side / max(1, min(h, w))))
     if factor >= 1.0:
         return image, 1.0, 1.0
@@ -383,7 +406,7 @@ class Matcher:
         """Features of ``image`` (``H x W x 3`` uint8 RGB).
 
         ``scale``: for the ``patches`` extractor the image's map ``S_{this->other}`` (or a float,
-        or None); for the others the resize factor (<= 1) to extract at, keypoints returned in
+        or None); for the others the resize factor to extract at, keypoints returned in
         the given image's pixels. ``key``: identifies the image for the cache (None: no cache).
         """
         if self.config.extractor == "patches":
@@ -509,7 +532,9 @@ class Matcher:
             fb = self.extract(image_b, scale_b, keys[1])
             factors = (1.0, 1.0)
         else:
-            factors = rectify_factors(pair_scale(scale_a, scale_b))
+            c = self.config
+            factors = rectify_factors(pair_scale(scale_a, scale_b), shapes=(image_a.shape, image_b.shape),
+                                      min_side=c.rectify_min_side, max_side=c.max_side)
             fa = self.extract(image_a, factors[0], keys[0])
             fb = self.extract(image_b, factors[1], keys[1])
         t0 = time.perf_counter()

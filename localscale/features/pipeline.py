@@ -197,6 +197,12 @@ def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=
     res.meta["seconds"] = out.seconds
     res.scale_a, res.scale_b = out.network_maps or (None, None)     # Local-ScaleNet's maps, ungated
     if m.config.refine:
+        if out.network_maps is None and res.verification.H is None:
+            # no homography to span the images (the identity settled without the networks):
+            # Local-ScaleNet's maps hold away from the inliers
+            out.network_maps = (np.asarray(local_model.predict(a, b).scale, np.float32),
+                                np.asarray(local_model.predict(b, a).scale, np.float32))
+            res.scale_a, res.scale_b = out.network_maps
         prior_a, prior_b = out.network_maps or (None, None)
         res.refined_a, res.refined_b = refine_pair_maps(_as_map(prior_a, a.shape[:2]), _as_map(prior_b, b.shape[:2]),
                                                         res.verification, m.config.verification)
