@@ -192,6 +192,10 @@ def cmd_predict(args) -> int:
         return _predict_pairs(args, out)
     if getattr(args, "refine", False) and args.refine_passes < 1:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
+    if args.matcher != "hardnet" and not getattr(args, "refine", False):
+        raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
+    if args.matcher != "hardnet" and args.search:
+        raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)
@@ -219,7 +223,19 @@ def cmd_predict(args) -> int:
     if not check.reliable:
         scope = " (checked on the whole images)" if args.search else ""
         print(f"warning: this scale map is unreliable{scope}: {'; '.join(check.reasons)}", file=sys.stderr)
-    if getattr(args, "refine", False):
+    if getattr(args, "refine", False) and args.matcher != "hardnet":
+        from .features.pipeline import match_pair
+
+        options = {"refine": True} | ({"weights": args.matcher_weights} if args.matcher_weights else {})
+        res = match_pair(args.image_a, args.image_b, "auto", None, model, None, args.matcher, **options)
+        v = res.verification
+        extra = {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")} | {"auto": res.meta["auto"]}
+        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
+            print(p)
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+        print(f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
+              f"inliers, {state}", file=sys.stderr)
+    elif getattr(args, "refine", False):
         from .features.correction import CorrectionGate
         from .features.pipeline import refine_match
 
@@ -640,6 +656,7 @@ EXAMPLES = {
   localscale predict wide.jpg closeup.jpg -o out/ --search     (strong zoom or low overlap)
   localscale predict examples/kodim01_a.jpg examples/kodim01_b.jpg -o out/ --refine
       -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
+  localscale predict A.jpg B.jpg -o out/ --refine --matcher aliked-lightglue   (geometry from auto)
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
       quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
       are comments. A rerun skips pairs whose outputs are complete and whose images, weights
@@ -700,7 +717,17 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
     sp.add_argument("--overwrite", action="store_true",
                     help="with --pairs: redo pairs whose outputs already exist (default: skip them)")
-    add_refine_options(sp)
+    g = add_refine_options(sp).add_argument_group("refinement by a matcher")
+    from .features.matchers import INSTALL_HINT, MATCHERS
+
+    g.add_argument("--matcher", default="hardnet", choices=list(MATCHERS), metavar="NAME",
+                   help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
+                        f"matcher ({', '.join(n for n in MATCHERS if n != 'hardnet')}) takes the geometry from "
+                        "correction auto with that matcher (the images as they are, then the networks' "
+                        "hypotheses, verified)")
+    g.add_argument("--matcher-weights", metavar="DIR", default=None,
+                   help=f"folder of the learned matchers' weight files (default: the installed weight packages: "
+                        f"{INSTALL_HINT})")
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 

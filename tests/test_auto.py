@@ -143,3 +143,26 @@ def test_the_seed_run_is_listed_but_outside_the_budget(photo, photos):
     assert sum(not s.startswith("seed") for s in sources) == 2 and not res.meta["auto"]["verified"]
     with pytest.raises(Exception, match="seed"):
         match_config("hardnet", auto=AutoConfig(seed="orb"))
+
+
+def test_predict_refines_with_the_geometry_that_auto_verifies_with_a_matcher(tmp_path):
+    import json
+
+    from localscale.cli import main
+    from localscale.geometry import covisible_mask, homography_scale_map
+    from localscale.io import read_homography
+
+    a, b = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg"
+    assert main(["predict", str(a), str(b), "-o", str(tmp_path), "--refine", "--matcher", "sift"]) == 0
+    refined = np.load(tmp_path / "kodim01_a_kodim01_b_refined_scale.npy")
+    H = read_homography(ASSETS / "H_a_b.txt")
+    shape_a, shape_b = load_image(a).shape[:2], load_image(b).shape[:2]
+    gt = homography_scale_map(H, *shape_a)
+    seen = covisible_mask(H, shape_a, shape_b)
+    r = np.exp(np.abs(np.log(refined[seen] / gt[seen])))
+    assert refined.shape == shape_a and r.mean() < 1.03, r.mean()
+    geo = json.loads((tmp_path / "kodim01_a_kodim01_b_geometry.json").read_text())
+    assert geo["verified"] and geo["auto"]["trials"][0]["source"] == "identity"
+    for bad in (["--refine", "--search"], []):          # refuses before writing anything
+        assert main(["predict", str(a), str(b), "-o", str(tmp_path / "x"), "--matcher", "sift", *bad]) == 2
+        assert not (tmp_path / "x").exists()
