@@ -130,9 +130,19 @@ def test_the_geometry_of_a_verified_result_gives_its_scale_and_the_turn_that_und
     m = found.matches
     v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], photo.shape[:2], b.shape[:2], None,
                        VerificationConfig(coverage_of="either"))
-    g = geometry_hypothesis(v, b.shape)
+    g = geometry_hypothesis(v)
     assert v.verified and g is not None
     assert abs(np.log2(g.scale / zoom)) < 0.1 and g.turn == (4 - turn) % 4, (g, zoom, turn)
+    # the window: the part of the image whose content is smaller that the other one shows (+ margins)
+    h, w = photo.shape[:2]
+    if zoom == 2.0:
+        assert g.window is None                     # half of A's sides: more than half its area, no window
+    else:
+        wide, x0, y0, x1, y1 = g.window
+        side = min(zoom, 1 / zoom) * 1.5            # the footprint's share of the sides, with 25 % margins
+        assert wide == (0 if zoom > 1 else 1)
+        sides = (w, h) if wide == 0 or turn % 2 == 0 else (h, w)
+        assert (x1 - x0) / sides[0] == pytest.approx(side, abs=0.05) and (y1 - y0) / sides[1] == pytest.approx(side, abs=0.05)
 
 
 def test_the_seed_run_is_listed_but_outside_the_budget(photo, photos):

@@ -93,16 +93,21 @@ class Hypothesis:
     """A guess of the pair's relation: B turned by ``turn`` quarter turns, then ``S_{A->B} = scale``.
 
     ``maps``: ``(map of A, map of B)`` for the patch matcher (B's in the turned frame); ``None``: the
-    constant ``scale`` and ``1 / scale``."""
+    constant ``scale`` and ``1 / scale``. ``window``: ``(image, x0, y0, x1, y1)``, the part of A
+    (``image`` 0) or B (1, before its turn) that the other image shows, in its pixels; only that part
+    is matched (a verified geometry's, so that the wide view of a strong zoom is enlarged rather
+    than the zoomed view shrunk)."""
 
     scale: float
     turn: int
     source: str
     maps: Optional[tuple] = None
+    window: Optional[tuple] = None
 
     def describe(self) -> str:
         turn = f", B turned {90 * self.turn} deg" if self.turn else ""
-        return f"{self.source}: x{self.scale:.3g}{turn}"
+        window = f", in a window of {'AB'[self.window[0]]}" if self.window else ""
+        return f"{self.source}: x{self.scale:.3g}{turn}{window}"
 
 
 @dataclass
@@ -119,6 +124,7 @@ class Trial:
     def to_dict(self) -> dict:
         h = self.hypothesis
         return {"source": h.source, "scale": round(float(h.scale), 5), "turn": int(h.turn),
+                "window": None if h.window is None else [int(x) for x in h.window],
                 "num_matches": int(self.num_matches), "num_inliers": int(self.num_inliers),
                 "inlier_ratio": round(float(self.inlier_ratio), 4), "verified": bool(self.verified),
                 "seconds": round(float(self.seconds), 3)}
@@ -224,7 +230,7 @@ def propose(image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_m
 
 def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
     return any(t.turn == h.turn and abs(math.log2(h.scale) - math.log2(t.scale)) < same_log2
-               and (h.maps is None) == (t.maps is None) for t in tried)
+               and (h.maps is None) == (t.maps is None) and (h.window is None) == (t.window is None) for t in tried)
 
 
 # ---------------------------------------------------------------- the geometry's own hypothesis
@@ -236,26 +242,49 @@ def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
     return (H[:2, :2] - np.outer(H[:2] @ p / w, H[2, :2])) / w
 
 
-def geometry_hypothesis(v: VerificationResult, shape_b: tuple) -> Optional[Hypothesis]:
+def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
     """The ``(scale, quarter turn of B)`` that a verified result's own geometry implies: the
     median geometric scale at its inliers, and the quarter turn of B that brings the homography's
-    rotation at the inliers' centre closest to none. ``None`` if it did not verify."""
+    rotation at the inliers' centre closest to none; with a homography, also the window of the
+    image whose content is smaller that the other image covers (its bounding box grown by
+    ``margin`` on each side), when that is at most ``max_share`` of it. ``None`` if it did not verify."""
     if not v.verified or v.num_inliers == 0:
         return None
-    s = np.asarray(v.local_scales, np.float64)[np.asarray(v.inliers, bool)]
+    inl = np.asarray(v.inliers, bool)
+    s = np.asarray(v.local_scales, np.float64)[inl]
     s = s[np.isfinite(s) & (s > 0)]
     if not len(s):
         return None
     scale = float(np.exp(np.median(np.log(s))))
-    turn = 0
+    turn, window = 0, None
     if v.H is not None:
-        centre = np.asarray(v.points_a, np.float64)[np.asarray(v.inliers, bool)].mean(0)
+        centre = np.asarray(v.points_a, np.float64)[inl].mean(0)
         angles = []
         for k in range(4):
-            J = _jacobian(turn_matrix(k, shape_b) @ v.H, centre)
+            J = _jacobian(turn_matrix(k, v.shape_b) @ v.H, centre)
             angles.append(abs(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))
         turn = int(np.argmin(angles))
-    return Hypothesis(scale, turn, "geometry")
+        window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
+    return Hypothesis(scale, turn, "geometry", window=window)
+
+
+def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin: float, max_share: float):
+    """``(image, x0, y0, x1, y1)``: the part of the image whose content is smaller (B if
+    ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
+    wide, M, shape_wide, shape_other = (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
+    h, w = shape_other[:2]
+    corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
+    if not (np.isfinite(corners).all() and (corners[:4, 2] * corners[4, 2] > 0).all()):
+        return None       # part of the other image is behind the camera: no bounded window
+    xy = corners[:, :2] / corners[:, 2:]
+    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    H_w, W_w = shape_wide[:2]
+    x0, y0 = max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my)))
+    x1, y1 = min(W_w, int(math.ceil(x1 + mx))), min(H_w, int(math.ceil(y1 + my)))
+    if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > max_share * W_w * H_w:
+        return None
+    return (wide, x0, y0, x1, y1)
 
 
 # ---------------------------------------------------------------- the loop
@@ -307,7 +336,7 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
         anything was clear. The identity's clear verification is final."""
         if h.source.endswith("geometry"):     # the geometry confirmed by the matcher ends the loop
             return bool(v.verified) or any(clear(r[1]) for r in runs)
-        g = geometry_hypothesis(v, image_b.shape)
+        g = geometry_hypothesis(v)
         if g is not None and not _same(g, tried, config.geometry_log2) and not (clear(v) and h is identity):
             queue.insert(0, g)
             return False
@@ -362,21 +391,31 @@ def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf
     found, v = _run(_seed_matcher(name), a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf)
     trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
                         time.perf_counter() - t0))
-    g = geometry_hypothesis(v, b.shape)
-    return None if g is None else Hypothesis(g.scale, g.turn, f"{name} geometry")
+    g = geometry_hypothesis(v)
+    return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 
 
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf):
-    """One hypothesis: turn B, match with the hypothesis's maps or scale, map B's keypoints back, verify."""
-    bt = np.ascontiguousarray(np.rot90(b, h.turn)) if h.turn % 4 else b
+    """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale, map the
+    keypoints back to the given images' pixels, verify."""
+    keys = list(keys)
+    offsets = [np.zeros(2, np.float32), np.zeros(2, np.float32)]
+    images = [a, b]
+    if h.window is not None:
+        i, x0, y0, x1, y1 = h.window
+        images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
+        offsets[i] = np.array([x0, y0], np.float32)
+        keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
+    a_in, b_in = images
+    bt = np.ascontiguousarray(np.rot90(b_in, h.turn)) if h.turn % 4 else b_in
     if h.maps is not None:
         sa, sb = h.maps
     else:
         sa, sb = h.scale, 1.0 / h.scale
     key_b = None if keys[1] is None else (keys[1], "turn", h.turn % 4)
-    found = matcher.match(a, bt, sa, sb, (keys[0], key_b))
-    kb = _apply(np.linalg.inv(turn_matrix(h.turn, b.shape)), found.keypoints_b) if h.turn % 4 else found.keypoints_b
-    found = dataclasses.replace(found, keypoints_b=kb)
+    found = matcher.match(a_in, bt, sa, sb, (keys[0], key_b))
+    kb = _apply(np.linalg.inv(turn_matrix(h.turn, b_in.shape)), found.keypoints_b) if h.turn % 4 else found.keypoints_b
+    found = dataclasses.replace(found, keypoints_a=found.keypoints_a + offsets[0], keypoints_b=kb + offsets[1])
     m = found.matches
-    v = verify_matches(found.keypoints_a[m[:, 0]], kb[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf)
+    v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf)
     return found, v
