@@ -357,7 +357,7 @@ def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float
                    thresholds) -> list[dict]:
     """The records of one pair and one matcher: each method's maps, matches, MMA and corner error."""
     from ..features.matching import matching_accuracy, reprojection_errors
-    from ..features.pipeline import _refined, _result
+    from ..features.pipeline import _refined, _result, match_with_truth
     from ..features.correction import get_correction
 
     H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
@@ -384,7 +384,7 @@ def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float
             # every pass's matching on its own, plus verification and refinement
             seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
         else:
-            found = matcher.match(a, b, sa, sb, (key_a, key_b))
+            found = match_with_truth(matcher, a, b, sa, sb, H, m, (key_a, key_b))
             res = _result(matcher, found, H, m)
             seconds = found.seconds
         ka, kb, idx = res.keypoints_a, res.keypoints_b, res.matches

@@ -242,6 +242,16 @@ def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
     return (H[:2, :2] - np.outer(H[:2] @ p / w, H[2, :2])) / w
 
 
+def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
+    """The quarter turn of B (of ``shape_b``) after which the homography ``H`` (A -> B) rotates
+    least at ``point`` of A."""
+    angles = []
+    for k in range(4):
+        J = _jacobian(turn_matrix(k, shape_b) @ H, point)
+        angles.append(abs(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))
+    return int(np.argmin(angles))
+
+
 def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
     """The ``(scale, quarter turn of B)`` that a verified result's own geometry implies: the
     median geometric scale at its inliers, and the quarter turn of B that brings the homography's
@@ -258,12 +268,7 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
     scale = float(np.exp(np.median(np.log(s))))
     turn, window = 0, None
     if v.H is not None:
-        centre = np.asarray(v.points_a, np.float64)[inl].mean(0)
-        angles = []
-        for k in range(4):
-            J = _jacobian(turn_matrix(k, v.shape_b) @ v.H, centre)
-            angles.append(abs(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))
-        turn = int(np.argmin(angles))
+        turn = nearest_turn(v.H, np.asarray(v.points_a, np.float64)[inl].mean(0), v.shape_b)
         window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
     return Hypothesis(scale, turn, "geometry", window=window)
 
@@ -395,6 +400,22 @@ def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 
 
+def match_turned(matcher, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None, turn: int = 0,
+                 keys: tuple = (None, None), maps_turned: bool = False):
+    """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
+    pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
+    (``maps_turned``), or a float."""
+    if turn % 4 == 0:
+        return matcher.match(image_a, image_b, scale_a, scale_b, keys)
+    bt = np.ascontiguousarray(np.rot90(image_b, turn))
+    if isinstance(scale_b, np.ndarray) and scale_b.ndim == 2 and not maps_turned:
+        scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
+    key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
+    found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b))
+    kb = _apply(np.linalg.inv(turn_matrix(turn, image_b.shape)), found.keypoints_b)
+    return dataclasses.replace(found, keypoints_b=kb)
+
+
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf):
     """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale, map the
     keypoints back to the given images' pixels, verify."""
@@ -406,16 +427,10 @@ def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vcon
         images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
         offsets[i] = np.array([x0, y0], np.float32)
         keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
-    a_in, b_in = images
-    bt = np.ascontiguousarray(np.rot90(b_in, h.turn)) if h.turn % 4 else b_in
-    if h.maps is not None:
-        sa, sb = h.maps
-    else:
-        sa, sb = h.scale, 1.0 / h.scale
-    key_b = None if keys[1] is None else (keys[1], "turn", h.turn % 4)
-    found = matcher.match(a_in, bt, sa, sb, (keys[0], key_b))
-    kb = _apply(np.linalg.inv(turn_matrix(h.turn, b_in.shape)), found.keypoints_b) if h.turn % 4 else found.keypoints_b
-    found = dataclasses.replace(found, keypoints_a=found.keypoints_a + offsets[0], keypoints_b=kb + offsets[1])
+    sa, sb = h.maps if h.maps is not None else (h.scale, 1.0 / h.scale)
+    found = match_turned(matcher, images[0], images[1], sa, sb, h.turn, tuple(keys), maps_turned=True)
+    found = dataclasses.replace(found, keypoints_a=found.keypoints_a + offsets[0],
+                                keypoints_b=found.keypoints_b + offsets[1])
     m = found.matches
     v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf)
     return found, v

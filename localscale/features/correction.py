@@ -66,7 +66,8 @@ CORRECTION_METHODS = {c.name: c for c in (
     Correction("fused", ("local", "global"), help="local map shape + global ScaleNet level"),
     Correction("searched", ("local",), help="local maps from the windows sharing the most content "
                                             "(strong zoom, low overlap; ~30x slower)"),
-    Correction("gt", needs_H=True, help="analytic map of the true homography --H"),
+    Correction("gt", needs_H=True, help="analytic map of the true homography --H, and B turned by the quarter "
+                                        "turn that undoes its rotation (the ceiling of rectification)"),
     Correction("gt_gated", needs_H=True, help="the gt map through the gate of local"),
     Correction("refined", ("local",), refine=True, help="local maps, verified, refined by the geometry, "
                                                          "matched again (as --refine)"),

@@ -162,9 +162,21 @@ def match_pair(image_a, image_b, correction: str = "none", H=None, local_model=N
     if cfg.refine or method.refine:
         res = _refined(m, a, b, sa, sb, None, None, H, correction)
     else:
-        res = _result(m, m.match(a, b, sa, sb), H, correction)
+        res = _result(m, match_with_truth(m, a, b, sa, sb, H, correction), H, correction)
     res.scale_a, res.scale_b = sa, sb
     return _to_full_frame(res, to_work_a, to_work_b, H_full)
+
+
+def match_with_truth(m: Matcher, a, b, scale_a, scale_b, H, correction: str, keys=(None, None)) -> Matches:
+    """``m.match`` with the maps of ``correction``; the ground-truth corrections (``gt``,
+    ``gt_gated``) also turn B by the quarter turn that undoes the true homography's rotation at
+    A's centre (:func:`~.auto.nearest_turn`): the ceiling of scale and rotation rectification."""
+    from .auto import match_turned, nearest_turn
+
+    turn = 0
+    if H is not None and correction in ("gt", "gt_gated"):
+        turn = nearest_turn(np.asarray(H, np.float64), ((a.shape[1] - 1) / 2, (a.shape[0] - 1) / 2), b.shape)
+    return match_turned(m, a, b, scale_a, scale_b, turn, keys)
 
 
 def _result(m: Matcher, found: Matches, H, correction: str) -> MatchResult:
