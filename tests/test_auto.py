@@ -176,3 +176,12 @@ def test_predict_refines_with_the_geometry_that_auto_verifies_with_a_matcher(tmp
     for bad in (["--refine", "--search"], []):          # refuses before writing anything
         assert main(["predict", str(a), str(b), "-o", str(tmp_path / "x"), "--matcher", "sift", *bad]) == 2
         assert not (tmp_path / "x").exists()
+
+
+@needs_aliked
+def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
+    b, H = _zoom_turn(photo, 0.5, 1)
+    plain = match_pair(photo, b, "none", H=H, matcher="aliked-lightglue")
+    gt = match_pair(photo, b, "gt", H=H, matcher="aliked-lightglue")
+    assert (gt.errors < 3).sum() > max(50, 3 * (plain.errors < 3).sum()) and gt.accuracy(3.0) > 0.8
+    assert gt.keypoints_b[:, 0].max() < b.shape[1] and gt.keypoints_b[:, 1].max() < b.shape[0]   # B's own pixels
