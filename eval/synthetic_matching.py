@@ -19,6 +19,7 @@ error and the seconds per pair, overall and by zoom band and turn.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -146,8 +147,10 @@ def main(argv=None) -> int:
     p.add_argument("--run", nargs="+", default=["sift:none", "aliked-lightglue:none", "aliked-lightglue:auto"],
                    help="MATCHER:METHOD pairs (default: %(default)s)")
     p.add_argument("--num-features", type=int, default=None, help="features per image of every matcher")
-    p.add_argument("--accept-inliers", type=int, default=None, help="auto: clear-verification inliers")
-    p.add_argument("--budget", type=int, default=None, help="auto: matcher runs per pair")
+    p.add_argument("--auto", nargs="+", default=[], metavar="FIELD=VALUE",
+                   help="auto settings (AutoConfig fields, e.g. accept_inliers=30 window_share=0 seed=none)")
+    p.add_argument("--rectify-min-side", type=int, default=None, help="MatchConfig.rectify_min_side")
+    p.add_argument("--label", default="", help="suffix of the method names in the table (a variant's name)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", required=True, help="JSON file (a .md table is written beside it)")
     args = p.parse_args(argv)
@@ -156,24 +159,38 @@ def main(argv=None) -> int:
         return 2
     torch.set_num_threads(args.threads)
     _, held = split_images(list_images(args.photos), args.holdout_every)
+    auto = {}
+    for item in args.auto:
+        key, _, value = item.partition("=")
+        if key not in {f.name for f in dataclasses.fields(AutoConfig)}:
+            print(f"error: --auto {item}: no such AutoConfig field", file=sys.stderr)
+            return 2
+        default = getattr(AutoConfig(), key)
+        if value.lower() == "none":
+            auto[key] = None
+        elif isinstance(default, bool):
+            auto[key] = value.lower() in ("1", "true", "yes")
+        else:
+            auto[key] = type(default if default is not None else "")(value)
     runs = []
     for spec in args.run:
         name, _, method = spec.partition(":")
         options = {}
         if args.num_features:
             options["num_features"] = args.num_features
-        if method == "auto" and (args.accept_inliers or args.budget):
-            base = AutoConfig()
-            options["auto"] = AutoConfig(budget=args.budget or base.budget,
-                                         accept_inliers=args.accept_inliers or base.accept_inliers)
-        runs.append((name, method or "none", get_matcher(name, **options)))
+        if args.rectify_min_side is not None:
+            options["rectify_min_side"] = args.rectify_min_side
+        if method == "auto" and auto:
+            options["auto"] = AutoConfig(**auto)
+        runs.append((name, (method or "none") + args.label, get_matcher(name, **options)))
     local, glob = LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained()
     records = []
     pairs = list(zoom_pairs(held, args.pairs, args.seed, tuple(args.zoom), args.turns))
     for name, a, b, H, s, turn in tqdm(pairs, desc="pairs"):
         for mname, method, matcher in runs:
             matcher.clear_cache()
-            rec = run_one(matcher, method, a, b, H, local, glob)
+            rec = run_one(matcher, method[:len(method) - len(args.label)] if args.label else method, a, b, H,
+                          local, glob)
             records.append({"pair": name, "zoom": s, "turn": turn, "matcher": mname, "method": method, **rec})
     md = table(records)
     print(md)

@@ -60,6 +60,9 @@ class AutoConfig:
             ``"sift"``) run once when the identity is not clear; its verified geometry is the first
             hypothesis of the matcher's. Its run is listed among the trials but is not one of the
             budget's and never the result. ``None``: no seed.
+        window_share: a verified geometry's hypothesis matches only the window of the image whose
+            content is smaller that the other image shows, when it is at most this share of that
+            image (0: never a window).
     """
 
     budget: int = 4
@@ -69,6 +72,7 @@ class AutoConfig:
     same_log2: float = 0.25
     geometry_log2: float = 0.5
     seed: Optional[str] = "sift"
+    window_share: float = 0.5
 
     def check(self) -> "AutoConfig":
         if self.seed is not None:
@@ -76,6 +80,8 @@ class AutoConfig:
 
             if self.seed not in MATCHERS:
                 raise LocalScaleError(f"auto seed must be None or one of {', '.join(MATCHERS)}, got {self.seed!r}")
+        if not (0 <= self.window_share <= 1):
+            raise LocalScaleError(f"auto window_share must be in [0, 1], got {self.window_share!r}")
         if not (self.same_log2 >= 0 and self.geometry_log2 >= 0):
             raise LocalScaleError(f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, "
                                   f"{self.geometry_log2!r}")
@@ -341,7 +347,7 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
         anything was clear. The identity's clear verification is final."""
         if h.source.endswith("geometry"):     # the geometry confirmed by the matcher ends the loop
             return bool(v.verified) or any(clear(r[1]) for r in runs)
-        g = geometry_hypothesis(v)
+        g = geometry_hypothesis(v, max_share=config.window_share)
         if g is not None and not _same(g, tried, config.geometry_log2) and not (clear(v) and h is identity):
             queue.insert(0, g)
             return False
@@ -356,7 +362,7 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
                                            patches, matcher.config.bf16)
         queue += [h for h in hyps if h.source != "identity"]
         if config.seed and config.seed != matcher.config.name:
-            g = _seed_hypothesis(config.seed, image_a, image_b, keys, vconf, trials)
+            g = _seed_hypothesis(config.seed, image_a, image_b, keys, vconf, trials, config.window_share)
             if g is not None and not _same(g, tried, config.geometry_log2):
                 queue.insert(0, g)
         turns_added = False
@@ -386,7 +392,8 @@ def _seed_matcher(name: str):
     return Matcher(name)
 
 
-def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list) -> Optional[Hypothesis]:
+def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list,
+                     window_share: float) -> Optional[Hypothesis]:
     """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
     its verified geometry gives (``None`` if it did not verify)."""
     seed = Hypothesis(1.0, 0, f"seed ({name})")
@@ -396,7 +403,7 @@ def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf
     found, v = _run(_seed_matcher(name), a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf)
     trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
                         time.perf_counter() - t0))
-    g = geometry_hypothesis(v)
+    g = geometry_hypothesis(v, max_share=window_share)
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 
 
