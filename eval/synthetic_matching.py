@@ -120,7 +120,7 @@ def summarise(records: list, key) -> list:
 
 
 SPLITS = {"all": lambda r: True,
-          "zoom 3-5x": lambda r: abs(math.log(r["zoom"])) < math.log(5),
+          "zoom <5x": lambda r: abs(math.log(r["zoom"])) < math.log(5),
           "zoom >=5x": lambda r: abs(math.log(r["zoom"])) >= math.log(5),
           "upright": lambda r: r["turn"] == 0,
           "turned": lambda r: r["turn"] != 0}

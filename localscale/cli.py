@@ -550,7 +550,7 @@ def match_options(args) -> dict:
     """The :class:`~localscale.features.matchers.MatchConfig` fields that ``match`` / ``eval-hpatches``
     options set (options left at None keep the matcher's own values)."""
     opts = {}
-    for name in ("num_features", "max_side"):
+    for name in ("num_features", "max_side", "pyramid"):
         v = getattr(args, name, None)
         if v is not None:
             opts[name] = v or None if name == "max_side" else v

