@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .cli_options import (HelpFormatter, OneLineErrorParser, _LazyArgumentParser, add_hpatches_options,  # noqa: F401
-                          add_match_options, add_model_options, add_refine_options, nonnegative_int,
-                          positive_float, positive_int)
+                          add_match_options, add_model_options, add_refine_matcher_options, add_refine_options,
+                          nonnegative_int, positive_float, positive_int)
 from . import loading
 from .errors import LocalScaleError
 from .loading import MODEL_KINDS, load_scale_model  # noqa: F401
@@ -192,6 +192,11 @@ def cmd_predict(args) -> int:
         return _predict_pairs(args, out)
     if getattr(args, "refine", False) and args.refine_passes < 1:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
+    if args.matcher != "hardnet":
+        from .features.matchers import MATCHERS
+
+        if args.matcher not in MATCHERS:
+            raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
     if args.matcher != "hardnet" and not getattr(args, "refine", False):
         raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
     if args.matcher != "hardnet" and args.search:
@@ -717,17 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
     sp.add_argument("--overwrite", action="store_true",
                     help="with --pairs: redo pairs whose outputs already exist (default: skip them)")
-    g = add_refine_options(sp).add_argument_group("refinement by a matcher")
-    from .features.matchers import INSTALL_HINT, MATCHERS
-
-    g.add_argument("--matcher", default="hardnet", choices=list(MATCHERS), metavar="NAME",
-                   help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
-                        f"matcher ({', '.join(n for n in MATCHERS if n != 'hardnet')}) takes the geometry from "
-                        "correction auto with that matcher (the images as they are, then the networks' "
-                        "hypotheses, verified)")
-    g.add_argument("--matcher-weights", metavar="DIR", default=None,
-                   help=f"folder of the learned matchers' weight files (default: the installed weight packages: "
-                        f"{INSTALL_HINT})")
+    add_refine_matcher_options(add_refine_options(sp))
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_predict)
 

@@ -59,6 +59,20 @@ def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 
+def add_refine_matcher_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``--matcher`` and ``--matcher-weights`` of ``predict --refine`` (names checked when it runs,
+    so that building the parser imports no model code)."""
+    g = p.add_argument_group("refinement by a matcher")
+    g.add_argument("--matcher", default="hardnet", metavar="NAME",
+                   help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
+                        "matcher of 'localscale match --help' (e.g. aliked-lightglue) takes the geometry from "
+                        "correction auto with that matcher (the images as they are, then the networks' "
+                        "hypotheses, verified)")
+    g.add_argument("--matcher-weights", metavar="DIR", default=None,
+                   help="folder of the learned matchers' weight files (default: the installed weight packages)")
+    return p
+
+
 def _matcher_help() -> str:
     from .features.matchers import MATCHER_NEEDS, MATCHERS
 

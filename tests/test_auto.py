@@ -173,7 +173,7 @@ def test_predict_refines_with_the_geometry_that_auto_verifies_with_a_matcher(tmp
     assert refined.shape == shape_a and r.mean() < 1.03, r.mean()
     geo = json.loads((tmp_path / "kodim01_a_kodim01_b_geometry.json").read_text())
     assert geo["verified"] and geo["auto"]["trials"][0]["source"] == "identity"
-    for bad in (["--refine", "--search"], []):          # refuses before writing anything
+    for bad in (["--refine", "--search"], [], ["--refine", "--matcher", "orb"]):    # refuses before writing anything
         assert main(["predict", str(a), str(b), "-o", str(tmp_path / "x"), "--matcher", "sift", *bad]) == 2
         assert not (tmp_path / "x").exists()
 
