@@ -140,7 +140,7 @@ class Trial:
 class AutoResult:
     """What :func:`auto_match` returns: the chosen run's matches in original pixels, its
     verification, the chosen hypothesis, every trial in the order tried, the seconds of the whole
-    loop, and Local-ScaleNet's ungated maps of A and B (``None`` without a local model)."""
+    loop, and Local-ScaleNet's ungated maps of A and B (``None`` when the networks did not run)."""
 
     matches: object
     verification: VerificationResult
@@ -358,16 +358,19 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
     queue: list = []
     network_maps = None
     if not settled(attempt(identity), identity):
-        hyps, more, network_maps = propose(image_a, image_b, local_model, global_model, matcher.config.gate,
-                                           patches, matcher.config.bf16)
-        queue += [h for h in hyps if h.source != "identity"]
         if config.seed and config.seed != matcher.config.name:
             g = _seed_hypothesis(config.seed, image_a, image_b, keys, vconf, trials, config.window_share)
             if g is not None and not _same(g, tried, config.geometry_log2):
                 queue.insert(0, g)
+        hyps = more = None          # the networks run once the geometry's hypotheses are spent
         turns_added = False
         while sum(not t.hypothesis.source.startswith("seed") for t in trials) < config.budget:
             if not queue:
+                if hyps is None:
+                    hyps, more, network_maps = propose(image_a, image_b, local_model, global_model,
+                                                       matcher.config.gate, patches, matcher.config.bf16)
+                    queue += [h for h in hyps if h.source != "identity"]
+                    continue
                 if turns_added or not config.turns:
                     break
                 queue, turns_added = more(hyps[0].scale if hyps else 1.0), True
