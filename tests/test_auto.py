@@ -185,3 +185,14 @@ def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
     gt = match_pair(photo, b, "gt", H=H, matcher="aliked-lightglue")
     assert (gt.errors < 3).sum() > max(50, 3 * (plain.errors < 3).sum()) and gt.accuracy(3.0) > 0.8
     assert gt.keypoints_b[:, 0].max() < b.shape[1] and gt.keypoints_b[:, 1].max() < b.shape[0]   # B's own pixels
+
+
+def test_a_degenerate_geometry_gives_no_window():
+    from localscale.features.auto import _window
+
+    assert _window(np.zeros((3, 3)), 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
+    assert _window(np.full((3, 3), np.nan), 2.0, (100, 100), (100, 100), 0.25, 0.5) is None
+    behind = np.array([[1.0, 0, 0], [0, 1, 0], [-0.02, 0, 1]])       # part of A maps behind the camera
+    assert _window(behind, 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
+    half = np.diag([0.25, 0.25, 1.0])                                  # A in B's top-left 25 x 25
+    assert _window(half, 0.25, (100, 100), (100, 100), 0.25, 0.5) == (1, 0, 0, 32, 32)

@@ -282,6 +282,8 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
 def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin: float, max_share: float):
     """``(image, x0, y0, x1, y1)``: the part of the image whose content is smaller (B if
     ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
+    if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
+        return None
     wide, M, shape_wide, shape_other = (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
     h, w = shape_other[:2]
     corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
