@@ -25,7 +25,6 @@ Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -75,11 +74,8 @@ class AutoConfig:
     window_share: float = 0.5
 
     def check(self) -> "AutoConfig":
-        if self.seed is not None:
-            from .matchers import MATCHERS
-
-            if self.seed not in MATCHERS:
-                raise LocalScaleError(f"auto seed must be None or one of {', '.join(MATCHERS)}, got {self.seed!r}")
+        if self.seed is not None and not isinstance(self.seed, str):
+            raise LocalScaleError(f"auto seed must be None or a matcher's name, got {self.seed!r}")
         if not (0 <= self.window_share <= 1):
             raise LocalScaleError(f"auto window_share must be in [0, 1], got {self.window_share!r}")
         if not (self.same_log2 >= 0 and self.geometry_log2 >= 0):
@@ -303,7 +299,7 @@ def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin:
 # ---------------------------------------------------------------- the loop
 
 def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None,
-               config: Optional[AutoConfig] = None, keys: tuple = (None, None)) -> AutoResult:
+               config: Optional[AutoConfig] = None, keys: tuple = (None, None), seed_matcher=None) -> AutoResult:
     """Match ``image_a`` and ``image_b`` (``H x W x 3`` uint8) with ``matcher`` under the networks'
     hypotheses, each verified by geometry (module docstring).
 
@@ -312,6 +308,8 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
         local_model, global_model: the networks that propose (either may be None).
         config: the loop's settings (default: the matcher config's ``auto``).
         keys: cache keys of the two images (the turn is added to B's).
+        seed_matcher: the :class:`~localscale.features.matchers.Matcher` that ``config.seed`` names
+            (:func:`~localscale.features.pipeline.match_pair` builds it; None: no seed).
     Returns:
         :class:`AutoResult`; its ``matches`` are a :class:`~localscale.features.matchers.Matches`
         with keypoints in the pixels of the images given.
@@ -360,8 +358,8 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
     queue: list = []
     network_maps = None
     if not settled(attempt(identity), identity):
-        if config.seed and config.seed != matcher.config.name:
-            g = _seed_hypothesis(config.seed, image_a, image_b, keys, vconf, trials, config.window_share)
+        if seed_matcher is not None and seed_matcher.name != matcher.config.name:
+            g = _seed_hypothesis(seed_matcher, image_a, image_b, keys, vconf, trials, config.window_share)
             if g is not None and not _same(g, tried, config.geometry_log2):
                 queue.insert(0, g)
         hyps = more = None          # the networks run once the geometry's hypotheses are spent
@@ -390,22 +388,16 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
     return AutoResult(found, v, h, trials, time.perf_counter() - t_start, network_maps)
 
 
-@functools.lru_cache(maxsize=2)
-def _seed_matcher(name: str):
-    from .matchers import Matcher
-
-    return Matcher(name)
-
-
-def _seed_hypothesis(name: str, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list,
+def _seed_hypothesis(seed_matcher, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list,
                      window_share: float) -> Optional[Hypothesis]:
     """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
     its verified geometry gives (``None`` if it did not verify)."""
+    name = seed_matcher.name
     seed = Hypothesis(1.0, 0, f"seed ({name})")
     t0 = time.perf_counter()
     # a proposal only (the matcher's own run at it is verified again): fewer inliers will do
     vconf = dataclasses.replace(vconf, min_inliers=min(vconf.min_inliers, GEOMETRY_MIN_INLIERS))
-    found, v = _run(_seed_matcher(name), a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf)
+    found, v = _run(seed_matcher, a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf)
     trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
                         time.perf_counter() - t0))
     g = geometry_hypothesis(v, max_share=window_share)

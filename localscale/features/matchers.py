@@ -146,6 +146,8 @@ class MatchConfig:
         if not isinstance(self.auto, AutoConfig):
             raise LocalScaleError(f"auto must be an AutoConfig, got {type(self.auto).__name__}")
         self.auto.check()
+        if self.auto.seed is not None and self.auto.seed not in MATCHERS:
+            raise LocalScaleError(f"auto seed must be None or one of {', '.join(MATCHERS)}, got {self.auto.seed!r}")
         return self
 
 

@@ -17,6 +17,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -192,6 +193,12 @@ def _result(m: Matcher, found: Matches, H, correction: str) -> MatchResult:
     return res
 
 
+@functools.lru_cache(maxsize=2)
+def _seed_matcher(name: str) -> Matcher:
+    """The seed matcher of ``correction="auto"``, built once per process."""
+    return Matcher(name)
+
+
 def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=(None, None)) -> MatchResult:
     """``correction="auto"``: the hypothesis loop (:func:`~.auto.auto_match`); with ``refine``, the
     maps are refined by the winner's verified geometry (Local-ScaleNet's maps, or 1, elsewhere)."""
@@ -201,7 +208,9 @@ def _auto(m: Matcher, a, b, local_model, global_model, H, correction: str, keys=
 
     local_model = local_model if local_model is not None else LocalScaleNet.from_pretrained()
     global_model = global_model if global_model is not None else ScaleNet.from_pretrained()
-    out = auto_match(m, a, b, local_model, global_model, keys=keys)
+    seed = m.config.auto.seed
+    out = auto_match(m, a, b, local_model, global_model, keys=keys,
+                     seed_matcher=None if seed is None else _seed_matcher(seed))
     res = _result(m, out.matches, H, correction)
     # unverified: the identity's matches, and no geometry to trust
     res.verification = out.verification if out.verified else dataclasses.replace(out.verification, H=None, F=None)
