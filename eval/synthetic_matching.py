@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -47,12 +48,7 @@ def zoom_pairs(photos: list, n: int, seed: int, zoom: tuple, turns: bool, rotati
                perspective: float = 0.1):
     """``(name, A, B, H_{A->B}, zoom, turn)`` for ``n`` pairs (module docstring)."""
     rng = np.random.default_rng(seed)
-    cache: dict = {}
-
-    def img(i):
-        if i not in cache:
-            cache[i] = load_image(photos[i])
-        return cache[i]
+    img = functools.lru_cache(maxsize=None)(lambda i: load_image(photos[i]))
 
     for k in range(n):
         i, j = rng.choice(len(photos), 2, replace=False)

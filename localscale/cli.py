@@ -197,10 +197,10 @@ def cmd_predict(args) -> int:
 
         if args.matcher not in MATCHERS:
             raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
-    if args.matcher != "hardnet" and not getattr(args, "refine", False):
-        raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
-    if args.matcher != "hardnet" and args.search:
-        raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
+        if not getattr(args, "refine", False):
+            raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
+        if args.search:
+            raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
     inputs = (args.image_a, args.image_b)

@@ -199,10 +199,16 @@ def warp_image(image: np.ndarray, H: np.ndarray, shape_out: tuple[int, int],
 
 
 def homography_rotation(H: np.ndarray, shape_a: tuple[int, int]) -> float:
-    """In-plane rotation (degrees, -180..180) of ``H`` at the centre of image A: the angle of the
-    similarity closest to its Jacobian there (positive: counter-clockwise in the image frame)."""
+    """In-plane rotation (degrees, -180..180) of ``H`` at the centre of image A
+    (:func:`homography_rotation_at`)."""
     h, w = shape_a
-    c = np.array([[(w - 1) / 2, (h - 1) / 2]])
+    return homography_rotation_at(H, ((w - 1) / 2, (h - 1) / 2))
+
+
+def homography_rotation_at(H: np.ndarray, point) -> float:
+    """In-plane rotation (degrees, -180..180) of ``H`` at ``point`` ``(x, y)`` of A: the angle of the
+    similarity closest to its Jacobian there (positive: counter-clockwise in the image frame)."""
+    c = np.array([[float(point[0]), float(point[1])]])
     e = 1.0
     p0, px, py = project(H, c)[0], project(H, c + [[e, 0]])[0], project(H, c + [[0, e]])[0]
     J = np.stack([(px - p0) / e, (py - p0) / e], axis=1)    # columns: d/dx, d/dy

@@ -33,6 +33,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import LocalScaleError
+from ..geometry import homography_rotation_at
 from .verification import VerificationResult, verify_matches
 
 #: inliers the seed matcher's geometry needs to be proposed, and the matcher's run at a verified
@@ -237,21 +238,10 @@ def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
 
 # ---------------------------------------------------------------- the geometry's own hypothesis
 
-def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """``2 x 2`` Jacobian of the homography ``H`` at ``point`` (x, y)."""
-    p = np.array([point[0], point[1], 1.0])
-    w = float(H[2] @ p)
-    return (H[:2, :2] - np.outer(H[:2] @ p / w, H[2, :2])) / w
-
-
 def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
     """The quarter turn of B (of ``shape_b``) after which the homography ``H`` (A -> B) rotates
     least at ``point`` of A."""
-    angles = []
-    for k in range(4):
-        J = _jacobian(turn_matrix(k, shape_b) @ H, point)
-        angles.append(abs(math.atan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))
-    return int(np.argmin(angles))
+    return int(np.argmin([abs(homography_rotation_at(turn_matrix(k, shape_b) @ H, point)) for k in range(4)]))
 
 
 def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
