@@ -548,7 +548,7 @@ def cmd_rectify(args) -> int:
 # ---------------------------------------------------------------- match
 
 #: options of ``match`` that only the patch matcher (``--matcher hardnet``) reads
-PATCH_OPTIONS = ("descriptor", "detector", "orientation", "ratio")
+PATCH_OPTIONS = ("descriptor", "descriptor_precision", "detector", "orientation", "ratio")
 
 
 def match_options(args) -> dict:
@@ -583,7 +583,7 @@ def cmd_match(args) -> int:
     resolve_device(args.device)
     opts = match_options(args)
     if args.matcher != "hardnet":
-        used = [f"--{n}" for n in PATCH_OPTIONS if getattr(args, n, None) is not None]
+        used = [f"--{n.replace('_', '-')}" for n in PATCH_OPTIONS if getattr(args, n, None) is not None]
         if used:
             raise LocalScaleError(f"{', '.join(used)}: only the hardnet matcher takes patch options, "
                                   f"not --matcher {args.matcher}")

@@ -106,6 +106,9 @@ def add_matcher_options(p: argparse.ArgumentParser, several: bool = False) -> ar
                         "keypoint from the level its local scale selects (default 0: one rectification)")
     g.add_argument("--descriptor", default=None, help="hardnet matcher: hardnet | sift | path to HardNet weights "
                                                       "(default: hardnet)")
+    g.add_argument("--descriptor-precision", choices=("auto", "fp32", "bf16", "int8"), default=None,
+                   help="hardnet matcher: HardNet precision (default auto: int8 on CPU when the weights carry int8 "
+                        "ranges, else fp32)")
     g.add_argument("--detector", default=None, metavar="NAME",
                    help="hardnet matcher: single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb "
                         "| akaze (default: hessian)")

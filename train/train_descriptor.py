@@ -16,7 +16,15 @@ pairs each, so the hardest negatives come from the same image, as in matching; n
 keypoints lie within ``--min-negative-distance`` px in A (overlapping patches) are not used.
 
 Loss: HardNet hardest-in-batch triplet margin loss (margin 1). Adam with linear decay.
+Distillation (``--teacher WEIGHTS``, e.g. a narrower ``--widths 16 32 64`` student of the
+shipped HardNet): the loss adds ``--distill-weight`` times the mean squared distance between the
+student's and the teacher's descriptors of the same (flipped) patches.
 Checkpoints (``--out/last.pt``) resume automatically. ``--max-minutes`` bounds wall time.
+
+int8: ``--export`` also stores the activation ranges of the int8 path
+(:mod:`localscale.features.quantization`), calibrated on ``--calibration-patches`` random training
+patches; ``--calibrate-int8 WEIGHTS`` adds them to existing weights (in place, atomic) and
+prints the held-out scores in float32 and int8.
 
 Example (the shipped weights)::
 
@@ -152,6 +160,29 @@ def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0
     return F.relu(margin + pos - neg).mean()
 
 
+def calibration_set(pa: torch.Tensor, pb: torch.Tensor, n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` random training patches (half from A, half from B), float in [0, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    ia = torch.randperm(len(pa), generator=g)[:(n + 1) // 2]
+    ib = torch.randperm(len(pb), generator=g)[:n // 2]
+    return torch.cat([pa[ia], pb[ib]]).float() / 255
+
+
+def add_int8_ranges(model: HardNetDescriptor, patches: torch.Tensor) -> HardNetDescriptor:
+    """Round the weights to float16 (as saved) and calibrate the int8 path on ``patches``."""
+    model.net.half().float()
+    return model.calibrate_int8(patches)
+
+
+def scores_by_precision(model: HardNetDescriptor, ha: torch.Tensor, hb: torch.Tensor) -> dict:
+    """Held-out scores in float32 and, when the model has int8 ranges, in int8."""
+    out = {"fp32": evaluate(model.set_precision("fp32"), ha, hb)}
+    if model.int8_ranges:
+        out["int8"] = evaluate(model.set_precision("int8"), ha, hb)
+    model.set_precision("auto")
+    return out
+
+
 @torch.no_grad()
 def evaluate(desc, pa: torch.Tensor, pb: torch.Tensor, chunk: int = 1000) -> dict:
     """FPR95 (positives: corresponding pairs; negatives: shifted pairs), and within chunks of
@@ -192,11 +223,18 @@ def main(argv=None) -> int:
                    help="keypoints of one pair closer than this (px in A) are not negatives")
     p.add_argument("--evaluate-only", default=None, metavar="WEIGHTS",
                    help="score these descriptor weights (and SIFT) on the held-out patches of --out, no training")
+    p.add_argument("--calibrate-int8", default=None, metavar="WEIGHTS",
+                   help="add int8 activation ranges (from training patches of --out) to these weights, in place")
+    p.add_argument("--calibration-patches", type=int, default=4096, help="training patches for the int8 ranges")
     p.add_argument("--init", default=None, help="start from these descriptor weights (localscale/kornia format)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-minutes", type=float, default=float("inf"), help="stop (and save) after this wall time")
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--widths", type=int, nargs=3, default=None, metavar=("C1", "C2", "C3"),
+                   help="channel widths of the three stages (default: HardNet's 32 64 128, or --init's)")
+    p.add_argument("--teacher", default=None, metavar="WEIGHTS", help="distil from these descriptor weights")
+    p.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation term")
     p.add_argument("--export", default=None, help="write fp16 inference weights here at the end")
     p.add_argument("--limit-images", type=int, default=None, help="(tests) use only the first N images")
     args = p.parse_args(argv)
@@ -225,11 +263,23 @@ def main(argv=None) -> int:
 
     if args.evaluate_only:
         report = {"weights": args.evaluate_only,
-                  "held_out": evaluate(HardNetDescriptor.from_pretrained(args.evaluate_only), ha, hb),
+                  "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(args.evaluate_only), ha, hb),
                   "held_out_sift_baseline": evaluate(SIFTPatchDescriptor(), ha, hb)}
         print(json.dumps(report, indent=1), flush=True)
         return 0
-    model = HardNetDescriptor.from_pretrained(args.init) if args.init else HardNetDescriptor()
+    if args.calibrate_int8:
+        path = Path(args.calibrate_int8)
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        model = add_int8_ranges(HardNetDescriptor.from_pretrained(path),
+                                calibration_set(pa, pb, args.calibration_patches, args.seed))
+        model.save(path, meta=ckpt.get("meta", {}), half=True)
+        report = {"weights": str(path), "calibration_patches": args.calibration_patches,
+                  "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(path), ha, hb)}
+        print(json.dumps(report, indent=1), flush=True)
+        return 0
+    model = HardNetDescriptor.from_pretrained(args.init) if args.init \
+        else HardNetDescriptor(tuple(args.widths)) if args.widths else HardNetDescriptor()
+    teacher = HardNetDescriptor.from_pretrained(args.teacher).eval() if args.teacher else None
     model.net.float()
     opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-4)
     step, elapsed_before = 0, 0.0
@@ -260,7 +310,12 @@ def main(argv=None) -> int:
             a, b = a.flip(-1), b.flip(-1)
         same = gid[idx][:, None] == gid[idx][None, :]
         close = torch.cdist(kpa[idx], kpa[idx]) < args.min_negative_distance
-        loss = hardest_triplet_loss(model(a), model(b), not_negative=same & close)
+        da, db = model(a), model(b)
+        loss = hardest_triplet_loss(da, db, not_negative=same & close)
+        if teacher is not None:
+            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=a.device.type == "cpu"):
+                ta, tb = teacher(a).float(), teacher(b).float()
+            loss = loss + args.distill_weight * 0.5 * (((da - ta) ** 2).sum(1).mean() + ((db - tb) ** 2).sum(1).mean())
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -276,10 +331,13 @@ def main(argv=None) -> int:
     bar.close()
     save()
     model.eval()
-    score = evaluate(model, ha, hb)
+    add_int8_ranges(model, calibration_set(pa, pb, args.calibration_patches, args.seed))
+    scores = scores_by_precision(model, ha, hb)
+    score = scores["fp32"]
     sift = evaluate(SIFTPatchDescriptor(), ha, hb)
-    report = {"steps": step, "batch": args.batch, "images_per_batch": args.images_per_batch, "train_pairs": len(pa), "held_out": score,
-              "held_out_sift_baseline": sift, "stopped_by_time_limit": stopped_early,
+    report = {"widths": list(model.widths), "teacher": args.teacher, "steps": step, "batch": args.batch,
+              "images_per_batch": args.images_per_batch, "train_pairs": len(pa), "held_out": score,
+              "held_out_int8": scores.get("int8"), "held_out_sift_baseline": sift, "stopped_by_time_limit": stopped_early,
               "train_wall_minutes": round((elapsed_before + time.time() - t_start) / 60, 1)}
     print(json.dumps(report, indent=1), flush=True)
     (out / "report.json").write_text(json.dumps(report, indent=1))

@@ -42,7 +42,7 @@ import torch
 from ..errors import LocalScaleError
 from ..devices import resolve_device
 from .correction import CorrectionGate
-from .descriptors import PatchDescriptor, get_descriptor
+from .descriptors import PRECISIONS, HardNetDescriptor, PatchDescriptor, get_descriptor
 from .detector import HessianDetector, get_detector, image_to_gray_tensor
 from .matching import match_descriptors
 from .patches import ScaleCorrectedPatches, patch_radii
@@ -76,6 +76,9 @@ class MatchConfig:
             the rest, up to ``max_side`` (:func:`rectify_factors`).
         descriptor, detector, base_radius, orientation: the ``patches`` extractor
             (:func:`~localscale.features.matchers.extract`).
+        descriptor_precision: of a HardNet descriptor (``auto``: int8 on CPU when its weights
+            carry int8 ranges, else fp32; ``fp32``, ``bf16``, ``int8``;
+            :class:`~localscale.features.descriptors.HardNetDescriptor`).
         ratio: Lowe's ratio on top of mutual NN (``None``: mutual NN only; ``patches``: kornia's
             symmetric test, ``sift``: from A to B, as OpenCV's ``knnMatch`` users do).
         min_similarity: ``mnn`` of learned descriptors: cosine similarity a match must exceed.
@@ -99,6 +102,7 @@ class MatchConfig:
     rectify_min_side: int = 640
     pyramid: int = 0
     descriptor: Union[str, PatchDescriptor] = "hardnet"
+    descriptor_precision: str = "auto"
     detector: str = "hessian"
     base_radius: float = 16.0
     orientation: str = "upright"
@@ -135,6 +139,9 @@ class MatchConfig:
         _check_number(self.min_similarity, "min_similarity", low=-1.0, high=1.0, inclusive=True)
         _check_number(self.filter_threshold, "filter_threshold", low=0.0, high=1.0, inclusive=True)
         _check_int(self.max_passes, "max_passes", 1)
+        if self.descriptor_precision not in PRECISIONS:
+            raise LocalScaleError(f"descriptor_precision must be one of {PRECISIONS}, "
+                                  f"got {self.descriptor_precision!r}")
         if self.orientation not in ("upright", "gradient"):
             raise LocalScaleError(f"orientation must be 'upright' or 'gradient', got {self.orientation!r}")
         if self.extractor == "aliked" and self.model not in ALIKED_MODELS:
@@ -382,6 +389,8 @@ class Matcher:
         if c.extractor == "patches":
             get_detector(c.detector, c.num_features)        # an unknown name fails here
             self._desc = get_descriptor(c.descriptor).to(self.device)
+            if isinstance(self._desc, HardNetDescriptor):
+                self._desc.set_precision(c.descriptor_precision)
             self._cutter = ScaleCorrectedPatches(c.base_radius, self._desc.patch_size, c.orientation)
         elif c.extractor != "sift":
             self._extractor = _load_extractor(c).to(self.device)
