@@ -95,7 +95,12 @@ def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[En
     fb = torch.cat([e.features for e in encs_b])
     local = hasattr(model, "forward_features_all")
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
-        out = model.forward_features_all(fa, fb) if local else model.forward_features(fa, fb)
+        if local:   # A's self-correlation terms: once per encoding, kept with it
+            terms = [model.cached_self_terms(e, bf16) for e in encs_a]
+            top = None if terms[0][1] is None else torch.cat([t[1] for t in terms])
+            out = model.forward_features_all(fa, fb, (torch.cat([t[0] for t in terms]), top))
+        else:
+            out = model.forward_features(fa, fb)
     if not local:   # global ScaleNet: both directions
         pa, pb = F.softmax(out[0].float(), 1), F.softmax(out[1].float(), 1)
         return [model._readout(pa[i], pb[i], a.letterbox, b.letterbox) for i, (a, b) in enumerate(zip(encs_a, encs_b))]

@@ -165,9 +165,11 @@ def mutual_similarity(fa: torch.Tensor, fb: torch.Tensor, cells_a: torch.Tensor,
 def _scores(model: LocalScaleNet, fa: torch.Tensor, fb: torch.Tensor, lb_a, lb_b, bf16: bool) -> torch.Tensor:
     """Scores of ``B`` pairs of encodings (``fa`` or ``fb`` may have batch 1 and is expanded)."""
     n = max(fa.shape[0], fb.shape[0])
-    fa, fb = fa.expand(n, -1, -1, -1), fb.expand(n, -1, -1, -1)
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
-        logits, vis = model.forward_features_all(fa, fb)
+        terms = model.self_terms(fa)    # once for a single A against many B
+        terms = tuple(None if t is None else t.expand(n, -1, -1, -1) for t in terms)
+        fa, fb = fa.expand(n, -1, -1, -1), fb.expand(n, -1, -1, -1)
+        logits, vis = model.forward_features_all(fa, fb, terms)
     probs = F.softmax(logits.float(), 1)
     visible = torch.sigmoid(vis.float())[:, 0] if vis is not None else None
     g = fa.shape[-1]

@@ -53,6 +53,32 @@ def test_cached_features_give_identical_predictions(local_model, photos):
     assert np.allclose(p1.scale, p2.scale, rtol=1e-5)
 
 
+def test_self_terms_are_computed_once_per_encoding(local_model, photos):
+    ea = local_model.encode_image(photos["coffee"])
+    eb = local_model.encode_image(photos["chelsea"])
+    ec = local_model.encode_image(photos["astronaut"])
+    size = ea.nbytes
+    p_ab = local_model.predict_from_features(ea, eb)
+    assert len(ea.terms) == 1 and ea.nbytes > size and not eb.terms
+    # the kept terms are the ones the full head computes: same maps with and without them
+    ea.terms.clear()
+    p_ac = local_model.predict_from_features(ea, ec)
+    assert np.allclose(local_model.predict_from_features(ea, ec).scale, p_ac.scale, rtol=1e-6)
+    assert np.allclose(local_model.predict_from_features(ea, eb).scale, p_ab.scale, rtol=1e-6)
+    assert not np.allclose(p_ab.scale, p_ac.scale)     # B still matters
+
+
+def test_loaded_models_are_channels_last_on_cpu_with_the_same_output(tmp_path, local_model, photos):
+    path = tmp_path / "m.pt"
+    save_model(local_model, path)
+    loaded = LocalScaleNet.from_pretrained(path)
+    w = loaded.extractor.backbone.features[0].weight
+    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous()
+    assert loaded._channels_last and not local_model._channels_last
+    a, b = photos["coffee"], photos["chelsea"]
+    assert np.allclose(loaded.predict(a, b).scale, local_model.predict(a, b).scale, rtol=1e-4)
+
+
 def test_global_consistency_reuses_one_correlation():
     fa, fb = torch.randn(2, 8, 5, 6), torch.randn(2, 8, 4, 3)
     assert torch.allclose(transpose_correlation(correlation(fa, fb), (4, 3)), correlation(fb, fa), atol=1e-5)

@@ -1,7 +1,7 @@
 """Shared plumbing of the two scale models: image preparation, encoding, loading."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,15 +22,20 @@ class EncodedImage:
     """Backbone+ASPP features of one image, reusable for every pair it is in.
 
     ``features``: ``1 x D x h x w`` (processing frame), ``letterbox``: how the original
-    image sits in that frame.
+    image sits in that frame. ``terms``: what a model's head computes from this image alone
+    (e.g. Local-ScaleNet's self-correlation terms), filled on first use by the model that
+    encoded it and reused for every later pair.
     """
 
     features: torch.Tensor
     letterbox: Letterbox
+    terms: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def nbytes(self) -> int:
-        return self.features.numel() * self.features.element_size()
+        extra = sum(t.numel() * t.element_size() for v in self.terms.values()
+                    for t in (v if isinstance(v, tuple) else (v,)) if isinstance(t, torch.Tensor))
+        return self.features.numel() * self.features.element_size() + extra
 
 
 class ScaleModel(nn.Module):
@@ -74,7 +79,17 @@ class ScaleModel(nn.Module):
         if images.dim() != 4 or images.shape[1] != 3 or images.shape[-2:] != (self.config.image_size,) * 2:
             raise ValueError(f"encode: expected B x 3 x {self.config.image_size} x {self.config.image_size}, "
                              f"got {tuple(images.shape)}")
+        if self._channels_last:
+            images = images.contiguous(memory_format=torch.channels_last)
         return self.extractor(images)
+
+    @property
+    def _channels_last(self) -> bool:
+        """Whether the convolution weights are stored channels-last (as :func:`~.registry.load_model`
+        stores them on CPU, where oneDNN's convolutions and pooling are faster in that layout)."""
+        w = next((p for p in self.extractor.parameters() if p.dim() == 4), None)
+        return w is not None and w.device.type == "cpu" and not w.is_contiguous() \
+            and w.is_contiguous(memory_format=torch.channels_last)
 
     @property
     def input_side(self) -> int:

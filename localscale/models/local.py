@@ -42,8 +42,7 @@ from ..planar import planarize
 from ..preprocess import Letterbox
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
-from .common import (ReductionBlock, conv_bn_relu, correlation, normalise_correlation, topk_profile,
-                     warped_pair_features)
+from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation, warped_pair_features
 from .registry import register
 
 
@@ -251,13 +250,25 @@ class LocalScaleNet(ScaleModel):
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
         return self.forward_features_all(fa, fb)[0]
 
-    def forward_features_all(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def self_terms(self, fa: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """What the head computes from A alone, reusable for every B: the reduced
+        self-correlation ``B x C x h x w`` and (with ``topk``) A's ``k`` largest
+        self-correlations ``B x k x h x w`` (else None)."""
+        raw_a = correlation(fa, fa)
+        top = raw_a.topk(self.topk, 1).values if self.topk else None
+        return self.reduce_self(normalise_correlation(raw_a)), top
+
+    def forward_features_all(self, fa: torch.Tensor, fb: torch.Tensor,
+                             terms_a: tuple[torch.Tensor, torch.Tensor | None] | None = None
+                             ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Scale logits ``B x 13 x h x w`` and visibility logits ``B x 1 x h x w`` (None without the
-        visibility output) from encoded features."""
-        raw_a, raw_ab = correlation(fa, fa), correlation(fa, fb)
-        parts = [self.reduce_self(normalise_correlation(raw_a)), self.reduce_cross(normalise_correlation(raw_ab))]
+        visibility output) from encoded features; ``terms_a``: :meth:`self_terms` of ``fa``
+        when already computed."""
+        reduced_a, top_a = terms_a if terms_a is not None else self.self_terms(fa)
+        raw_ab = correlation(fa, fb)
+        parts = [reduced_a, self.reduce_cross(normalise_correlation(raw_ab))]
         if self.topk:
-            parts.append(self.reduce_topk(topk_profile(raw_ab, raw_a, self.topk)))
+            parts.append(self.reduce_topk(torch.cat([raw_ab.topk(self.topk, 1).values, top_a], 1)))
         if self.config.warp_features:
             parts.append(self.reduce_warp(warped_pair_features(raw_ab, fa, fb)))
         return self.head(torch.cat(parts, 1))
@@ -271,12 +282,21 @@ class LocalScaleNet(ScaleModel):
     @torch.inference_mode()
     def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, hard: bool = False,
                               bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
-        """Scale map from two cached encodings (see :meth:`encode_image`)."""
+        """Scale map from two cached encodings (see :meth:`encode_image`); A's :meth:`self_terms`
+        are kept in ``ea.terms`` for its later pairs."""
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
-            logits, vis = self.forward_features_all(ea.features, eb.features)
+            logits, vis = self.forward_features_all(ea.features, eb.features, self.cached_self_terms(ea, bf16))
         probs = F.softmax(logits.float(), 1)[0]
         visible = torch.sigmoid(vis.float())[0, 0] if vis is not None else None
         return self._readout(probs, ea.letterbox, eb.letterbox, hard, planar, visible)
+
+    def cached_self_terms(self, enc: EncodedImage, bf16: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`self_terms` of an encoding, computed once and kept in ``enc.terms``."""
+        key = ("local_self_terms", bf16)
+        if key not in enc.terms:
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
+                enc.terms[key] = self.self_terms(enc.features)
+        return enc.terms[key]
 
     @torch.inference_mode()
     def predict(self, image_a: ImageLike, image_b: ImageLike, hard: bool = False,

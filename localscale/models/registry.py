@@ -30,7 +30,8 @@ def register(cls: type) -> type:
 
 
 def load_model(path: str | Path, arch: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
-    """Build the model a checkpoint describes and load its weights (fp32, eval mode).
+    """Build the model a checkpoint describes and load its weights (fp32, eval mode; on CPU the
+    convolution weights in the channels-last layout, the faster one for oneDNN there).
 
     Args:
         arch: if given, the checkpoint must be of this architecture.
@@ -65,4 +66,5 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
                               f"({first[0][:160] if first else 'state_dict mismatch'})") from None
     check_record(model, ckpt.get("backbone"), path)
     model.meta = ckpt.get("meta", {})
-    return model.to(device).eval()
+    model = model.to(device).eval()
+    return model.to(memory_format=torch.channels_last) if torch.device(device).type == "cpu" else model
