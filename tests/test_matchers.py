@@ -37,6 +37,17 @@ def test_learned_matcher_matches_the_bundled_pair(name):
     assert small.keypoints_a[:, 0].max() > 400     # keypoints in pixels of the 640-px image
 
 
+def test_channels_last_aliked_gives_the_same_features():
+    _needs("aliked-lightglue")
+    img = load_image(A)[:240, :320]
+    fast, plain = Matcher("aliked-lightglue"), Matcher(match_config("aliked-lightglue", channels_last=False))
+    assert fast._channels_last and not plain._channels_last
+    f1, f2 = fast.extract(img), plain.extract(img)
+    assert len(f1.keypoints) == len(f2.keypoints) > 100
+    assert np.allclose(f1.keypoints, f2.keypoints, atol=1e-3)
+    assert np.allclose(f1.descriptors.numpy(), f2.descriptors.numpy(), atol=1e-4)
+
+
 def test_sift_and_hardnet_match_the_bundled_pair():
     for name, floor in (("sift", 0.85), ("hardnet", 0.5)):
         res = match_pair(A, B, "none", H=H_AB, matcher=name)
@@ -79,8 +90,8 @@ def test_zoomed_pair_rectified_by_the_true_scale_matches_better():
 
 def test_config_checks_and_names():
     assert set(MATCHERS) == {"hardnet", "sift", "aliked-lightglue", "disk-lightglue", "xfeat-lighterglue", "xfeat"}
-    cfg = match_config("aliked-lightglue", num_features=512)
-    assert cfg.num_features == 512 and MATCHERS["aliked-lightglue"].num_features == 2048   # the named conf is kept
+    cfg = match_config("aliked-lightglue", num_features=2048)
+    assert cfg.num_features == 2048 and MATCHERS["aliked-lightglue"].num_features == 512   # the named conf is kept
     for bad in ({"num_features": 0}, {"max_side": 3}, {"ratio": 1.5}, {"extractor": "orb"},
                 {"matching": "lightglue"}, {"base_radius": float("inf")}, {"orientation": "east"}):
         with pytest.raises(LocalScaleError):
