@@ -6,10 +6,12 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
 * CLI start-up (``python -m localscale --help`` in a subprocess) and one ``localscale match``
   run end to end (subprocess: imports, model loads, matching, writing the picture);
 * model load (Local-ScaleNet, ScaleNet, HardNet);
-* scale map: Local-ScaleNet ``predict`` (both images encoded) and from cached features (head
-  only), ScaleNet ``predict``;
-* keypoint detection, patch extraction (local correction), description (HardNet at the default
-  chunk size and at 512 patches per call, the former default; RootSIFT), mutual-NN matching;
+* scale map: Local-ScaleNet ``predict`` (both images encoded) and from cached encodings (the
+  head; A's self-correlation terms kept with its encoding, as for 1-vs-N, or recomputed, as for
+  a new A), ScaleNet ``predict``;
+* keypoint detection, patch extraction (local correction), description (HardNet of ``--descriptor``
+  at each precision of :data:`~localscale.features.descriptors.PRECISIONS` with both images'
+  patches in one call, the default precision also in two calls; RootSIFT), mutual-NN matching;
 * per matcher of ``--matcher`` (names of :data:`localscale.features.matchers.MATCHERS`, each at
   ``--num-features``): building the :class:`~localscale.features.matchers.Matcher` (its weights),
   ``Matcher.extract`` of both images and ``Matcher.match`` without scale maps, ``match_pair`` end to
@@ -17,6 +19,11 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
   ``eval-hpatches`` pair (:func:`localscale.evaluation.hpatches.evaluate`) per method: the methods
   in a row on one fresh matcher (shared work, as in ``localscale eval-hpatches``) and each method
   alone;
+* ``aliked-lightglue`` also with kornia's defaults (2048 keypoints, the contiguous layout),
+  against which the default's speed-up is given;
+* with ``--pairs-per-second N``: throughput on ``--device`` (CUDA synchronised) of
+  ``match_pair`` with the local correction (hardnet matcher) and of batched scale maps, over
+  ``N`` pairs;
 * OpenCV's SIFT pipeline on the same images (``cv2.SIFT_create(nfeatures)`` detect + compute
   on both, ``BFMatcher(NORM_L2, crossCheck=True)``) as the reference: every stage is also given
   as a ratio to it;
@@ -28,6 +35,7 @@ cache (1 vs N images, all pairs) is measured with ``--throughput``.
 
     python eval/benchmark.py --repeat 3 --threads 2 --out results/benchmark.json
     python eval/benchmark.py --matcher hardnet sift aliked-lightglue xfeat-lighterglue --no-cli
+    python eval/benchmark.py --device cuda --pairs-per-second 50 --no-cli
 
 Only the public API is used, so the same script times another checkout of the same API:
 ``PYTHONPATH=/path/to/other/checkout python eval/benchmark.py``.
@@ -54,6 +62,7 @@ from localscale.errors import LocalScaleError
 from localscale.features import (HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor,
                                  match_descriptors, match_pair)
 from localscale.features.correction import CORRECTIONS, get_correction, scale_maps_for_pair
+from localscale.features.descriptors import PRECISIONS
 from localscale.features.detector import HessianDetector
 from localscale.features.matchers import MATCHERS, Matcher, match_config
 from localscale.io import load_image, read_homography
@@ -146,6 +155,37 @@ def eval_pair_times(a, b, H, methods, cfg, device, local, glob, repeat, tmp) -> 
     return out
 
 
+def synchronize(device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def pairs_per_second(img_a, img_b, H, local, matcher, device, n: int) -> dict:
+    """Throughput on ``device``: ``match_pair`` (local correction, ``matcher``) and Local-ScaleNet
+    maps in batches of up to 8 pairs, ``n`` pairs each (after one warm-up), CUDA synchronised."""
+    match_pair(img_a, img_b, "local", H, local, None, matcher)
+    synchronize(device)
+    t = time.perf_counter()
+    for _ in range(n):
+        match_pair(img_a, img_b, "local", H, local, None, matcher)
+    synchronize(device)
+    match_s = time.perf_counter() - t
+    batch = min(8, n)
+    xa = torch.from_numpy(np.stack([img_a] * batch)).permute(0, 3, 1, 2).to(device)
+    xb = torch.from_numpy(np.stack([img_b] * batch)).permute(0, 3, 1, 2).to(device)
+    local.predict_batch(xa, xb)
+    synchronize(device)
+    t, done = time.perf_counter(), 0
+    while done < n:
+        k = min(batch, n - done)
+        local.predict_batch(xa[:k], xb[:k])
+        done += k
+    synchronize(device)
+    map_s = time.perf_counter() - t
+    return {"device": str(device), "pairs": n, "match_pair_local_pairs_per_s": n / match_s,
+            "scale_map_batched_pairs_per_s": n / map_s, "map_batch": batch}
+
+
 def throughput_sections(model, rng) -> dict:
     """Scale-model pairs/s uncached vs with the feature cache (1 vs N, all pairs of N images)."""
     from localscale.cache import encode_batch, predict_batch
@@ -195,21 +235,27 @@ def main(argv=None) -> int:
                    help="eval-hpatches methods timed (default: none local gt)")
     p.add_argument("--no-cli", action="store_true", help="skip the subprocess timings (--help, match)")
     p.add_argument("--throughput", action="store_true", help="also time scale-model throughput with the cache")
+    p.add_argument("--pairs-per-second", type=int, default=0, metavar="N",
+                   help="also measure throughput on --device over N pairs (match_pair local, batched maps)")
+    p.add_argument("--descriptor", default=None, metavar="WEIGHTS", help="HardNet weights (default: bundled)")
     p.add_argument("--local-weights", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
     p.add_argument("--global-weights", default=None, help="ScaleNet checkpoint (default: bundled)")
     p.add_argument("--out", default=None, help="JSON file")
     a = p.parse_args(argv)
-    if a.repeat < 1 or a.num_features < 1:
-        p.error("--repeat and --num-features must be >= 1")
+    if a.repeat < 1 or a.num_features < 1 or a.pairs_per_second < 0:
+        p.error("--repeat and --num-features must be >= 1, --pairs-per-second >= 0")
     if a.threads:
         torch.set_num_threads(a.threads)
     rng = np.random.default_rng(0)
     n, rep = a.num_features, a.repeat
     names = list(dict.fromkeys(a.matcher))
     try:   # every matcher's weights load before anything is timed
-        hardnet = HardNetDescriptor.from_pretrained(device=a.device)
+        hardnet = HardNetDescriptor.from_pretrained(a.descriptor, device=a.device)
         configs = {name: matcher_config(name, n, hardnet) for name in names}
         matchers = {name: Matcher(cfg, a.device) for name, cfg in configs.items()}
+        kornia_defaults = Matcher(match_config("aliked-lightglue", name="aliked-lightglue (kornia defaults)",
+                                               num_features=2048, channels_last=False), a.device) \
+            if "aliked-lightglue" in names else None
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
@@ -218,7 +264,8 @@ def main(argv=None) -> int:
            "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
            "load_average_start": os.getloadavg(), "localscale": str(Path(localscale.__file__).parent),
            "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep,
-           "matchers": names,
+           "matchers": names, "descriptor": a.descriptor or "bundled",
+           "descriptor_precision_auto": hardnet.resolved_precision(a.device),
            "local_weights": a.local_weights or "bundled", "global_weights": a.global_weights or "bundled"}
     st = {}   # stage -> timing dict
 
@@ -236,14 +283,17 @@ def main(argv=None) -> int:
 
         st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(a.local_weights, a.device), rep)
         st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(a.global_weights, a.device), rep)
-        st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(device=a.device), rep)
+        st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(a.descriptor, device=a.device), rep)
         local = LocalScaleNet.from_pretrained(a.local_weights, a.device)
         glob = ScaleNet.from_pretrained(a.global_weights, a.device)
         sift = SIFTPatchDescriptor().to(a.device).eval()
 
         st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), rep)
         ea, eb = local.encode_image(img_a), local.encode_image(img_b)
-        st["scale map: local, cached features (head)"] = timeit(lambda: local.predict_from_features(ea, eb), rep)
+        st["scale map: local, cached encodings, A's self terms kept (head)"] = \
+            timeit(lambda: local.predict_from_features(ea, eb), rep)
+        st["scale map: local, cached encodings, A's self terms recomputed (head)"] = \
+            timeit(lambda _: local.predict_from_features(ea, eb), rep, setup=ea.terms.clear)
         st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), rep)
 
         ga, gb = image_to_gray_tensor(img_a), image_to_gray_tensor(img_b)
@@ -255,9 +305,17 @@ def main(argv=None) -> int:
         st["patches: 2 images (local correction)"] = timeit(lambda: (cutter(ga, ka, sa), cutter(gb, kb, sb)), rep)
         pa_, pb_ = cutter(ga, ka, sa)[0], cutter(gb, kb, sb)[0]
         patches = torch.cat([pa_, pb_])
-        st[f"describe: HardNet, {len(patches)} patches"] = timeit(lambda: hardnet.describe(patches), rep)
-        st[f"describe: HardNet, {len(patches)} patches, 512 per call"] = \
-            timeit(lambda: hardnet.describe(patches, batch_size=512), rep)
+        default = hardnet.resolved_precision(a.device)
+        for prec in PRECISIONS[1:]:
+            if prec == "int8" and (not hardnet.int8_ranges or torch.device(a.device).type != "cpu"):
+                continue
+            hardnet.set_precision(prec)
+            tag = " (default)" if prec == default else ""
+            st[f"describe: HardNet {prec}{tag}, {len(patches)} patches, one call"] = \
+                timeit(lambda: hardnet.describe(patches), rep)
+        hardnet.set_precision("auto")
+        st[f"describe: HardNet {default}, {len(patches)} patches, two calls (A, B)"] = \
+            timeit(lambda: (hardnet.describe(pa_), hardnet.describe(pb_)), rep)
         st[f"describe: RootSIFT, {len(patches)} patches"] = timeit(lambda: sift.describe(patches), rep)
         da, db = hardnet.describe(pa_), hardnet.describe(pb_)
         st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
@@ -287,6 +345,20 @@ def main(argv=None) -> int:
             res["eval_pair"][name] = {"mma5": ev["mma5"], "record_seconds": ev["record_seconds"],
                                       "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]}}
 
+        if kornia_defaults is not None:
+            km = kornia_defaults
+            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): extract 2 images"] = \
+                timeit(lambda: (km.extract(img_a), km.extract(img_b)), rep)
+            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"] = \
+                timeit(lambda: km.match(img_a, img_b), rep)
+            ours = st["matcher aliked-lightglue: match (extract + match, no maps)"]
+            kd = st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"]
+            res["aliked_lightglue_speedup_over_kornia_defaults"] = {"wall": kd["ms"] / ours["ms"],
+                                                                     "cpu": kd["cpu_ms"] / ours["cpu_ms"]}
+        if a.pairs_per_second:
+            res["pairs_per_second"] = pairs_per_second(img_a, img_b, H, local, matchers.get("hardnet")
+                                                       or Matcher(matcher_config("hardnet", n, hardnet), a.device),
+                                                       a.device, a.pairs_per_second)
         st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(lambda: opencv_sift(img_a, img_b, n), rep)
         res["opencv_sift_matches"] = len(opencv_sift(img_a, img_b, n))
 
@@ -315,6 +387,13 @@ def main(argv=None) -> int:
     for name, ms in res["matches"].items():
         print(f"matches {name}: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in ms.items()))
     print(f"matches OpenCV SIFT: {res['opencv_sift_matches']}")
+    if "aliked_lightglue_speedup_over_kornia_defaults" in res:
+        v = res["aliked_lightglue_speedup_over_kornia_defaults"]
+        print(f"aliked-lightglue default vs kornia's defaults: {v['wall']:.2f}x faster (wall), {v['cpu']:.2f}x (CPU)")
+    if "pairs_per_second" in res:
+        v = res["pairs_per_second"]
+        print(f"throughput on {v['device']} ({v['pairs']} pairs): match_pair local {v['match_pair_local_pairs_per_s']:.2f} "
+              f"pairs/s, scale maps in batches of {v['map_batch']} {v['scale_map_batched_pairs_per_s']:.1f} pairs/s")
     if "throughput_local" in res:
         for k, v in res["throughput_local"].items():
             print(f"local model {k}: " + ", ".join(f"{kk} {vv:.1f}" for kk, vv in v.items()))

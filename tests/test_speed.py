@@ -175,3 +175,22 @@ def test_lazy_package_names():
     assert localscale.LocalScaleNet.__name__ == "LocalScaleNet"
     with pytest.raises(AttributeError):
         features.no_such_name
+
+
+def test_benchmark_throughput_code_path_runs_on_cpu():
+    """``eval/benchmark.py --pairs-per-second`` (the CUDA throughput section) on the CPU: both rates
+    positive and finite; the CUDA-only calls are skipped there."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("benchmark", Path(__file__).resolve().parent.parent / "eval" / "benchmark.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    from localscale.features.matchers import Matcher
+    from localscale.models import LocalScaleNet
+
+    torch.manual_seed(0)
+    local = LocalScaleNet(width=0.125, feature_dim=16, image_size=64).eval()
+    a, b, H = bench.test_pair((160, 120))
+    out = bench.pairs_per_second(a, b, H, local, Matcher(MatchConfig(num_features=100)), "cpu", 3)
+    assert out["pairs"] == 3 and out["map_batch"] == 3 and out["device"] == "cpu"
+    assert 0 < out["match_pair_local_pairs_per_s"] < float("inf") and 0 < out["scale_map_batched_pairs_per_s"] < float("inf")
