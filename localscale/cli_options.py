@@ -104,7 +104,7 @@ def add_matcher_options(p: argparse.ArgumentParser, several: bool = False) -> ar
     g.add_argument("--pyramid", type=nonnegative_int, default=None, metavar="N",
                    help="learned matchers with scale maps (correction local, ...): N half-octave levels, each "
                         "keypoint from the level its local scale selects (default 0: one rectification)")
-    g.add_argument("--descriptor", default=None, help="hardnet matcher: hardnet | sift | path to HardNet weights "
+    g.add_argument("--descriptor", default=None, help="hardnet matcher: hardnet | hardnet-full | sift | path to HardNet weights "
                                                       "(default: hardnet)")
     g.add_argument("--descriptor-precision", choices=("auto", "fp32", "bf16", "int8"), default=None,
                    help="hardnet matcher: HardNet precision (default auto: int8 on CPU when the weights carry int8 "

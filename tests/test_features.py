@@ -353,7 +353,8 @@ def test_bad_match_options_and_models(photos, tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos):
+@pytest.mark.parametrize("descriptor, widths", [("hardnet", (16, 32, 64)), ("hardnet-full", (32, 64, 128))])
+def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos, descriptor, widths):
     """Patch pairs cut as in training (scale error, photometric change, re-detection jitter) from
     scikit-image photos the descriptor never saw: lower FPR95 and higher NN accuracy than RootSIFT."""
     import importlib.util
@@ -372,7 +373,11 @@ def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos):
             pb.append(b)
     pa, pb = torch.cat(pa), torch.cat(pb)
     assert len(pa) >= 500
-    ours = td.evaluate(HardNetDescriptor.from_pretrained(), pa, pb, chunk=250)
+    from localscale.features.descriptors import get_descriptor
+
+    model = get_descriptor(descriptor)
+    assert model.widths == widths
+    ours = td.evaluate(model, pa, pb, chunk=250)
     sift = td.evaluate(SIFTPatchDescriptor(), pa, pb, chunk=250)
     assert ours["fpr95"] < 0.5 * sift["fpr95"], (ours, sift)
     assert ours["nn_accuracy_1000"] > sift["nn_accuracy_1000"] + 0.05, (ours, sift)

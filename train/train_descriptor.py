@@ -26,10 +26,10 @@ int8: ``--export`` also stores the activation ranges of the int8 path
 patches; ``--calibrate-int8 WEIGHTS`` adds them to existing weights (in place, atomic) and
 prints the held-out scores in float32 and int8.
 
-Example (the shipped weights)::
+Example (docs/TRAINING.md has the commands of the shipped weights)::
 
     OMP_NUM_THREADS=1 python train/train_descriptor.py --data ../shared/data/train_images \
-        --out /tmp/hardnet_run --steps 2000 --max-minutes 20 --export localscale/weights/hardnet.pt
+        --out /tmp/hardnet_run --steps 2000 --max-minutes 20 --export /tmp/hardnet_run/hardnet.pt
 """
 from __future__ import annotations
 

@@ -1,9 +1,11 @@
 """Patch descriptors with one interface: ``describe(patches B x 1 x 32 x 32) -> B x 128``.
 
 * :class:`HardNetDescriptor`: the 7-layer HardNet architecture
-  (:class:`kornia.feature.HardNet`), trained by us on scale-corrected patches from
-  synthetic homography pairs (``train/train_descriptor.py``); the bundled weights are
-  ``localscale/weights/hardnet.pt`` (model card ``hardnet.json``). Official HardNet
+  (:class:`kornia.feature.HardNet`, or :class:`SlimHardNet` at narrower widths), trained by us
+  on scale-corrected patches from synthetic homography pairs (``train/train_descriptor.py``).
+  Bundled: ``hardnet`` = ``localscale/weights/hardnet.pt``, 16/32/64 channels distilled from
+  ``hardnet-full`` = ``hardnet_full.pt`` (HardNet's own widths); model cards beside them. On CPU
+  both describe in int8 by default (:mod:`.quantization`). Official HardNet
   weights in kornia's checkpoint format (a dict with a ``state_dict`` key, e.g.
   ``checkpoint_liberty_with_aug.pth``) load from a local path with the same loader.
 * :class:`SIFTPatchDescriptor`: kornia's training-free RootSIFT on patches.
@@ -28,6 +30,8 @@ from .quantization import (calibrate_int8, check_int8_ranges, int8_available, in
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DEFAULT_HARDNET = WEIGHTS_DIR / "hardnet.pt"
+#: bundled descriptor weights by name
+BUNDLED_HARDNETS = {"hardnet": DEFAULT_HARDNET, "hardnet-full": WEIGHTS_DIR / "hardnet_full.pt"}
 
 
 class PatchDescriptor(nn.Module):
@@ -275,13 +279,15 @@ class SIFTPatchDescriptor(PatchDescriptor):
 
 
 def get_descriptor(descriptor: Union[str, PatchDescriptor] = "hardnet") -> PatchDescriptor:
-    """``"hardnet"`` (bundled weights), ``"sift"``, a path to HardNet weights, or a module."""
+    """``"hardnet"`` / ``"hardnet-full"`` (bundled weights), ``"sift"``, a path to HardNet
+    weights, or a module."""
     if isinstance(descriptor, PatchDescriptor):
         return descriptor.eval()
-    if descriptor == "hardnet":
-        return HardNetDescriptor.from_pretrained()
+    if isinstance(descriptor, str) and descriptor in BUNDLED_HARDNETS:
+        return HardNetDescriptor.from_pretrained(BUNDLED_HARDNETS[descriptor])
     if descriptor == "sift":
         return SIFTPatchDescriptor().eval()
     if isinstance(descriptor, (str, Path)) and Path(descriptor).suffix in (".pt", ".pth"):
         return HardNetDescriptor.from_pretrained(descriptor)
-    raise LocalScaleError(f"unknown descriptor {descriptor!r}: use 'hardnet', 'sift' or a path to HardNet weights")
+    raise LocalScaleError(f"unknown descriptor {descriptor!r}: use 'hardnet', 'hardnet-full', 'sift' or a path "
+                          f"to HardNet weights")
