@@ -129,3 +129,13 @@ def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, ca
     assert capsys.readouterr().out.count("exists, kept") == 2
     assert mod.main(args + ["--detectors", "nope"]) == 2
     assert capsys.readouterr().err.startswith("error: unknown detector 'nope'")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_local_max_is_the_square_max_pool(dtype):
+    from localscale.features.detector import local_max
+
+    r = torch.randn(37, 53, dtype=dtype)
+    for radius in (1, 3):
+        want = torch.nn.functional.max_pool2d(r[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0]
+        assert torch.equal(local_max(r, radius), want)

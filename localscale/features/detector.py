@@ -88,6 +88,19 @@ def hessian_blob_response(gray: torch.Tensor, sigma: float = 2.0) -> torch.Tenso
     return hessian_response(blurred, grads_mode="sobel") * (sigma ** 4)
 
 
+def local_max(r: torch.Tensor, radius: int) -> torch.Tensor:
+    """Maximum over the ``(2 radius + 1)^2`` window of each pixel of an ``H x W`` map (outside
+    the map counts as -inf): OpenCV's dilation on CPU, two 1-D max-pools elsewhere (the same
+    values; a square max-pool is ~100x slower than ``cv2.dilate`` on CPU)."""
+    k = 2 * radius + 1
+    if r.device.type == "cpu" and r.dtype == torch.float32:
+        out = cv2.dilate(np.ascontiguousarray(r.detach().numpy()), np.ones((k, k), np.uint8),
+                         borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        return torch.from_numpy(out)
+    x = F.max_pool2d(r[None, None], (1, k), stride=1, padding=(0, radius))
+    return F.max_pool2d(x, (k, 1), stride=1, padding=(radius, 0))[0, 0]
+
+
 def nms_topk(response: torch.Tensor, num_features: int, nms_radius: int = 3, border: int = 8,
              threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Local maxima of a ``1 x 1 x H x W`` response, strongest ``num_features`` first.
@@ -96,7 +109,7 @@ def nms_topk(response: torch.Tensor, num_features: int, nms_radius: int = 3, bor
     """
     r = response[0, 0]
     h, w = r.shape
-    mx = F.max_pool2d(response, 2 * nms_radius + 1, stride=1, padding=nms_radius)[0, 0]
+    mx = local_max(r, nms_radius)
     keep = (r == mx) & (r > threshold)
     if border > 0:
         keep[:border] = False
