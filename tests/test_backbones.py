@@ -98,7 +98,7 @@ def test_checkpoint_round_trips_and_records_the_backbone(xfeat_model, xfeat_file
     assert not any(k.startswith("extractor.backbone.") for k in ckpt["state_dict"])   # weights stay in their file
     loaded = load_model(tmp_path / "m.pt", arch="LocalScaleNet")
     a, b = photos["astronaut"], photos["coffee"]
-    assert np.array_equal(loaded.predict(a, b).scale, xfeat_model.predict(a, b).scale)
+    assert np.allclose(loaded.predict(a, b).scale, xfeat_model.predict(a, b).scale, rtol=1e-5)   # layouts may differ
 
 
 def test_missing_backbone_weights_are_one_clear_error(xfeat_model, tmp_path, monkeypatch, capsys):

@@ -211,3 +211,26 @@ def test_global_quarter_turns_keep_the_most_consistent_prediction(photos):
     assert g.predict(a, b).turns == (0, 0) and g.predict(a, b).scale == upright.scale
     kept = g.predict(a, rot(b, 1))
     assert kept.reliable and kept.turns == (0, 0) and kept.scale == candidates[1].scale
+
+
+def test_folded_inference_extractor_matches_and_follows_weight_changes(local_model, tmp_path):
+    from localscale.models.common import fold_batch_norm
+
+    torch.manual_seed(1)
+    model = LocalScaleNet(**TINY)
+    model.train()
+    model(torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64))      # BatchNorm statistics move off 0 / 1
+    model.eval()
+    x = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        folded = model.encode(x)
+        assert len(model._folded) == 1
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in model._folded[0].modules())
+        assert torch.allclose(folded, model.extractor(x), atol=1e-5)
+        model.load_state_dict(local_model.state_dict())                 # new weights reach inference
+        assert not model._folded
+        assert torch.allclose(model.encode(x), local_model.extractor(x), atol=1e-5)
+    with torch.enable_grad():                                          # training path: the real modules
+        assert model.encode(x).requires_grad
+    assert isinstance(fold_batch_norm(torch.nn.Sequential(torch.nn.Conv2d(1, 2, 3), torch.nn.BatchNorm2d(2).eval()))[0],
+                      torch.nn.Conv2d)

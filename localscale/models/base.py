@@ -1,6 +1,7 @@
 """Shared plumbing of the two scale models: image preparation, encoding, loading."""
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import torch.nn as nn
 from ..errors import ImageError
 from ..io import ImageLike, load_image, load_image_reduced
 from ..preprocess import Letterbox, letterbox, to_tensor
-from .common import FeatureExtractor
+from .common import FeatureExtractor, fold_batch_norm
 from .registry import load_model
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -47,6 +48,7 @@ class ScaleModel(nn.Module):
 
     def __init__(self, config):
         super().__init__()
+        self._folded: list = []   # [eval copy of the extractor with BatchNorm folded] (a list: not a submodule)
         self.config = config
         self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm, config.backbone)
         self.meta: dict = {}
@@ -81,7 +83,30 @@ class ScaleModel(nn.Module):
                              f"got {tuple(images.shape)}")
         if self._channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
-        return self.extractor(images)
+        return self._inference_extractor()(images)
+
+    def _inference_extractor(self) -> nn.Module:
+        """The extractor, or without gradients in eval mode a copy of it with BatchNorm folded
+        into the convolutions (same outputs to float precision, fewer passes over the
+        activations). The copy is rebuilt after ``train()``, ``load_state_dict`` and moves
+        (``to``/``cuda``/``half``); edit weights in place only in train mode."""
+        if self.training or torch.is_grad_enabled():
+            return self.extractor
+        if not self._folded:
+            self._folded.append(fold_batch_norm(copy.deepcopy(self.extractor).eval()))
+        return self._folded[0]
+
+    def train(self, mode: bool = True):
+        self._folded.clear()
+        return super().train(mode)
+
+    def load_state_dict(self, *args, **kwargs):
+        self._folded.clear()
+        return super().load_state_dict(*args, **kwargs)
+
+    def _apply(self, fn, *args, **kwargs):
+        self._folded.clear()
+        return super()._apply(fn, *args, **kwargs)
 
     @property
     def _channels_last(self) -> bool:

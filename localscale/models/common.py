@@ -31,6 +31,32 @@ def conv_bn_relu(cin: int, cout: int, k: int = 3, dilation: int = 1, bn: bool = 
     return nn.Sequential(*layers)
 
 
+def fold_batch_norm(module: nn.Module) -> nn.Module:
+    """Fold every BatchNorm that directly follows a Conv2d inside an ``nn.Sequential`` into the
+    convolution (eval-mode statistics), in place; returns ``module``. Inference only: the folded
+    module has no BatchNorm left to train. Weights keep their memory layout."""
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    for name, child in module.named_children():
+        if isinstance(child, nn.Sequential):
+            layers, out, i = list(child), [], 0
+            while i < len(layers):
+                conv, bn = layers[i], layers[i + 1] if i + 1 < len(layers) else None
+                if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d) and bn.track_running_stats:
+                    fused = fuse_conv_bn_eval(conv.eval(), bn.eval())
+                    if conv.weight.is_contiguous(memory_format=torch.channels_last) and not conv.weight.is_contiguous():
+                        fused = fused.to(memory_format=torch.channels_last)
+                    out.append(fused)
+                    i += 2
+                else:
+                    out.append(fold_batch_norm(conv))
+                    i += 1
+            setattr(module, name, nn.Sequential(*out))
+        else:
+            fold_batch_norm(child)
+    return module
+
+
 class VGGBackbone(nn.Module):
     """VGG16 conv1_1 .. conv4_3 (stride 8), channel widths scaled by ``width``.
 
