@@ -21,6 +21,9 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
   alone;
 * ``aliked-lightglue`` also with kornia's defaults (2048 keypoints, the contiguous layout),
   against which the default's speed-up is given;
+* the comparisons behind the speed targets timed interleaved (ours and the reference in turn,
+  ``max(--repeat, 5)`` rounds; 15 for the scale map): ``match_pair`` local / OpenCV's SIFT
+  pipeline, the uncached scale map, ``aliked-lightglue`` / kornia's defaults;
 * with ``--pairs-per-second N``: throughput on ``--device`` (CUDA synchronised) of
   ``match_pair`` with the local correction (hardnet matcher) and of batched scale maps, over
   ``N`` pairs;
@@ -29,7 +32,8 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
   as a ratio to it;
 * peak RSS (``resource.getrusage``).
 
-Times are medians over ``--repeat`` runs (after one warm-up), wall clock and process CPU time;
+Times are medians over ``--repeat`` runs (at least 15 for the scale maps; after one warm-up),
+wall clock and process CPU time;
 on a loaded machine the CPU time is the steadier number. Scale-model throughput with the feature
 cache (1 vs N images, all pairs) is measured with ``--throughput``.
 
@@ -85,6 +89,23 @@ def timeit(fn, repeat: int, warmup: int = 1, setup=None) -> dict:
         cpu.append(time.process_time() - c)
     wall, cpu = np.array(wall) * 1000, np.array(cpu) * 1000
     return {"ms": float(np.median(wall)), "ms_p90": float(np.percentile(wall, 90)), "cpu_ms": float(np.median(cpu))}
+
+
+def interleaved(fns: dict, repeat: int) -> dict:
+    """Median wall and CPU ms of each of ``fns`` (name -> callable), timed in turn within each of
+    ``repeat`` rounds (after one warm-up round), so that a machine whose speed drifts (a shared
+    VM) slows all of them alike and their ratios hold."""
+    for fn in fns.values():
+        fn()
+    wall = {k: [] for k in fns}
+    cpu = {k: [] for k in fns}
+    for _ in range(repeat):
+        for k, fn in fns.items():
+            t, c = time.perf_counter(), time.process_time()
+            fn()
+            wall[k].append((time.perf_counter() - t) * 1000)
+            cpu[k].append((time.process_time() - c) * 1000)
+    return {k: {"ms": float(np.median(wall[k])), "cpu_ms": float(np.median(cpu[k]))} for k in fns}
 
 
 def subprocess_ms(cmd: list, repeat: int, cwd: str, env=None) -> dict:
@@ -288,13 +309,14 @@ def main(argv=None) -> int:
         glob = ScaleNet.from_pretrained(a.global_weights, a.device)
         sift = SIFTPatchDescriptor().to(a.device).eval()
 
-        st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), rep)
+        fast = max(rep, 15)   # short stages: more runs, a steadier median
+        st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), fast)
         ea, eb = local.encode_image(img_a), local.encode_image(img_b)
         st["scale map: local, cached encodings, A's self terms kept (head)"] = \
-            timeit(lambda: local.predict_from_features(ea, eb), rep)
+            timeit(lambda: local.predict_from_features(ea, eb), fast)
         st["scale map: local, cached encodings, A's self terms recomputed (head)"] = \
-            timeit(lambda _: local.predict_from_features(ea, eb), rep, setup=ea.terms.clear)
-        st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), rep)
+            timeit(lambda _: local.predict_from_features(ea, eb), fast, setup=ea.terms.clear)
+        st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), fast)
 
         ga, gb = image_to_gray_tensor(img_a), image_to_gray_tensor(img_b)
         det = HessianDetector(n)
@@ -355,6 +377,23 @@ def main(argv=None) -> int:
             kd = st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"]
             res["aliked_lightglue_speedup_over_kornia_defaults"] = {"wall": kd["ms"] / ours["ms"],
                                                                      "cpu": kd["cpu_ms"] / ours["cpu_ms"]}
+        # the targets' comparisons, interleaved (ratios robust to a drifting machine)
+        sift_ref = lambda: opencv_sift(img_a, img_b, n)  # noqa: E731
+        pairs = {}
+        if "hardnet" in matchers:
+            hm = matchers["hardnet"]
+            pairs["match_pair hardnet local / OpenCV SIFT pipeline"] = interleaved(
+                {"ours": lambda: match_pair(img_a, img_b, "local", H, local, None, hm), "reference": sift_ref}, max(rep, 5))
+        pairs["scale map uncached / OpenCV SIFT pipeline"] = interleaved(
+            {"ours": lambda: local.predict(img_a, img_b), "reference": sift_ref}, max(rep, 15))
+        if kornia_defaults is not None:
+            am = matchers["aliked-lightglue"]
+            pairs["aliked-lightglue default / kornia's defaults (match, no maps)"] = interleaved(
+                {"ours": lambda: am.match(img_a, img_b), "reference": lambda: kornia_defaults.match(img_a, img_b)},
+                max(rep, 5))
+        for v in pairs.values():
+            v["ratio"], v["ratio_cpu"] = v["ours"]["ms"] / v["reference"]["ms"], v["ours"]["cpu_ms"] / v["reference"]["cpu_ms"]
+        res["interleaved"] = pairs
         if a.pairs_per_second:
             res["pairs_per_second"] = pairs_per_second(img_a, img_b, H, local, matchers.get("hardnet")
                                                        or Matcher(matcher_config("hardnet", n, hardnet), a.device),
@@ -387,6 +426,12 @@ def main(argv=None) -> int:
     for name, ms in res["matches"].items():
         print(f"matches {name}: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in ms.items()))
     print(f"matches OpenCV SIFT: {res['opencv_sift_matches']}")
+    print("\ninterleaved comparisons (ours and the reference timed in turn):\n")
+    print("| comparison | ours ms | reference ms | ratio (wall) | ratio (CPU) |")
+    print("|---|---|---|---|---|")
+    for name, v in res["interleaved"].items():
+        print(f"| {name} | {v['ours']['ms']:.1f} | {v['reference']['ms']:.1f} | {v['ratio']:.2f} | {v['ratio_cpu']:.2f} |")
+    print()
     if "aliked_lightglue_speedup_over_kornia_defaults" in res:
         v = res["aliked_lightglue_speedup_over_kornia_defaults"]
         print(f"aliked-lightglue default vs kornia's defaults: {v['wall']:.2f}x faster (wall), {v['cpu']:.2f}x (CPU)")
