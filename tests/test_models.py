@@ -213,7 +213,7 @@ def test_global_quarter_turns_keep_the_most_consistent_prediction(photos):
     assert kept.reliable and kept.turns == (0, 0) and kept.scale == candidates[1].scale
 
 
-def test_folded_inference_extractor_matches_and_follows_weight_changes(local_model, tmp_path):
+def test_folded_inference_copy_matches_and_follows_weight_changes(local_model, tmp_path):
     from localscale.models.common import fold_batch_norm
 
     torch.manual_seed(1)
@@ -230,6 +230,10 @@ def test_folded_inference_extractor_matches_and_follows_weight_changes(local_mod
         model.load_state_dict(local_model.state_dict())                 # new weights reach inference
         assert not model._folded
         assert torch.allclose(model.encode(x), local_model.extractor(x), atol=1e-5)
+        fa, fb = model.encode(x), model.encode(x.flip(-1))
+        with torch.enable_grad():
+            plain = model.forward_features_all(fa, fb)[0]                 # the model's own modules
+        assert torch.allclose(model.forward_features_all(fa, fb)[0], plain, atol=1e-4)
     with torch.enable_grad():                                          # training path: the real modules
         assert model.encode(x).requires_grad
     assert isinstance(fold_batch_norm(torch.nn.Sequential(torch.nn.Conv2d(1, 2, 3), torch.nn.BatchNorm2d(2).eval()))[0],

@@ -48,7 +48,8 @@ class ScaleModel(nn.Module):
 
     def __init__(self, config):
         super().__init__()
-        self._folded: list = []   # [eval copy of the extractor with BatchNorm folded] (a list: not a submodule)
+        self._folded: list = []   # [eval copy with BatchNorm folded] (a list: not a submodule)
+        self._is_inference_copy = False
         self.config = config
         self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm, config.backbone)
         self.meta: dict = {}
@@ -83,17 +84,19 @@ class ScaleModel(nn.Module):
                              f"got {tuple(images.shape)}")
         if self._channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
-        return self._inference_extractor()(images)
+        return self._inference_model().extractor(images)
 
-    def _inference_extractor(self) -> nn.Module:
-        """The extractor, or without gradients in eval mode a copy of it with BatchNorm folded
-        into the convolutions (same outputs to float precision, fewer passes over the
+    def _inference_model(self) -> "ScaleModel":
+        """``self``, or without gradients in eval mode a copy of the model with every BatchNorm
+        folded into its convolution (same outputs to float precision, fewer passes over the
         activations). The copy is rebuilt after ``train()``, ``load_state_dict`` and moves
         (``to``/``cuda``/``half``); edit weights in place only in train mode."""
-        if self.training or torch.is_grad_enabled():
-            return self.extractor
+        if self._is_inference_copy or self.training or torch.is_grad_enabled():
+            return self
         if not self._folded:
-            self._folded.append(fold_batch_norm(copy.deepcopy(self.extractor).eval()))
+            folded = copy.deepcopy(self)
+            folded._is_inference_copy = True
+            self._folded.append(fold_batch_norm(folded))
         return self._folded[0]
 
     def train(self, mode: bool = True):

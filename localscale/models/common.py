@@ -32,29 +32,33 @@ def conv_bn_relu(cin: int, cout: int, k: int = 3, dilation: int = 1, bn: bool = 
 
 
 def fold_batch_norm(module: nn.Module) -> nn.Module:
-    """Fold every BatchNorm that directly follows a Conv2d inside an ``nn.Sequential`` into the
-    convolution (eval-mode statistics), in place; returns ``module``. Inference only: the folded
-    module has no BatchNorm left to train. Weights keep their memory layout."""
+    """Fold every BatchNorm that directly follows a Conv2d inside an ``nn.Sequential`` (at any
+    depth) into the convolution (eval-mode statistics), in place; returns ``module`` (a
+    Sequential passed in is returned as a new one). Inference only: the folded module has no
+    BatchNorm left to train. Weights keep their memory layout."""
+    if isinstance(module, nn.Sequential):
+        return _fold_sequential(module)
+    for name, child in module.named_children():
+        setattr(module, name, fold_batch_norm(child))
+    return module
+
+
+def _fold_sequential(seq: nn.Sequential) -> nn.Sequential:
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-    for name, child in module.named_children():
-        if isinstance(child, nn.Sequential):
-            layers, out, i = list(child), [], 0
-            while i < len(layers):
-                conv, bn = layers[i], layers[i + 1] if i + 1 < len(layers) else None
-                if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d) and bn.track_running_stats:
-                    fused = fuse_conv_bn_eval(conv.eval(), bn.eval())
-                    if conv.weight.is_contiguous(memory_format=torch.channels_last) and not conv.weight.is_contiguous():
-                        fused = fused.to(memory_format=torch.channels_last)
-                    out.append(fused)
-                    i += 2
-                else:
-                    out.append(fold_batch_norm(conv))
-                    i += 1
-            setattr(module, name, nn.Sequential(*out))
+    layers, out, i = list(seq), [], 0
+    while i < len(layers):
+        conv, bn = layers[i], layers[i + 1] if i + 1 < len(layers) else None
+        if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d) and bn.track_running_stats:
+            fused = fuse_conv_bn_eval(conv.eval(), bn.eval())
+            if conv.weight.is_contiguous(memory_format=torch.channels_last) and not conv.weight.is_contiguous():
+                fused = fused.to(memory_format=torch.channels_last)
+            out.append(fused)
+            i += 2
         else:
-            fold_batch_norm(child)
-    return module
+            out.append(fold_batch_norm(conv))
+            i += 1
+    return nn.Sequential(*out)
 
 
 class VGGBackbone(nn.Module):

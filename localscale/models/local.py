@@ -254,6 +254,9 @@ class LocalScaleNet(ScaleModel):
         """What the head computes from A alone, reusable for every B: the reduced
         self-correlation ``B x C x h x w`` and (with ``topk``) A's ``k`` largest
         self-correlations ``B x k x h x w`` (else None)."""
+        net = self._inference_model()
+        if net is not self:
+            return net.self_terms(fa)
         raw_a = correlation(fa, fa)
         top = raw_a.topk(self.topk, 1).values if self.topk else None
         return self.reduce_self(normalise_correlation(raw_a)), top
@@ -264,6 +267,9 @@ class LocalScaleNet(ScaleModel):
         """Scale logits ``B x 13 x h x w`` and visibility logits ``B x 1 x h x w`` (None without the
         visibility output) from encoded features; ``terms_a``: :meth:`self_terms` of ``fa``
         when already computed."""
+        net = self._inference_model()
+        if net is not self:
+            return net.forward_features_all(fa, fb, terms_a)
         reduced_a, top_a = terms_a if terms_a is not None else self.self_terms(fa)
         raw_ab = correlation(fa, fb)
         parts = [reduced_a, self.reduce_cross(normalise_correlation(raw_ab))]

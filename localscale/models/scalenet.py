@@ -119,6 +119,9 @@ class ScaleNet(ScaleModel):
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of both directions from encoded features: ``(B x 13, B x 13)`` for A->B, B->A."""
+        net = self._inference_model()
+        if net is not self:
+            return net.forward_features(fa, fb)
         raw_ab = correlation(fa, fb)
         raw_ba = transpose_correlation(raw_ab, fb.shape[-2:])
         raw_a, raw_b = correlation(fa, fa), correlation(fb, fb)
