@@ -209,3 +209,13 @@ def test_per_keypoint_levels_follow_the_local_scale():
     assert len(left) > 20 and len(right) > 5 and f.factor == 1.0
     assert subset(left, full.keypoints) and subset(right, quarter.keypoints)
     assert len(right) < 0.5 * (full.keypoints[:, 0] > w / 2 + 8).sum()      # the shrunk level has fewer
+
+
+def test_lightglue_adaptive_depth_and_width_options():
+    assert match_config("aliked-lightglue", depth_confidence=-1, width_confidence=0.9).check().depth_confidence == -1
+    for bad in ({"depth_confidence": 1.5}, {"width_confidence": 0.0}, {"depth_confidence": -0.5}):
+        with pytest.raises(LocalScaleError, match="or -1"):
+            match_config("aliked-lightglue", **bad).check()
+    _needs("aliked-lightglue")
+    assert Matcher(match_config("aliked-lightglue", depth_confidence=-1))._lightglue.conf.depth_confidence == -1
+    assert Matcher("aliked-lightglue")._lightglue.conf.depth_confidence == 0.95          # kornia's value

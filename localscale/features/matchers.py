@@ -85,6 +85,9 @@ class MatchConfig:
         model: weights of the learned extractor (ALIKED: ``aliked-n16`` / ``-n16rot`` / ``-n32`` / ``-t16``).
         weights: folder (or file) of the pre-trained weight files (None: the installed weight packages).
         filter_threshold: LightGlue's match confidence threshold.
+        depth_confidence, width_confidence: LightGlue's adaptive depth (early stop) and width (point
+            pruning) confidences, -1 turns one off (None: kornia's value for the extractor:
+            ALIKED / DISK 0.95 / 0.99, LighterGlue off / 0.95).
         detection_threshold: score a learned keypoint must exceed (None: the model's own default,
             ALIKED 0.2, XFeat 0.05, DISK 0); at most ``num_features`` of them are kept.
         channels_last: ALIKED on CPU in the channels-last memory layout (same keypoints and
@@ -113,6 +116,8 @@ class MatchConfig:
     model: str = ""
     weights: Optional[str] = None
     filter_threshold: float = 0.1
+    depth_confidence: Optional[float] = None
+    width_confidence: Optional[float] = None
     detection_threshold: Optional[float] = None
     channels_last: bool = True
     gate: CorrectionGate = field(default_factory=CorrectionGate)
@@ -141,6 +146,13 @@ class MatchConfig:
             _check_number(self.ratio, "ratio", low=0.0, high=1.0)
         _check_number(self.min_similarity, "min_similarity", low=-1.0, high=1.0, inclusive=True)
         _check_number(self.filter_threshold, "filter_threshold", low=0.0, high=1.0, inclusive=True)
+        for name in ("depth_confidence", "width_confidence"):
+            v = getattr(self, name)
+            if v is not None and v != -1:
+                try:
+                    _check_number(v, name, low=0.0, high=1.0)
+                except LocalScaleError:
+                    raise LocalScaleError(f"{name} must be in (0, 1] or -1 (off), got {v!r}") from None
         _check_int(self.max_passes, "max_passes", 1)
         if self.descriptor_precision not in PRECISIONS:
             raise LocalScaleError(f"descriptor_precision must be one of {PRECISIONS}, "
@@ -638,6 +650,9 @@ def _load_lightglue(c: MatchConfig) -> torch.nn.Module:
 
     features = c.extractor
     conf = {**KF.LightGlue.features[features], "weights": None, "filter_threshold": c.filter_threshold}
+    for name in ("depth_confidence", "width_confidence"):
+        if getattr(c, name) is not None:
+            conf[name] = getattr(c, name)
     net = KF.LightGlue(None, **conf)
     n_layers = net.conf.n_layers
     filename = "xfeat-lighterglue.pt" if features == "xfeat" else f"{features}_lightglue.pth"
