@@ -76,10 +76,11 @@ def test_bad_precision_and_ranges(tmp_path):
     model.int8_ranges = {name: [0.1, 0, 0, 127] for name in OBSERVED}
     model.save(tmp_path / "ok.pt")
     assert HardNetDescriptor.from_pretrained(tmp_path / "ok.pt").int8_ranges is not None
-    model.int8_ranges = {"quant": [-1.0, 0, 0, 127]}
-    model.save(tmp_path / "bad.pt")
-    with pytest.raises(CheckpointError, match="int8"):
-        HardNetDescriptor.from_pretrained(tmp_path / "bad.pt")
+    for bad in ({"quant": [-1.0, 0, 0, 127]}, {name: ["x", 0, 0, 127] for name in OBSERVED}):
+        model.int8_ranges = bad
+        model.save(tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match="int8"):
+            HardNetDescriptor.from_pretrained(tmp_path / "bad.pt")
     ckpt = torch.load(tmp_path / "ok.pt", weights_only=True)
     ckpt["widths"] = [8, 16]
     torch.save(ckpt, tmp_path / "widths.pt")

@@ -160,7 +160,7 @@ class HardNetDescriptor(PatchDescriptor):
             raise LocalScaleError(f"descriptor precision must be one of {PRECISIONS}, got {precision!r}")
         if precision == "int8" and not self.int8_ranges:
             raise LocalScaleError("int8 descriptor precision needs weights with int8 activation ranges "
-                                  "(train/calibrate_int8.py adds them)")
+                                  "(train/train_descriptor.py --calibrate-int8 adds them)")
         if precision == "int8" and not int8_available():
             raise LocalScaleError("int8 descriptor precision: this PyTorch build has no x86 quantised engine")
         self.precision = precision

@@ -104,9 +104,12 @@ def calibrate_int8(net: nn.Module, patches: torch.Tensor, batch_size: int = 256)
 
 def check_int8_ranges(ranges) -> None:
     """Raise :class:`LocalScaleError` unless ``ranges`` is what :func:`calibrate_int8` returns."""
-    ok = isinstance(ranges, dict) and set(ranges) == set(OBSERVED)
-    ok = ok and all(isinstance(v, (list, tuple)) and len(v) == 4 and float(v[0]) > 0
-                    and int(v[2]) <= int(v[1]) <= int(v[3]) for v in ranges.values())
+    try:
+        ok = isinstance(ranges, dict) and set(ranges) == set(OBSERVED)
+        ok = ok and all(isinstance(v, (list, tuple)) and len(v) == 4 and float(v[0]) > 0
+                        and int(v[2]) <= int(v[1]) <= int(v[3]) for v in ranges.values())
+    except (TypeError, ValueError):   # entries that are not numbers
+        ok = False
     if not ok:
         raise LocalScaleError(f"int8: activation ranges must map {OBSERVED} to [scale > 0, zero_point, qmin, qmax]")
 

@@ -100,7 +100,8 @@ class ScaleModel(nn.Module):
         return self._folded[0]
 
     def train(self, mode: bool = True):
-        self._folded.clear()
+        if mode:
+            self._folded.clear()   # the weights may change: the folded copy is rebuilt on use
         return super().train(mode)
 
     def load_state_dict(self, *args, **kwargs):
