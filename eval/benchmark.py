@@ -12,8 +12,8 @@ Stages, on a 640x480 pair (the bundled ``kodim01_a/b`` resized, with its homogra
 * keypoint detection, patch extraction (local correction), description (HardNet of ``--descriptor``
   at each precision of :data:`~localscale.features.descriptors.PRECISIONS` with both images'
   patches in one call, the default precision also in two calls; RootSIFT), mutual-NN matching;
-* per matcher of ``--matcher`` (names of :data:`localscale.features.matchers.MATCHERS`, each at
-  ``--num-features``): building the :class:`~localscale.features.matchers.Matcher` (its weights),
+* per matcher of ``--matcher`` (names of :data:`localscale.matching.MATCHERS`, each at
+  ``--num-features``): building the :class:`~localscale.matching.Matcher` (its weights),
   ``Matcher.extract`` of both images and ``Matcher.match`` without scale maps, ``match_pair`` end to
   end per correction of ``--corrections`` (models and matcher loaded once), and one
   ``eval-hpatches`` pair (:func:`localscale.evaluation.hpatches.evaluate`) per method: the methods
@@ -63,12 +63,13 @@ import torch
 
 import localscale
 from localscale.errors import LocalScaleError
-from localscale.features import (HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor,
-                                 match_descriptors, match_pair)
-from localscale.features.correction import CORRECTIONS, get_correction, scale_maps_for_pair
+from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
+from localscale.matching import match_descriptors, match_pair
+from localscale.matching.correction import CORRECTIONS, get_correction, scale_maps_for_pair
 from localscale.features.descriptors import PRECISIONS
 from localscale.features.detector import HessianDetector
-from localscale.features.matchers import MATCHERS, Matcher, match_config
+from localscale.matching.config import MATCHERS, match_config
+from localscale.matching.matcher import Matcher
 from localscale.io import load_image, read_homography
 from localscale.models import LocalScaleNet, ScaleNet
 

@@ -46,7 +46,7 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 
 from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
-from localscale.features.correction import weighted_quantile  # noqa: E402
+from localscale.matching.correction import weighted_quantile  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
 from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
 

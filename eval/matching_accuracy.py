@@ -20,7 +20,7 @@ from localscale.data import list_images, split_images
 from localscale.evaluation.hpatches import (THRESHOLDS, evaluate, gate_from_args, load_hpatches, load_scale_models,
                                            make_pairs, markdown_table)
 from localscale.evaluation.synthetic import make_sequences
-from localscale.features.correction import CORRECTIONS, GATE_WEIGHTINGS
+from localscale.matching.correction import CORRECTIONS, GATE_WEIGHTINGS
 
 
 def main(argv=None) -> int:

@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from localscale import LocalScaleNet
-from localscale.features.correction import CorrectionGate
-from localscale.features.pipeline import refine_match
+from localscale.matching.correction import CorrectionGate
+from localscale.matching.pipeline import refine_match
 from localscale.geometry import covisible_mask, homography_scale_map
 from localscale.io import load_image, read_homography
 from localscale.viz import plot_refined_map

@@ -13,7 +13,7 @@ the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 
 
 Real mode also scores ``refined``: the local maps (gated) for a first HardNet matching pass, the
 matches verified with a MAGSAC homography, the local map refined by the verified geometry and a
-second matching pass (:func:`localscale.features.pipeline.refine_match`; when the first pass is not
+second matching pass (:func:`localscale.matching.refine_match`; when the first pass is not
 verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
 verification fails the refined map is the local map. With ``--search`` it also scores the
 window search (:func:`localscale.search.search_scale_map`) and ScaleNet run on the windows the
@@ -241,8 +241,8 @@ def real_pairs(roots: list[Path]):
 
 def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True,
               search: bool = False, refine_matcher=None) -> dict:
-    from localscale.features.correction import CorrectionGate
-    from localscale.features.pipeline import refine_match
+    from localscale.matching.correction import CorrectionGate
+    from localscale.matching.pipeline import refine_match
     from localscale.reliability import pair_statistics
 
     ea, eb = local.encode_image(a), local.encode_image(b)
@@ -268,7 +268,7 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
     score = fwd.reliability if fwd.reliability is not None else fwd.confidence
     row["score"] = score[np.ix_(ys, xs)][m]
     if refine and refine_matcher is not None:   # geometry from the auto loop of that matcher
-        from localscale.features.pipeline import match_pair
+        from localscale.matching.pipeline import match_pair
 
         res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]

@@ -29,9 +29,10 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 
 from localscale import LocalScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
-from localscale.features.correction import CorrectionGate  # noqa: E402
-from localscale.features.pipeline import refine_match  # noqa: E402
-from localscale.features.verification import VerificationConfig, refine_pair_maps  # noqa: E402
+from localscale.matching.correction import CorrectionGate  # noqa: E402
+from localscale.matching.pipeline import refine_match  # noqa: E402
+from localscale.matching.verification import VerificationConfig  # noqa: E402
+from localscale.matching.refinement import refine_pair_maps  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
 
 PERMISSIVE = VerificationConfig(min_inliers=8, min_inlier_ratio=0.0, min_coverage=0.0,

@@ -33,10 +33,11 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
-from localscale.features.auto import AutoConfig, turn_matrix
-from localscale.features.matching import reprojection_errors
-from localscale.features.pipeline import get_matcher, match_pair
-from localscale.features.verification import estimate_homography
+from localscale.matching.auto import AutoConfig, turn_matrix
+from localscale.matching.metrics import reprojection_errors
+from localscale.matching.matcher import get_matcher
+from localscale.matching.pipeline import match_pair
+from localscale.matching.verification import estimate_homography
 from localscale.geometry import HomographyConfig, covisible_mask, grid_points, project, sample_homography, warp_image
 from localscale.io import load_image
 from localscale.outputs import write_text

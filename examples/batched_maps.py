@@ -34,7 +34,9 @@ elapsed = time.perf_counter() - t
 print(f"predict_batch: {tuple(out.scale.shape)} scale maps on {out.scale.device} in {elapsed:.2f} s "
       f"(confidence {tuple(out.confidence.shape)}, visible: {out.visible is not None})")
 
-single = net.predict(a, b).scale                       # the per-pair API gives the same map
+# the per-pair API gives the same map for the same input (here the same float images; a uint8
+# array is resized before its conversion to float, which moves the map by ~1e-3)
+single = net.predict(images_a[0].permute(1, 2, 0).cpu().numpy(), images_b[0].permute(1, 2, 0).cpu().numpy()).scale
 print(f"max |predict_batch - predict| on (A, B): {np.abs(out.scale[0].cpu().numpy() - single).max():.2e}")
 
 for i, (Hi, shape_this, shape_other) in enumerate([(H, a.shape[:2], b.shape[:2]),

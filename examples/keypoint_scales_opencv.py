@@ -15,8 +15,8 @@ import numpy as np
 from kornia.feature import SIFTDescriptor
 
 from localscale import LocalScaleNet
-from localscale.features import (describe_lafs, get_descriptor, laf_from_opencv, match_descriptors,
-                                 rescale_keypoint_pair, reprojection_errors)
+from localscale.features import describe_lafs, get_descriptor, laf_from_opencv, rescale_keypoint_pair
+from localscale.matching import match_descriptors, reprojection_errors
 from localscale.io import load_image, read_homography
 
 ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"

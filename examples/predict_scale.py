@@ -11,9 +11,9 @@ from localscale.geometry import covisible_mask, homography_scale_map
 from localscale.io import load_image, read_homography
 from localscale.viz import plot_scale_prediction
 
-here = Path(__file__).parent
-a, b = load_image(here / "kodim01_a.jpg"), load_image(here / "kodim01_b.jpg")
-H = read_homography(here / "H_a_b.txt")
+ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"   # the bundled example pair
+a, b = load_image(ASSETS / "kodim01_a.jpg"), load_image(ASSETS / "kodim01_b.jpg")
+H = read_homography(ASSETS / "H_a_b.txt")
 
 pred = LocalScaleNet.from_pretrained().predict(a, b)          # S_{A->B} per pixel of A
 gt = homography_scale_map(H, *a.shape[:2])

@@ -15,7 +15,6 @@ import torch
 import torch.nn.functional as F
 
 from .errors import LocalScaleError
-from .io import load_image
 from .models.base import EncodedImage, ScaleModel
 from .preprocess import letterbox, to_tensor
 

@@ -1,14 +1,24 @@
 """Reading images and homographies with clear errors for bad input.
 
-``load_image`` always returns an ``H x W x 3`` uint8 RGB array:
+``load_image`` returns an ``H x W x 3`` RGB array, uint8 by default (what detectors and
+descriptors take); with ``precise=True`` an image of more than 8 bits (16-bit PNG/TIFF, float
+TIFF, uint16 or float array) comes back as float32 in ``[0, 1]`` at its full precision (what the
+scale networks take: :meth:`localscale.models.base.ScaleModel.load`), an 8-bit one as uint8:
 
 * grayscale is replicated to three channels;
 * RGBA / gray+alpha: the alpha channel is dropped (a warning says so unless it is fully opaque);
-* 16-bit images are rescaled to 8 bit (``x / 257``, a warning says so);
-* float arrays must be finite and in ``[0, 1]``;
+* 16-bit images: uint8 output rescales them (``x / 257``, a warning says so);
+* float TIFF files (16, 32 or 64 bit, gray or RGB): ``[0, 1]`` or ``[0, 255]``, told apart by
+  their largest value (up to ``1`` is ``[0, 1]``); NaN, inf or values outside both ranges are
+  refused; float arrays must be finite and in ``[0, 1]``;
 * images smaller than :data:`MIN_SIDE` on a side or above :data:`MAX_PIXELS` pixels are
-  refused; for files the size is read from the header before anything is decoded, and a
-  file whose size cannot be read from its header is refused undecoded;
+  refused, however thin otherwise (a 16 x 4000 strip is an image); for files the size is
+  read from the header before anything is decoded and checked there (a file decoded at a
+  reduced size is not checked again), and a file whose size cannot be read from its header
+  is refused undecoded;
+* a damaged file whose data ends before the image its header declares (libjpeg's "premature
+  end" warning: the rest would be filler) is refused, unless ``accept_damaged=True`` or
+  :func:`accepting_damaged` (the CLI's ``--accept-damaged``), where it is decoded with a warning;
 * the orientation tag of a file (EXIF, TIFF) is applied exactly once (a portrait photo stays
   portrait): OpenCV's TIFF decoder turns TIFF files itself (OpenCV 5, whatever the flags), the
   other formats are decoded as stored and turned here.
@@ -24,10 +34,10 @@ reported as one Python warning.
 """
 from __future__ import annotations
 
+import contextvars
 import errno
 import functools
 import os
-import re
 import stat
 import tempfile
 import threading
@@ -41,82 +51,30 @@ import cv2
 import numpy as np
 
 from .errors import HomographyError, ImageError
+from .image_files import _TIFF_MAGIC, _float_file_to_unit, _header, _read_float_tiff
 
 MIN_SIDE = 16
 MAX_PIXELS = 100_000_000
 ImageLike = Union[str, os.PathLike, np.ndarray]
-_HEAD_BYTES = 65536
+
+_ACCEPT_DAMAGED: contextvars.ContextVar[bool] = contextvars.ContextVar("localscale_accept_damaged", default=False)
 
 
-def _text_header_size(head: bytes) -> tuple[int, int] | None:
-    """``(width, height)`` of the formats OpenCV decodes and PIL cannot identify: PFM, PAM and
-    Radiance HDR, parsed from their text headers (None if the header is not one of them or is bad)."""
-    if head[:2] in (b"PF", b"Pf"):                    # PFM: "PF" / "Pf", width, height, scale
-        tokens = head[2:256].split()
-        if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit():
-            return int(tokens[0]), int(tokens[1])
-        return None
-    if head[:3] in (b"P7\n", b"P7\r", b"P7 "):        # PAM: "WIDTH w", "HEIGHT h" lines up to ENDHDR
-        fields = {}
-        for line in head[3:].splitlines():
-            line = line.split(b"#")[0].strip()
-            if line == b"ENDHDR":
-                break
-            parts = line.split()
-            if len(parts) == 2 and parts[1].isdigit():
-                fields[parts[0].upper()] = int(parts[1])
-        else:
-            return None
-        if b"WIDTH" not in fields or b"HEIGHT" not in fields:
-            return None
-        return fields[b"WIDTH"], fields[b"HEIGHT"]
-    if head.startswith((b"#?RADIANCE", b"#?RGBE")):   # Radiance: header lines, blank line, "-Y h +X w"
-        _, sep, rest = head.partition(b"\n\n")
-        m = re.match(rb"\s*([-+][XY])\s+(\d+)\s+([-+][XY])\s+(\d+)\s*\n", rest) if sep else None
-        if m is None or m.group(1)[1:] == m.group(3)[1:]:
-            return None
-        dims = {m.group(1)[1:]: int(m.group(2)), m.group(3)[1:]: int(m.group(4))}
-        return dims[b"X"], dims[b"Y"]
-    return None
-
-
-def _pil_header(path: Path) -> tuple[tuple[int, int], int] | None:
-    """``((width, height), exif_orientation)`` read by PIL without decoding pixels (None if unknown);
-    the size is that of the stored pixels, before the orientation is applied."""
+@contextmanager
+def accepting_damaged(accept: bool = True) -> Iterator[None]:
+    """Within the block (in this thread), image files the decoder reports as damaged are decoded as
+    they are, with a warning, instead of refused; for calls that do not pass ``accept_damaged``
+    themselves (a model's ``predict`` on paths, ``match_pair``). The CLI's ``--accept-damaged``."""
+    token = _ACCEPT_DAMAGED.set(bool(accept))
     try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover
-        return None
-    limit = Image.MAX_IMAGE_PIXELS
-    try:
-        Image.MAX_IMAGE_PIXELS = None   # the size is checked against MAX_PIXELS by the caller
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with Image.open(path) as im:
-                size = im.size
-                if im.format == "TIFF" and 256 in im.tag_v2 and 257 in im.tag_v2:
-                    size = (int(im.tag_v2[256]), int(im.tag_v2[257]))   # as stored (PIL: upright)
-                orientation = 1
-                try:   # PNG keeps EXIF after the pixels at times: reading it there would decode them
-                    if im.format != "PNG" or "exif" in im.info:
-                        orientation = int(im.getexif().get(0x0112, 1))
-                except Exception:
-                    orientation = 1
-                return size, orientation
-    except Exception:
-        return None
+        yield
     finally:
-        Image.MAX_IMAGE_PIXELS = limit
+        _ACCEPT_DAMAGED.reset(token)
 
 
-def _header(path: Path) -> tuple[tuple[int, int], int] | None:
-    """``((width, height), exif_orientation)`` from the file header, None if the size is unknown."""
-    with open(path, "rb") as f:
-        head = f.read(_HEAD_BYTES)
-    size = _text_header_size(head)
-    if size is not None:
-        return size, 1
-    return _pil_header(path)
+#: decoder messages that mean image data is missing (libjpeg's JWRN_JPEG_EOF and JWRN_HIT_MARKER:
+#: the rest of the image is filled in grey); other messages (extraneous bytes) stay warnings
+_DAMAGED_MESSAGES = ("premature end",)
 
 
 _quiet_lock = threading.Lock()
@@ -192,7 +150,6 @@ def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
     return arr
 
 
-_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")   # classic and BigTIFF, both byte orders
 
 
 @functools.lru_cache(maxsize=None)
@@ -225,14 +182,19 @@ def _stat_file(path: Path, name: str) -> os.stat_result:
         raise ImageError(f"{name}: cannot access {shown} ({e.strerror})") from None
 
 
-def load_image(image: ImageLike, name: str = "image") -> np.ndarray:
-    """Load an image file or validate an array; returns ``H x W x 3`` uint8 RGB.
+def load_image(image: ImageLike, name: str = "image", *, precise: bool = False,
+               accept_damaged: bool | None = None) -> np.ndarray:
+    """Load an image file or validate an array; returns ``H x W x 3`` uint8 RGB (with ``precise``,
+    an image of more than 8 bits as float32 RGB in ``[0, 1]``).
+
+    ``accept_damaged``: decode a file whose data ends early (with a warning) instead of refusing
+    it; None: as :func:`accepting_damaged` says (default: refuse).
 
     Raises:
-        ImageError: missing/unreadable/corrupt file, bad dtype or shape, NaN/inf,
+        ImageError: missing/unreadable/corrupt/damaged file, bad dtype or shape, NaN/inf,
             image too small or too large, size not readable from the file header.
     """
-    return load_image_reduced(image, name)[0]
+    return load_image_reduced(image, name, precise=precise, accept_damaged=accept_damaged)[0]
 
 
 def reduction_factor(height: int, width: int, min_long_side: int | None) -> int:
@@ -243,7 +205,8 @@ def reduction_factor(height: int, width: int, min_long_side: int | None) -> int:
     return k
 
 
-def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int | None = None
+def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int | None = None, *,
+                       precise: bool = False, accept_damaged: bool | None = None
                        ) -> tuple[np.ndarray, tuple[int, int]]:
     """Like :func:`load_image`, but a file much larger than needed is decoded at a reduced size.
 
@@ -253,22 +216,24 @@ def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int
     are decoded and at once reduced (area average), before any conversion. Arrays are not reduced.
 
     Returns:
-        ``(rgb, (H, W))``: the ``h x w x 3`` uint8 RGB image and the size of the full image
-        (upright, as :func:`load_image` would return it).
+        ``(rgb, (H, W))``: the ``h x w x 3`` RGB image (uint8; with ``precise``, float32 in
+        ``[0, 1]`` for an image of more than 8 bits) and the size of the full image (upright, as
+        :func:`load_image` would return it). ``precise``, ``accept_damaged``: as in :func:`load_image`.
     """
     if isinstance(image, (str, os.PathLike)):
-        return _load_file(Path(image), name, min_long_side)
-    rgb = load_image_array(image, name)
+        accept = _ACCEPT_DAMAGED.get() if accept_damaged is None else accept_damaged
+        return _load_file(Path(image), name, min_long_side, precise, accept)
+    rgb = load_image_array(image, name, precise=precise)
     return rgb, rgb.shape[:2]
 
 
-def load_working_image(image: ImageLike, max_side: int | None, name: str = "image"
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def load_working_image(image: ImageLike, max_side: int | None, name: str = "image", *,
+                       accept_damaged: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """An image at a working resolution: its longer side at most ``max_side`` (None: full size).
 
-    Returns ``(rgb, S)``: the image, and the ``3 x 3`` matrix from pixel coordinates of the full
-    image to those of the returned one (the identity when it was not resized)."""
-    rgb, (h, w) = load_image_reduced(image, name, max_side)
+    Returns ``(rgb, S)``: the uint8 image, and the ``3 x 3`` matrix from pixel coordinates of the
+    full image to those of the returned one (the identity when it was not resized)."""
+    rgb, (h, w) = load_image_reduced(image, name, max_side, accept_damaged=accept_damaged)
     if not max_side or max(h, w) <= max_side:
         return rgb, np.eye(3)
     f = max_side / max(h, w)
@@ -319,9 +284,10 @@ def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
     return header
 
 
-def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.ndarray, tuple[int, int]]:
+def _load_file(path: Path, name: str, min_long_side: int | None, precise: bool = False,
+               accept_damaged: bool = False) -> tuple[np.ndarray, tuple[int, int]]:
     label = f"{name} ({path})"
-    (width, height), orientation = _checked_header(path, name)
+    (width, height), orientation = _checked_header(path, name)   # the size limits, on the file's own size
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as e:
@@ -335,6 +301,10 @@ def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.nda
     with _quiet_decoder() as messages:
         arr = cv2.imdecode(data, flags)
     del data
+    bgr, oriented = True, tiff and _tiff_decoder_orients()   # as OpenCV's decoders return them
+    if arr is None and tiff:
+        arr = _read_float_tiff(path, name)   # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
+        bgr, oriented = False, False
     if arr is None:
         raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
     expected = (-(-height // k), -(-width // k)) if jpeg_reduced else (height, width)
@@ -342,27 +312,39 @@ def _load_file(path: Path, name: str, min_long_side: int | None) -> tuple[np.nda
         raise ImageError(f"{name}: decoded image is {arr.shape[1] * (k if jpeg_reduced else 1)}x"
                          f"{arr.shape[0] * (k if jpeg_reduced else 1)}, but its header says "
                          f"{width}x{height} (corrupt file): {path}")
+    damaged = next((m for m in messages if any(w in m.lower() for w in _DAMAGED_MESSAGES)), None)
+    if damaged is not None and not accept_damaged:
+        raise ImageError(f"{name}: damaged file: the decoder reports '{damaged.strip()[:200]}', the image "
+                         f"data ends before the {width}x{height} image its header declares (the rest would "
+                         f"be filler; --accept-damaged / accept_damaged=True decodes it anyway): {path}")
     if messages:
-        warnings.warn(f"{label}: the decoder reported a problem: {messages[0][:200]}", stacklevel=3)
+        warnings.warn(f"{label}: the decoder reported a problem: {(damaged or messages[0]).strip()[:200]}"
+                      + (" (decoded anyway, part of the image is filler)" if damaged else ""), stacklevel=3)
+    if np.issubdtype(arr.dtype, np.floating):
+        arr = _float_file_to_unit(arr, label)
     if k > 1 and not jpeg_reduced:
         arr = cv2.resize(arr, (-(-arr.shape[1] // k), -(-arr.shape[0] // k)), interpolation=cv2.INTER_AREA)
-    if arr.ndim == 3:
+    if arr.ndim == 3 and bgr:
         code = cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB
         if arr.shape[2] in (3, 4):
             arr = cv2.cvtColor(arr, code)
     full = (width, height) if orientation in (5, 6, 7, 8) else (height, width)
-    if not (tiff and _tiff_decoder_orients()):   # a TIFF comes out of OpenCV's decoder upright
+    if not oriented:   # a TIFF comes out of OpenCV's decoder upright
         arr = _apply_orientation(arr, orientation)
-    return to_rgb_uint8(arr, label, check_size=k == 1), full
+    return to_rgb(arr, label, precise=precise, full_shape=full), full
 
 
 _REDUCED_COLOR = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
-def load_image_array(image, name: str = "image") -> np.ndarray:
-    """Validate an array (or a ``C x H x W`` / ``H x W x C`` torch tensor) as :func:`load_image` does."""
+def load_image_array(image, name: str = "image", *, precise: bool = False,
+                     full_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Validate an array (or a ``C x H x W`` / ``H x W x C`` torch tensor) as :func:`load_image` does.
+
+    ``full_shape``: ``(H, W)`` of the full image when ``image`` is a reduced copy of it; the size
+    limits are checked on that size, not on the copy's."""
     if isinstance(image, np.ndarray):
-        return to_rgb_uint8(image, name)
+        return to_rgb(image, name, precise=precise, full_shape=full_shape)
     try:  # torch tensors: C x H x W float in [0, 1] or uint8
         import torch
 
@@ -372,7 +354,7 @@ def load_image_array(image, name: str = "image") -> np.ndarray:
             t = image.detach().cpu()
             if t.dim() == 3 and t.shape[0] in (1, 3, 4) and t.shape[-1] not in (1, 3, 4):
                 t = t.permute(1, 2, 0)
-            return to_rgb_uint8(t.numpy(), name)
+            return to_rgb(t.numpy(), name, precise=precise, full_shape=full_shape)
     except ImportError:  # pragma: no cover
         pass
     raise ImageError(f"{name}: expected a file path or a numpy array, got {type(image).__name__}")
@@ -380,13 +362,21 @@ def load_image_array(image, name: str = "image") -> np.ndarray:
 
 def to_rgb_uint8(arr: np.ndarray, name: str = "image", check_size: bool = True) -> np.ndarray:
     """Validate and convert an ``H x W [x C]`` array to ``H x W x 3`` uint8 RGB."""
+    return to_rgb(arr, name, check_size=check_size)
+
+
+def to_rgb(arr: np.ndarray, name: str = "image", check_size: bool = True, precise: bool = False,
+           full_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Validate and convert an ``H x W [x C]`` array to ``H x W x 3`` RGB: uint8, or with ``precise``
+    float32 in ``[0, 1]`` for uint16 and float input (no 8-bit rounding). ``full_shape``: the size
+    checked instead of the array's (the full image of a reduced copy)."""
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (2, 3, 4)):
         raise ImageError(f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, "
                          f"got shape {arr.shape}")
     if check_size:
-        _check_size(arr.shape[0], arr.shape[1], name)
+        _check_size(*(full_shape or arr.shape[:2]), name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
         if not _is_opaque(arr[..., -1]):
             warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
@@ -395,6 +385,8 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image", check_size: bool = True) 
             arr = arr[..., 0]
     if arr.dtype == np.uint8:
         out = arr
+    elif arr.dtype == np.uint16 and precise:
+        out = arr.astype(np.float32) / 65535.0
     elif arr.dtype == np.uint16:
         warnings.warn(f"{name}: 16-bit image rescaled to 8 bit", stacklevel=3)
         out = (arr.astype(np.float32) / 257.0).round().astype(np.uint8)
@@ -405,7 +397,7 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image", check_size: bool = True) 
             raise ImageError(f"{name}: float image contains NaN or inf")
         if arr.min() < 0 or arr.max() > 1:
             raise ImageError(f"{name}: float image must be in [0, 1], got [{arr.min():.3g}, {arr.max():.3g}]")
-        out = (arr * 255).round().astype(np.uint8)
+        out = arr.astype(np.float32) if precise else (arr * 255).round().astype(np.uint8)
     else:
         raise ImageError(f"{name}: unsupported dtype {arr.dtype} (use uint8, uint16 or float in [0, 1])")
     if out.ndim == 2:

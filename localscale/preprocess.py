@@ -63,7 +63,8 @@ def make_letterbox(height: int, width: int, size: int) -> Letterbox:
 
 def letterbox(image: np.ndarray, size: int, original_shape: tuple[int, int] | None = None
               ) -> tuple[np.ndarray, Letterbox]:
-    """Resize + pad an ``H x W x C`` uint8 image into ``size x size`` (zeros outside).
+    """Resize + pad an ``H x W x C`` image (uint8, or float32 in [0, 1]) into ``size x size``
+    (zeros outside), keeping its dtype.
 
     ``original_shape``: ``(H, W)`` of the original when ``image`` is a reduced copy of it (see
     :func:`localscale.io.load_image_reduced`); the placement is then that of the original.
@@ -77,5 +78,7 @@ def letterbox(image: np.ndarray, size: int, original_shape: tuple[int, int] | No
 
 
 def to_tensor(image: np.ndarray) -> torch.Tensor:
-    """``H x W x 3`` uint8 -> ``3 x H x W`` float32 in [0, 1]."""
-    return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float().div_(255.0)
+    """``H x W x 3`` uint8 (divided by 255) or float in [0, 1] (as it is, at full precision)
+    -> ``3 x H x W`` float32 in [0, 1]."""
+    t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
+    return t.float().div_(255.0) if image.dtype == np.uint8 else t.float()

@@ -126,7 +126,7 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
 
 def plot_refined_map(image_a: np.ndarray, network: np.ndarray, refined: np.ndarray, source: np.ndarray | None = None,
                      gt_scale: np.ndarray | None = None, path: str | Path | None = None, title: str | None = None):
-    """Figure: A, the network's map, the refined map (:func:`localscale.features.verification.refine_scale_map`),
+    """Figure: A, the network's map, the refined map (:func:`localscale.matching.refine_scale_map`),
     the ground-truth map when given (nan outside its mask) and the geometry's weight (``source``).
 
     The scale maps share one colour range on ``log2 S``; panel titles give the mean r against the

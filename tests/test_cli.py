@@ -1,6 +1,5 @@
 import argparse
 import json
-import sys
 
 import cv2
 import numpy as np
@@ -12,6 +11,9 @@ from localscale import loading
 from localscale import LocalScaleNet, ScaleNet
 from localscale.checkpoint import save_model
 from localscale.cli import main
+from localscale.errors import LocalScaleError
+from localscale.map_files import write_scale_map
+from localscale.outputs import ensure_not_input
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 
@@ -190,9 +192,9 @@ def test_show_writes_into_the_output_folder(models, pair, tmp_path, capsys):
 
 
 def test_output_must_not_be_an_input(pair, tmp_path):
-    with pytest.raises(cli.LocalScaleError, match="refusing to overwrite"):
-        cli.ensure_not_input(tmp_path / ".." / tmp_path.name / "a.png", [tmp_path / "a.png"])
-    cli.ensure_not_input(tmp_path / "b.png", [tmp_path / "a.png", None])
+    with pytest.raises(LocalScaleError, match="refusing to overwrite"):
+        ensure_not_input(tmp_path / ".." / tmp_path.name / "a.png", [tmp_path / "a.png"])
+    ensure_not_input(tmp_path / "b.png", [tmp_path / "a.png", None])
 
 
 # ---------------------------------------------------------------- scale, rectify
@@ -406,16 +408,22 @@ def test_visible_map_is_written_when_the_model_predicts_it(tmp_path):
         confidence = np.ones((6, 8), np.float32)
         visible = np.full((6, 8), 0.25, np.float32)
 
-    paths = cli.write_scale_map(Pred(), tmp_path, "x_y")
+    paths = write_scale_map(Pred(), tmp_path, "x_y")
     assert tmp_path / "x_y_visible.npy" in paths and np.allclose(np.load(tmp_path / "x_y_visible.npy"), 0.25)
     del Pred.visible
-    assert all("visible" not in p.name for p in cli.write_scale_map(Pred(), tmp_path / "old", "x_y"))
+    assert all("visible" not in p.name for p in write_scale_map(Pred(), tmp_path / "old", "x_y"))
 
 
-def test_correction_logic_is_importable_from_its_old_places():
+def test_matching_names_still_work_from_features_with_a_deprecation_warning():
     import localscale.features as features
-    import localscale.features.correction as correction
-    import localscale.features.pipeline as pipeline
+    import localscale.matching as matching
+    import localscale.matching.correction as correction
 
-    for name in ("CorrectionGate", "NO_GATE", "CORRECTIONS", "fuse_local_global", "scale_maps_for_pair"):
-        assert getattr(features, name) is getattr(correction, name) is getattr(pipeline, name)
+    for name in ("CorrectionGate", "NO_GATE", "CORRECTIONS", "fuse_local_global", "scale_maps_for_pair", "match_pair",
+                 "MatchConfig", "Matcher"):
+        with pytest.warns(DeprecationWarning, match=f"localscale.matching.{name}"):
+            old = getattr(features, name)
+        assert old is getattr(matching, name)
+    assert matching.CorrectionGate is correction.CorrectionGate
+    with pytest.raises(AttributeError):
+        features.no_such_name

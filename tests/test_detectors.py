@@ -11,7 +11,8 @@ import torch
 from localscale.cli import main as cli_main
 from localscale.errors import LocalScaleError
 from localscale.evaluation import evaluate, load_hpatches, make_pairs, make_sequences
-from localscale.features import DETECTORS, detect, detect_keypoints, get_detector, match_pair
+from localscale.features import DETECTORS, detect, detect_keypoints, get_detector
+from localscale.matching import match_pair
 
 ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"
 IMAGE = ASSETS / "kodim01_a.jpg"

@@ -5,10 +5,8 @@ import pytest
 import torch
 
 from localscale.errors import CheckpointError, ImageError, LocalScaleError
-from localscale.features import (CorrectionGate, HardNetDescriptor, NO_GATE, ScaleCorrectedPatches,
-                                 SIFTPatchDescriptor, detect_keypoints, draw_matches,
-                                 extract, image_to_gray_tensor, match_descriptors, match_pair, patch_radii,
-                                 reprojection_errors, sample_scale_map, save_matches)
+from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, detect_keypoints, extract, image_to_gray_tensor, patch_radii, sample_scale_map
+from localscale.matching import CorrectionGate, NO_GATE, draw_matches, match_descriptors, match_pair, reprojection_errors, save_matches
 from localscale.geometry import HomographyConfig, homography_scale_map, project, sample_homography, warp_image
 
 
@@ -218,7 +216,7 @@ def test_match_pair_local_and_global_with_tiny_models(photos):
 
 
 def test_fuse_local_global():
-    from localscale.features.pipeline import fuse_local_global
+    from localscale.matching.correction import fuse_local_global
 
     a = np.exp2(np.linspace(-1, 1, 25, dtype=np.float32)).reshape(5, 5)     # median 1, varies 0.5..2
     b = np.full((4, 4), 3.0, np.float32)                                     # biased, flat
@@ -282,7 +280,7 @@ def test_gate_weighting_ignores_pixels_the_other_image_does_not_show():
 
 
 def test_weighted_quantile():
-    from localscale.features.correction import weighted_quantile
+    from localscale.matching.correction import weighted_quantile
 
     v = np.array([0.0, 1.0, 2.0, 10.0])
     assert weighted_quantile(v, None, 0.5) == np.quantile(v, 0.5)
@@ -293,7 +291,7 @@ def test_weighted_quantile():
 
 
 def test_fuse_local_global_weighted():
-    from localscale.features.pipeline import fuse_local_global
+    from localscale.matching.correction import fuse_local_global
 
     a = np.array([[1.0, 1.0, 8.0]], np.float32)
     b = np.array([[1.0, 1.0]], np.float32)

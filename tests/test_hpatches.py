@@ -12,7 +12,7 @@ from localscale.errors import LocalScaleError
 from localscale.evaluation import (evaluate, load_hpatches, make_pairs, make_sequences, perspective_split,
                                    rotation_split, scale_split)
 from localscale.geometry import homography_rotation
-from localscale.features.matching import orient_homography
+from localscale.geometry import orient_homography
 
 
 
@@ -108,7 +108,7 @@ def test_main_writes_outputs(tiny_root, tmp_path):
 def test_gate_options(tiny_root, tmp_path):
     import argparse
 
-    from localscale.cli_options import add_hpatches_options
+    from localscale.cli.options import add_hpatches_options
     from localscale.evaluation.hpatches import gate_from_args
 
     parse = add_hpatches_options(argparse.ArgumentParser()).parse_args
@@ -153,7 +153,7 @@ def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
 
 
 def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
-    from localscale.evaluation.hpatches import markdown_table
+    from localscale.evaluation.report import markdown_table
     from localscale.models import LocalScaleNet
 
     torch.manual_seed(0)

@@ -179,3 +179,114 @@ def test_predict_on_a_tagged_tiff_gives_the_upright_map(tmp_path, photos):
     cv2.imwrite(str(b), stored[..., ::-1])
     assert main(["predict", str(a), str(b), "-o", str(tmp_path / "out")]) == 0
     assert np.load(tmp_path / "out" / "a_b_scale.npy").shape == (96, 64)
+
+
+# ---------------------------------------------------------------- float TIFF, 16 bit, thin strips, damaged files
+
+def _smooth(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """``h x w x 3`` float64 in [0, 1], smooth (a photo-like test image)."""
+    rng = np.random.default_rng(seed)
+    small = rng.random((max(2, h // 8), max(2, w // 8), 3))
+    return np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1)
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64])
+@pytest.mark.parametrize("gray", [False, True])
+@pytest.mark.parametrize("top", [1.0, 255.0])
+def test_float_tiffs_are_decoded(tmp_path, dtype, gray, top):
+    tifffile = pytest.importorskip("tifffile")
+    img = _smooth(48, 64)
+    img = img[..., 0] if gray else img
+    p = tmp_path / "f.tif"
+    tifffile.imwrite(p, (img * top).astype(dtype), photometric="minisblack" if gray else "rgb")
+    stored = (img * top).astype(dtype).astype(np.float64) / top          # what the file holds, in [0, 1]
+    want = np.repeat(stored[..., None], 3, 2) if gray else stored
+    got = load_image(p)
+    assert got.dtype == np.uint8 and got.shape == (48, 64, 3)
+    assert np.abs(got.astype(float) - want * 255).max() <= 0.5 + 1e-6
+    precise = load_image(p, precise=True)
+    assert precise.dtype == np.float32 and np.abs(precise - want).max() < 1e-6
+
+
+@pytest.mark.parametrize("bad, words", [(np.nan, "NaN or inf"), (np.inf, "NaN or inf"), (-5.0, "expected [0, 1] or [0, 255]"),
+                                        (300.0, "expected [0, 1] or [0, 255]")])
+def test_float_tiff_with_bad_values_is_refused(tmp_path, bad, words):
+    tifffile = pytest.importorskip("tifffile")
+    img = _smooth(32, 32).astype(np.float32)
+    img[5, 7, 1] = bad
+    p = tmp_path / "bad.tif"
+    tifffile.imwrite(p, img, photometric="rgb")
+    with pytest.raises(ImageError) as e:
+        load_image(p)
+    assert words in one_line(e)
+
+
+def test_16bit_images_reach_the_network_at_full_precision(tmp_path):
+    """16-bit PNG/TIFF: uint8 for the detectors (x / 257), float32 x / 65535 for the networks; the
+    network's input tensor holds the 16-bit values, not their 8-bit rounding."""
+    from localscale import LocalScaleNet
+
+    rng = np.random.default_rng(3)
+    img16 = rng.integers(0, 65536, (64, 64, 3), dtype=np.uint16)
+    model = LocalScaleNet(width=0.125, feature_dim=16, image_size=64)   # 64 x 64: no resize in the letterbox
+    for suffix in (".png", ".tif"):
+        p = tmp_path / f"x{suffix}"
+        cv2.imwrite(str(p), img16[..., ::-1])
+        with pytest.warns(UserWarning, match="16-bit"):
+            assert np.array_equal(load_image(p), (img16 / 257.0).round().astype(np.uint8))
+        precise = load_image(p, precise=True)
+        assert precise.dtype == np.float32 and np.array_equal(precise, img16.astype(np.float32) / 65535)
+        x, _ = model.prepare(p)
+        assert torch_allclose(x[0].permute(1, 2, 0).numpy(), img16 / 65535.0, 1e-6)
+        rounded = np.abs(x[0].numpy() * 255 - np.round(x[0].numpy() * 255))
+        assert rounded.max() > 0.4                         # values between the 8-bit levels are kept
+    eight = tmp_path / "8.png"
+    cv2.imwrite(str(eight), (img16 // 257).astype(np.uint8)[..., ::-1])
+    x8, _ = model.prepare(eight)                           # 8-bit input: as before, x / 255
+    assert torch_allclose(x8[0].permute(1, 2, 0).numpy(), (img16 // 257) / 255.0, 1e-6)
+
+
+def torch_allclose(a, b, tol) -> bool:
+    return bool(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64)).max() <= tol)
+
+
+@pytest.mark.parametrize("shape", [(16, 4000), (4000, 16), (40, 4000), (4000, 40)])
+def test_thin_strips_are_images(tmp_path, shape):
+    from localscale.io import image_shape, load_image_reduced
+
+    p = tmp_path / "strip.png"
+    cv2.imwrite(str(p), (_smooth(*shape) * 255).astype(np.uint8))
+    assert load_image(p).shape == (*shape, 3) and image_shape(p) == shape
+    small, full = load_image_reduced(p, "strip", 256)            # decoded at 1/8: the size check is the file's
+    assert full == shape and max(small.shape[:2]) == 500
+    thinner = tmp_path / "thinner.png"
+    cv2.imwrite(str(thinner), (_smooth(15, 4000) * 255).astype(np.uint8))
+    with pytest.raises(ImageError, match="smaller than the minimum"):
+        load_image(thinner)
+
+
+def _damaged_jpeg(path, claimed=(9999, 9999)):
+    """A JPEG whose header declares ``claimed`` (width, height) but whose data holds a 320 x 214 image."""
+    _, buf = cv2.imencode(".jpg", (_smooth(214, 320) * 255).astype(np.uint8))
+    data = bytearray(buf.tobytes())
+    i = data.index(b"\xff\xc0")
+    data[i + 5:i + 9] = struct.pack(">HH", claimed[1], claimed[0])
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_damaged_jpeg_is_refused_unless_accepted(tmp_path):
+    from localscale.io import accepting_damaged, load_image_reduced
+
+    p = _damaged_jpeg(tmp_path / "damaged.jpg")
+    with pytest.raises(ImageError) as e:
+        load_image_reduced(p, "image A", 1000)
+    msg = one_line(e)
+    assert "damaged file" in msg and "9999x9999" in msg and "premature end" in msg
+    with pytest.warns(UserWarning, match="premature end"):
+        _, full = load_image_reduced(p, "image A", 1000, accept_damaged=True)
+    assert full == (9999, 9999)
+    with accepting_damaged(), pytest.warns(UserWarning, match="premature end"):
+        assert load_image_reduced(p, "image A", 1000)[1] == (9999, 9999)
+    with pytest.raises(ImageError, match="damaged file"):   # the setting ends with the block
+        load_image_reduced(p, "image A", 1000)

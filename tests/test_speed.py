@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from localscale.features import (NO_GATE, HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor,
-                                 image_to_gray_tensor, match_descriptors, match_pair, reprojection_errors,
-                                 scale_maps_for_pair)
+from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
+
+from localscale.matching import NO_GATE, match_descriptors, match_pair, reprojection_errors, scale_maps_for_pair
 from localscale.features.descriptors import default_batch_size
-from localscale.features.matchers import MatchConfig
+from localscale.matching.config import MatchConfig
 from localscale.features.detector import HessianDetector
 from localscale.io import load_image, read_homography
 
@@ -114,7 +114,7 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
 
 
 def test_matcher_describes_each_radius_once(tiny_seqs):
-    from localscale.features.matchers import Matcher
+    from localscale.matching.matcher import Matcher
     from localscale.io import load_image
 
     path = sorted(tiny_seqs.glob("*/1.png"))[0]
@@ -146,7 +146,7 @@ def test_matcher_describes_each_radius_once(tiny_seqs):
 def test_corrections_beat_no_correction_on_the_bundled_pair():
     """On the bundled strong-perspective pair (HardNet, 1000 keypoints) every scale correction
     matches better than none, and the ground-truth map is at least as good as the predicted maps."""
-    from localscale.features import models_for_correction
+    from localscale.matching import models_for_correction
 
     a, b = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg"
     H = read_homography(ASSETS / "H_a_b.txt")
@@ -185,7 +185,7 @@ def test_benchmark_throughput_code_path_runs_on_cpu():
     spec = importlib.util.spec_from_file_location("benchmark", Path(__file__).resolve().parent.parent / "eval" / "benchmark.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    from localscale.features.matchers import Matcher
+    from localscale.matching.matcher import Matcher
     from localscale.models import LocalScaleNet
 
     torch.manual_seed(0)

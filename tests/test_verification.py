@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from localscale.cli import main
-from localscale.features.pipeline import match_pair, refine_match
-from localscale.features.verification import (VerificationConfig, corner_error, homography_auc,
-                                              local_affine_scales, refine_scale_map, verify_matches)
+from localscale.matching.pipeline import match_pair, refine_match
+from localscale.matching.verification import VerificationConfig, local_affine_scales, verify_matches
+from localscale.matching.metrics import corner_error, homography_auc
+from localscale.matching.refinement import refine_scale_map
 from localscale.geometry import covisible_mask, homography_scale_at, homography_scale_map, project
 from localscale.io import load_image, read_homography
 
@@ -177,7 +178,7 @@ def test_cli_predict_search_refine_seeds_the_refinement_with_both_searched_maps(
 def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
     import torch
 
-    from localscale.features.verification import describe_and_match, refine_matching
+    from localscale.matching.refinement import describe_and_match, refine_matching
 
     a, b, H = example
     kp = rng.uniform([0, 0], [639, 426], (300, 2))

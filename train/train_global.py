@@ -4,7 +4,7 @@ Same trainer and options as ``train_local.py`` (shared code in :mod:`localscale.
 """
 import sys
 
-from localscale.training import main
+from localscale.cli.train import main
 
 if __name__ == "__main__":
     sys.exit(main(model="global"))

@@ -5,7 +5,7 @@ All options: ``--help`` (they mirror :class:`localscale.training.TrainConfig`).
 """
 import sys
 
-from localscale.training import main
+from localscale.cli.train import main
 
 if __name__ == "__main__":
     sys.exit(main(model="local"))

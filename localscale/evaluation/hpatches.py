@@ -20,13 +20,13 @@ keypoints detected and described on a 4-level image pyramid with step sqrt(2)...
 ``refined`` (the ``local`` maps, matching, verification with a MAGSAC homography, maps refined by
 the verified geometry and a second matching pass; when the first pass is not verified, the
 ``opencv-sift`` matches are verified instead and their geometry refines the maps;
-:func:`localscale.features.verification.refine_matching`),
+:func:`localscale.matching.refine_matching`),
 ``opencv-sift`` (baseline: OpenCV's DoG detector, top-K keypoints, OpenCV SIFT descriptors,
 mutual nearest neighbours that pass Lowe's ratio test 0.8).
 
 Homography accuracy (every method): a homography estimated from the method's matches with OpenCV
 ``USAC_MAGSAC`` (3 px), the mean error of A's four corners against the ground truth
-(:func:`localscale.features.verification.corner_error`), its AUC at 3 / 5 / 10 px over the pairs
+(:func:`localscale.matching.corner_error`), its AUC at 3 / 5 / 10 px over the pairs
 and the share of pairs solved (corner error < 10 px).
 
 Splits, from the GT homography of each pair:
@@ -37,19 +37,14 @@ Splits, from the GT homography of each pair:
 * global scale: ``g = |log2 global_scale|`` (geometric mean of the map over the co-visible
   region): ``scale<1.4x`` for g < 0.5, ``scale1.4-2.8x`` for 0.5 <= g < 1.5, ``scale>2.8x``.
 
-Predicted maps go through :class:`localscale.features.CorrectionGate` (default pair level 0.25,
-chosen on a synthetic selection set; the measurements are in ``docs/RESULTS.md``). Compare gates
-with ``--gate-pair X [--no-consistency]``.
+Predicted maps go through :class:`localscale.matching.CorrectionGate` (default pair level 0.25;
+``docs/DECISIONS.md``). Compare gates with ``--gate-pair X [--no-consistency]``.
 
 Outputs in ``--out``: ``results.json`` (per-pair records, summaries, splits), ``splits.csv``
 (the split of every pair), ``results.md`` (tables) and ``mma_<split>.png`` plots.
 """
 from __future__ import annotations
 
-import argparse
-import csv
-import io
-import json
 import math
 import re
 import sys
@@ -60,24 +55,18 @@ from typing import Iterable, Optional, Sequence
 
 import cv2
 import numpy as np
-import torch
 
 from ..errors import HomographyError, LocalScaleError
-from ..features.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
+from ..matching.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
 from ..geometry import covisible_mask, global_scale, homography_rotation, orient_homography, perspective_spread
 from ..io import load_image, read_homography
+from .report import (H_AUC_THRESHOLDS, SOLVED_PX, THRESHOLDS, markdown_table, perspective_split,  # noqa: F401
+                     rotation_split, scale_split, summarise, write_outputs)
 
 HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
             "v_astronautis", "v_talent")
 IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-METHODS = CORRECTIONS   #: the correction methods (one registry: localscale.features.correction)
-H_AUC_THRESHOLDS = (3.0, 5.0, 10.0)
-SOLVED_PX = 10.0
-SIFT_RATIO = 0.8
-THRESHOLDS = tuple(range(1, 11))
-PERSPECTIVE_EDGES = (0.1, 0.25)
-SCALE_EDGES = (1.0, 2.0)
-ROTATION_EDGES = (30.0, 90.0)
+METHODS = CORRECTIONS   #: the correction methods (one registry: localscale.matching.correction)
 
 
 @dataclass
@@ -163,20 +152,6 @@ def _warn(message: str) -> None:
     from tqdm import tqdm
 
     tqdm.write(f"warning: {' '.join(message.split())}", file=sys.stderr)
-
-
-def perspective_split(spread: float) -> str:
-    return "easy" if spread < PERSPECTIVE_EDGES[0] else ("medium" if spread < PERSPECTIVE_EDGES[1] else "hard")
-
-
-def scale_split(log2_scale: float) -> str:
-    g = abs(log2_scale)
-    return "scale<2x" if g < SCALE_EDGES[0] else ("scale2-4x" if g < SCALE_EDGES[1] else "scale>4x")
-
-
-def rotation_split(degrees: float) -> str:
-    r = abs(degrees)
-    return "rot<30" if r < ROTATION_EDGES[0] else ("rot30-90" if r <= ROTATION_EDGES[1] else "rot>90")
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -332,23 +307,20 @@ class _PairScales:
             self._memo[key] = fn()
         return self._memo[key]
 
-    def maps(self, method: str, H) -> tuple:
-        """``(map of A, map of B, seconds)`` of ``method`` (:func:`scale_maps_for_pair`)."""
-        from ..features.correction import get_correction, scale_maps_for_pair
-
+    def maps(self, method, H) -> tuple:
+        """``(map of A, map of B, seconds)`` of a :class:`~localscale.matching.Correction` (:meth:`~.Correction.maps`)."""
         pair = self._pair
         a, b = self._images[pair.image_a], self._images[pair.image_b]
-        key = (method, a.shape, b.shape)
+        key = (method.name, a.shape, b.shape)
         if key not in self._maps:
-            needs = get_correction(method).models
             t0 = time.perf_counter()
-            enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) \
-                if method in ("local", "fused", "refined") else None
-            # the search makes and drops many encodings: keyed by id(), the shared cache could mix them up
-            local = None if "local" not in needs else \
-                (self.local_model if method == "searched" else _SharedLocal(self, self.local_model))
-            glob = _SharedGlobal(self, self.global_model, pair) if "global" in needs else None
-            sa, sb = scale_maps_for_pair(a, b, method, H, local, glob, self.gate, enc)
+            enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if method.local_encodings else None
+            # other local uses (the search) make and drop many encodings: keyed by id(), the shared
+            # cache could mix them up
+            local = None if "local" not in method.models else \
+                (_SharedLocal(self, self.local_model) if method.local_encodings else self.local_model)
+            glob = _SharedGlobal(self, self.global_model, pair) if "global" in method.models else None
+            sa, sb = method.maps(a, b, H, local, glob, self.gate, enc)
             self._maps[key] = (sa, sb, time.perf_counter() - t0)
         return self._maps[key]
 
@@ -356,36 +328,34 @@ class _PairScales:
 def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float, fb: float, methods,
                    thresholds) -> list[dict]:
     """The records of one pair and one matcher: each method's maps, matches, MMA and corner error."""
-    from ..features.matching import matching_accuracy, reprojection_errors
-    from ..features.pipeline import _refined, _result, match_with_truth
-    from ..features.correction import get_correction
+    from ..matching import (get_correction, match_auto, match_refined, match_result, match_with_truth,
+                            matching_accuracy, reprojection_errors)
 
     H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
     key_a, key_b = (str(pair.image_a), a.shape), (str(pair.image_b), b.shape)
     recs = []
     for m in methods:
-        sa, sb, map_seconds = scales.maps(m, H)
+        method = get_correction(m)
+        sa, sb, map_seconds = scales.maps(method, H)
         t0 = time.perf_counter()
         extra = {}
-        if get_correction(m).auto:
-            from ..features.pipeline import _auto
-
+        if method.auto:
             keyed = _Keyed(matcher, key_a, key_b)
-            res = _auto(keyed, a, b, scales.local_model, scales.global_model, H, m, (key_a, key_b))
+            res = match_auto(keyed, a, b, scales.local_model, scales.global_model, H, method, (key_a, key_b))
             auto = res.meta["auto"]
             extra = {"verified": bool(auto["verified"]), "chosen": auto["chosen"], "trials": auto["trials"]}
             seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
-        elif get_correction(m).refine or matcher.config.refine:
+        elif method.refine or matcher.config.refine:
             keyed = _Keyed(matcher, key_a, key_b)
-            res = _refined(keyed, a, b, sa, sb, None, None, H, m)
+            res = match_refined(keyed, a, b, sa, sb, None, None, H, method)
             extra = {"verified": bool(res.verification.verified), "passes": res.meta["passes"],
                      "inlier_counts": res.meta["inlier_counts"],
                      "seed_inliers": res.meta["seed_inliers"]}
             # every pass's matching on its own, plus verification and refinement
             seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
         else:
-            found = match_with_truth(matcher, a, b, sa, sb, H, m, (key_a, key_b))
-            res = _result(matcher, found, H, m)
+            found = match_with_truth(matcher, a, b, sa, sb, H, method, (key_a, key_b))
+            res = match_result(matcher, found, H, method)
             seconds = found.seconds
         ka, kb, idx = res.keypoints_a, res.keypoints_b, res.matches
         err = reprojection_errors(ka, kb, idx, H)
@@ -407,7 +377,7 @@ class _Keyed:
 
     def __init__(self, matcher, key_a, key_b):
         self._m, self._keys = matcher, (key_a, key_b)
-        self.config, self.name = matcher.config, matcher.name
+        self.config, self.name, self.extractor = matcher.config, matcher.name, matcher.extractor
         self.wall = self.standalone = 0.0     #: seconds spent in match, and what they cost on their own
 
     def match(self, a, b, scale_a=None, scale_b=None, keys=None):
@@ -421,7 +391,8 @@ class _Keyed:
 def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) -> float:
     """Corner error (px of B) of the homography estimated from the matches (``USAC_MAGSAC``, 3 px);
     ``inf`` when none can be estimated."""
-    from ..features.verification import corner_error, estimate_homography
+    from ..matching.metrics import corner_error
+    from ..matching.verification import estimate_homography
     m = np.asarray(matches, np.int64).reshape(-1, 2)
     H_est, _ = estimate_homography(np.asarray(keypoints_a)[m[:, 0]], np.asarray(keypoints_b)[m[:, 1]])
     return corner_error(H_est, H_true, shape_a)
@@ -465,92 +436,6 @@ class _SharedGlobal:
         return getattr(self._model, name)
 
 
-def summarise(records: list[dict], pairs: list[PairInfo], methods, thresholds) -> dict:
-    """Mean MMA / matches / features per split ('all', perspective splits, scale splits) and method."""
-    groups = {"all": [p.name for p in pairs]}
-    for p in pairs:
-        groups.setdefault(p.perspective_split, []).append(p.name)
-        groups.setdefault(p.scale_split, []).append(p.name)
-        groups.setdefault(p.rotation_split, []).append(p.name)
-    out = {}
-    for g, names in groups.items():
-        names = set(names)
-        out[g] = {"num_pairs": len(names)}
-        for m in methods:
-            rs = [r for r in records if r["method"] == m and r["pair"] in names]
-            if not rs:
-                continue
-            out[g][m] = {"mma": [float(np.mean([r["mma"][i] for r in rs])) for i in range(len(thresholds))],
-                         "num_matches": float(np.mean([r["num_matches"] for r in rs])),
-                         "num_correct_3px": float(np.mean([r.get("num_correct_3px", 0) for r in rs])),
-                         "seconds": float(np.mean([r.get("seconds", 0) + r.get("scale_seconds", 0) for r in rs])),
-                         "num_features": float(np.mean([(r["num_features_a"] + r["num_features_b"]) / 2 for r in rs]))}
-            ce = [r["corner_error"] for r in rs if "corner_error" in r]
-            if ce:
-                from ..features.verification import homography_auc
-                out[g][m]["h_auc"] = homography_auc(ce, H_AUC_THRESHOLDS)
-                out[g][m]["h_solved"] = float(np.mean(np.asarray(ce) < SOLVED_PX))
-                out[g][m]["corner_error_median"] = float(np.median(ce))
-    return out
-
-
-SPLIT_ORDER = ("all", "easy", "medium", "hard", "scale<2x", "scale2-4x", "scale>4x", "rot<30", "rot30-90", "rot>90")
-
-
-def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
-    """One table: a row per split and method (MMA@1/3/5/10, matches, correct at 3 px, features,
-    homography AUC@3/5/10 px, share solved, seconds per pair)."""
-    ti = [thresholds.index(t) for t in (1, 3, 5, 10) if t in thresholds]
-    head = " | ".join(f"MMA@{thresholds[i]}" for i in ti)
-    hh = " | ".join(f"H AUC@{t:g}" for t in H_AUC_THRESHOLDS)
-    lines = [f"### {title}" if title else "", "",
-             f"| split (pairs) | method | {head} | matches | correct@3 | features | {hh} | "
-             f"solved (<{SOLVED_PX:g} px) | s/pair |",
-             "|---|---|" + "---|" * len(ti) + "---|---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1) + "---|"]
-    for g in [s for s in SPLIT_ORDER if s in summary] + [s for s in summary if s not in SPLIT_ORDER]:
-        for m in methods:
-            if m not in summary[g]:
-                continue
-            v = summary[g][m]
-            vals = " | ".join(f"{v['mma'][i]:.3f}" for i in ti)
-            hv = " | ".join(f"{x:.3f}" for x in v["h_auc"]) + f" | {v['h_solved']:.3f}" if "h_auc" in v \
-                else " | ".join("-" for _ in range(len(H_AUC_THRESHOLDS) + 1))
-            lines.append(f"| {g} ({summary[g]['num_pairs']}) | {m} | {vals} | {v['num_matches']:.0f} | "
-                         f"{v.get('num_correct_3px', 0):.0f} | {v['num_features']:.0f} | {hv} | "
-                         f"{v.get('seconds', 0):.2f} |")
-    return "\n".join(lines) + "\n"
-
-
-def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> list[Path]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    files = []
-    for g in summary:
-        fig, ax = plt.subplots(figsize=(4.5, 3.5))
-        for m in methods:
-            if m in summary[g]:
-                ax.plot(thresholds, summary[g][m]["mma"], marker="o", ms=3, label=m)
-        ax.set_xlabel("threshold [px]")
-        ax.set_ylabel("MMA")
-        ax.set_ylim(0, 1)
-        ax.grid(alpha=0.3)
-        ax.set_title(f"{tag} {g} ({summary[g]['num_pairs']} pairs)".strip())
-        ax.legend()
-        fig.tight_layout()
-        safe = re.sub(r"[^A-Za-z0-9_.-]", "_", g.replace("<", "lt").replace(">", "gt"))
-        f = out / f"mma_{tag + '_' if tag else ''}{safe}.png"
-        from ..outputs import atomic_path
-
-        try:
-            with atomic_path(f) as tmp:
-                fig.savefig(tmp, dpi=100, format="png")
-        finally:
-            plt.close(fig)
-        files.append(f)
-    return files
-
-
 def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", local_model=None,
              global_model=None, max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True,
              **options) -> dict:
@@ -558,16 +443,16 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", l
     "suspicious"}``.
 
     Args:
-        methods: names of :data:`localscale.features.correction.CORRECTIONS`.
-        matcher: a name of :data:`localscale.features.matchers.MATCHERS`, a ``MatchConfig`` or a ``Matcher``.
+        methods: names of :data:`localscale.matching.CORRECTIONS`.
+        matcher: a name of :data:`localscale.matching.MATCHERS`, a ``MatchConfig`` or a ``Matcher``.
         local_model, global_model: the models the methods need.
         max_side: working resolution of every image (longer side; None: the matcher's own; 0: full size).
         **options: ``MatchConfig`` fields replacing the matcher's (``descriptor="sift"``, ``num_features``, ``gate``).
     """
     from tqdm import tqdm
 
-    from ..features.correction import get_correction
-    from ..features.pipeline import get_matcher
+    from ..matching.correction import get_correction
+    from ..matching.matcher import get_matcher
 
     for m in methods:
         needs = get_correction(m).models
@@ -578,7 +463,8 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", l
     if max_side is not None:
         options["max_side"] = max_side or None         # 0: full resolution
     if options and hasattr(matcher, "config"):      # a built Matcher with other options: rebuilt
-        from ..features.matchers import Matcher, match_config
+        from ..matching.matcher import Matcher
+        from ..matching.config import match_config
 
         matcher = Matcher(match_config(matcher.config, **options), matcher.device)
         options = {}
@@ -615,56 +501,13 @@ def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float
     return cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA), f
 
 
-def _plain(x):
-    """``x`` as strict JSON data: numpy scalars as numbers, NaN/inf (e.g. the log scale of a pair
-    without a defined one) as null, unknown objects as strings."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple, set)):
-        return [_plain(v) for v in x]
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        x = x.item()
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, (str, int, bool)):
-        return x
-    return str(x)
-
-
-def write_outputs(result: dict, pairs: list[PairInfo], methods, out, thresholds=THRESHOLDS, tag: str = "",
-                  extra: Optional[dict] = None) -> dict:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    splits = [{"pair": p.name, "spread_log2": round(p.spread, 4), "log2_global_scale": round(p.log2_scale, 4),
-               "covisible": round(p.covisible, 3), "rotation_deg": round(p.rotation, 2),
-               "perspective_split": p.perspective_split, "scale_split": p.scale_split,
-               "rotation_split": p.rotation_split} for p in pairs]
-    from ..outputs import write_text
-
-    buf = io.StringIO(newline="")
-    w = csv.DictWriter(buf, fieldnames=list(splits[0]) if splits else ["pair"])
-    w.writeheader()
-    w.writerows(splits)
-    write_text(out / "splits.csv", buf.getvalue())
-    doc = {"thresholds": list(thresholds), "methods": list(methods), "splits": splits,
-           "split_rules": {"perspective_edges_std_log2": PERSPECTIVE_EDGES, "scale_edges_abs_log2": SCALE_EDGES,
-                           "rotation_edges_deg": ROTATION_EDGES},
-           **(extra or {}), **result}
-    name = f"results{'_' + tag if tag else ''}"
-    write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))
-    md = markdown_table(result["summary"], methods, list(thresholds), tag)
-    write_text(out / f"{name}.md", md)
-    plot_mma(result["summary"], methods, list(thresholds), out, tag)
-    return doc
-
-
 def load_scale_models(methods: list, local_weights=None, global_weights=None,
                       device: str = "cpu") -> tuple[dict, list]:
     """Load the models the ``methods`` need (:func:`localscale.loading.load_scale_model`); a method
     whose bundled weights cannot be loaded is removed from ``methods`` (in place) with a note.
     Returns ``({"local"|"global": model}, notes)``."""
     from ..errors import CheckpointError
-    from ..features.correction import get_correction
+    from ..matching.correction import get_correction
     from ..devices import resolve_device
     from ..loading import load_scale_model
 
@@ -689,7 +532,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
 
 def gate_from_args(args):
     """``CorrectionGate`` with the ``--gate-*`` / ``--no-consistency`` options a parser defined."""
-    from ..features.correction import CorrectionGate
+    from ..matching.correction import CorrectionGate
 
     gate = CorrectionGate()
     if getattr(args, "gate_pair", None) is not None:

@@ -10,7 +10,7 @@ import torch
 import torch.nn as nn
 
 from ..errors import ImageError
-from ..io import ImageLike, load_image, load_image_reduced
+from ..io import ImageLike, load_image, load_image_array, load_image_reduced
 from ..preprocess import Letterbox, letterbox, to_tensor
 from .common import FeatureExtractor, fold_batch_norm
 from .registry import load_model
@@ -127,8 +127,9 @@ class ScaleModel(nn.Module):
 
     def load(self, image: ImageLike, name: str = "image") -> tuple[np.ndarray, tuple[int, int]]:
         """An image as the network needs it: ``(rgb, (H, W))``, a large file decoded at a reduced
-        size (:func:`~localscale.io.load_image_reduced`), with the size of the full image."""
-        return load_image_reduced(image, name, self.input_side)
+        size (:func:`~localscale.io.load_image_reduced`), with the size of the full image; an image
+        of more than 8 bits (16-bit, float) as float32 in [0, 1], without rounding to 8 bits."""
+        return load_image_reduced(image, name, self.input_side, precise=True)
 
     def prepare(self, image: ImageLike, name: str = "image", original_shape: tuple[int, int] | None = None,
                 turns: int = 0) -> tuple[torch.Tensor, Letterbox]:
@@ -139,8 +140,10 @@ class ScaleModel(nn.Module):
         first; the placement is that of the turned image."""
         if original_shape is None:
             rgb, original_shape = self.load(image, name)
-        else:
-            rgb = load_image(image, name)
+        elif isinstance(image, (str, Path)):
+            rgb = self.load(image, name)[0]
+        else:   # a reduced copy: the size limits apply to the full image
+            rgb = load_image_array(image, name, precise=True, full_shape=tuple(original_shape))
         if turns % 4:
             rgb = np.ascontiguousarray(np.rot90(rgb, turns))
             original_shape = tuple(original_shape[::-1]) if turns % 2 else original_shape
@@ -149,7 +152,8 @@ class ScaleModel(nn.Module):
 
     def _batch_images(self, images, name: str) -> tuple[list[np.ndarray], "BatchFormat"]:
         """A batch (``B x 3 x H x W`` or ``B x 1 x H x W`` tensor/array, or one ``3 x H x W``
-        image; float in [0, 1] or uint8, any device) as ``H x W x 3`` uint8 images via :func:`load_image`."""
+        image; float in [0, 1] or uint8, any device) as ``H x W x 3`` images via :func:`load_image`
+        (float stays float32, as :meth:`load` keeps it)."""
         fmt = BatchFormat.of(images, name)
         t = torch.from_numpy(np.asarray(images)) if fmt.numpy else images.detach()
         t = t[None] if fmt.single else t
@@ -159,7 +163,7 @@ class ScaleModel(nn.Module):
         if t.shape[0] == 0:
             raise ImageError(f"{name}: empty batch")
         hwc = t.cpu().permute(0, 2, 3, 1).numpy()
-        return [load_image(hwc[i], f"{name}[{i}]") for i in range(hwc.shape[0])], fmt
+        return [load_image(hwc[i], f"{name}[{i}]", precise=True) for i in range(hwc.shape[0])], fmt
 
     def _letterbox_batch(self, rgbs: list[np.ndarray]) -> tuple[torch.Tensor, Letterbox]:
         boxed = [self.prepare(rgb) for rgb in rgbs]
@@ -170,7 +174,7 @@ class ScaleModel(nn.Module):
 
         ``images``: ``B x 3 x H x W`` (or ``B x 1 x H x W`` gray, or one ``3 x H x W`` image)
         torch tensor or numpy array, float in [0, 1] or uint8, on any device. Each image goes
-        through exactly what :meth:`prepare` does to a single image (8-bit quantisation, the same
+        through exactly what :meth:`prepare` does to a single image (the same conversion and
         resize), so batched predictions equal per-pair ones. All images share one placement.
         """
         rgbs, fmt = self._batch_images(images, name)

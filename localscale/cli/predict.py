@@ -1,0 +1,89 @@
+"""``localscale predict``: the scale map of a pair (``--search``, ``--refine``); ``--pairs`` runs many."""
+from __future__ import annotations
+
+import sys
+
+from ..errors import LocalScaleError
+from ..map_files import scale_map_paths, write_refinement, write_scale_map
+
+from .common import _model, check_output_dir, pair_name
+from .predict_pairs import _predict_pairs
+
+
+def cmd_predict(args) -> int:
+    out = check_output_dir(args.output)
+    if args.pairs:
+        if args.image_a or args.image_b:
+            raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
+        if getattr(args, "refine", False):
+            raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
+        if args.search:
+            raise LocalScaleError("predict: --search works on one pair A B, not with --pairs")
+        return _predict_pairs(args, out)
+    if getattr(args, "refine", False) and args.refine_passes < 1:
+        raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
+    if args.matcher != "hardnet":
+        from ..matching.config import MATCHERS
+
+        if args.matcher not in MATCHERS:
+            raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
+        if not getattr(args, "refine", False):
+            raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
+        if args.search:
+            raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
+    if not (args.image_a and args.image_b):
+        raise LocalScaleError("predict: give two images A B, or --pairs FILE")
+    inputs = (args.image_a, args.image_b)
+    check_output_dir(out, [p.name for p in scale_map_paths(out, pair_name(*inputs), True)])
+    from ..reliability import check_pair
+
+    model = _model(args, "local")
+    if args.search and (args.hard or args.planar):
+        raise LocalScaleError("predict: --search uses the soft read-out; drop --hard/--planar")
+    check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
+    pred = check.forward
+    if args.search:
+        from ..search import search_scale_map
+
+        found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
+        pred = found.prediction
+        print(f"search: {found.candidates} window pairs scored; kept {found.kept()} "
+              f"(score {found.score:.1f}, whole images {found.base_score:.1f})", file=sys.stderr)
+    for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
+        print(p)
+    import numpy as np
+
+    s = pred.sampled("scale")
+    print(f"S(A->B): median {np.median(s):.3f}, min {s.min():.3f}, max {s.max():.3f}", file=sys.stderr)
+    if not check.reliable:
+        scope = " (checked on the whole images)" if args.search else ""
+        print(f"warning: this scale map is unreliable{scope}: {'; '.join(check.reasons)}", file=sys.stderr)
+    if getattr(args, "refine", False) and args.matcher != "hardnet":
+        from ..matching.pipeline import match_pair
+
+        options = {"refine": True} | ({"weights": args.matcher_weights} if args.matcher_weights else {})
+        res = match_pair(args.image_a, args.image_b, "auto", None, model, None, args.matcher, **options)
+        v = res.verification
+        extra = {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")} | {"auto": res.meta["auto"]}
+        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
+            print(p)
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+        print(f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
+              f"inliers, {state}", file=sys.stderr)
+    elif getattr(args, "refine", False):
+        from ..matching.correction import CorrectionGate
+        from ..matching.pipeline import refine_match
+
+        back = check.backward
+        if args.search:   # B's map from its own search, as the searched correction of match does
+            back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
+        first_a, first_b = CorrectionGate().apply_predictions(pred, back)
+        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, back.scale,
+                           max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
+        v = res.verification
+        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,
+                                  {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs):
+            print(p)
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+        print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)
+    return 0

@@ -1,0 +1,51 @@
+"""Matching two images with scale maps: matcher configurations, the matcher, verification,
+refinement, correction methods, ``auto`` and the pipeline that runs them.
+
+One module per concept: :mod:`.config` (:class:`MatchConfig`, :data:`MATCHERS`), :mod:`.matcher`
+(:class:`Matcher`), :mod:`.nearest_neighbour`, :mod:`.lightglue`, :mod:`.rectification`,
+:mod:`.correction`, :mod:`.verification`, :mod:`.two_view`, :mod:`.refinement`, :mod:`.auto`,
+:mod:`.metrics`, :mod:`.result`, :mod:`.viz` and :mod:`.pipeline` (:func:`match_pair`).
+The submodules (torch, kornia, OpenCV) are imported on first use of a name below.
+
+Example::
+
+    from localscale.matching import match_pair
+    res = match_pair("a.jpg", "b.jpg", "auto", matcher="aliked-lightglue")
+"""
+import importlib
+
+_EXPORTS = {
+    ".config": ("MATCHERS", "MATCHER_NEEDS", "MatchConfig", "match_config"),
+    ".matcher": ("Matcher", "Matches", "get_matcher"),
+    ".nearest_neighbour": ("match_descriptors", "ratio_mutual_matches"),
+    ".rectification": ("pair_scale", "rectify_factors"),
+    ".metrics": ("reprojection_errors", "matching_accuracy", "corner_error", "homography_auc"),
+    ".correction": ("CORRECTIONS", "CORRECTION_METHODS", "Correction", "CorrectionGate", "NO_GATE",
+                    "GATE_WEIGHTINGS", "get_correction", "models_for_correction", "scale_maps_for_pair",
+                    "fuse_local_global"),
+    ".verification": ("VerificationConfig", "VerificationResult", "verify_matches", "estimate_homography",
+                      "estimate_fundamental", "local_affine_scales"),
+    ".refinement": ("RefinedScale", "RefinedMatching", "refine_scale_map", "refine_pair_maps", "refine_matching",
+                    "describe_and_match", "sift_seed_points"),
+    ".auto": ("AutoConfig", "AutoResult", "Hypothesis", "auto_match", "propose", "nearest_turn", "turn_matrix",
+              "match_turned"),
+    ".result": ("MatchResult", "save_matches"),
+    ".viz": ("draw_matches",),
+    ".pipeline": ("match_pair", "refine_match", "run_match", "match_auto", "match_refined", "match_result",
+                  "match_with_truth"),
+}
+_WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    mod = _WHERE.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(mod, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

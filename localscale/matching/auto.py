@@ -1,0 +1,458 @@
+"""Scale- and rotation-aware matching for any matcher: the networks propose, the geometry decides.
+
+``correction="auto"`` (:func:`auto_match`):
+
+1. **The images as they are** are matched and verified first
+   (:func:`~.verification.verify_matches`, the matcher's :class:`~.verification.VerificationConfig`,
+   with the inliers' coverage counted in either image). A clear verification (:class:`AutoConfig`)
+   ends the loop there, and the networks never run.
+2. **Hypotheses** ``(scale S_{A->B}, quarter turn of B)`` otherwise: first the geometry of a
+   cheap scale- and rotation-invariant seed matcher (OpenCV SIFT) when it verifies; then, in the
+   order of the networks' evidence (:func:`propose`): ScaleNet's consistency-checked scale, with the quarter turn it chose
+   when the upright images disagreed; the Local-ScaleNet maps (their level over the part of A that
+   B shows; the patch matcher uses the maps themselves); then B's other quarter turns at ScaleNet's
+   scale, ranked by how well ScaleNet's two directions agree on each.
+3. **Verify, don't trust**: for each hypothesis in turn, B is turned, the image whose content is
+   bigger is shrunk by the scale (the patch matcher corrects its patch sizes instead), the matcher
+   runs, the keypoints are mapped back to the original pixels and the matches are verified.
+   A verified result whose own geometry (:func:`geometry_hypothesis`) gives another scale or
+   quarter turn than its hypothesis is matched again at the geometry's, before anything else.
+4. **The choice**: the verified result with the most inliers; if none verifies, the identity's
+   result, flagged unverified. At most ``budget`` matcher runs per pair.
+
+Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from ..errors import LocalScaleError
+from ..geometry import homography_rotation_at
+from .verification import VerificationConfig, VerificationResult, verify_matches
+
+#: inliers the seed matcher's geometry needs to be proposed, and the matcher's run at a verified
+#: geometry's scale and turn needs to confirm it
+GEOMETRY_MIN_INLIERS = 10
+
+
+@dataclass
+class AutoConfig:
+    """The hypothesis loop of ``correction="auto"``.
+
+    Attributes:
+        budget: matcher runs per pair at most (the first is always the identity).
+        accept_inliers, accept_ratio: a verified hypothesis with at least this many inliers and this
+            inlier ratio ends the loop at once (a clear margin); weaker verified ones are kept while
+            the budget lasts and the one with the most inliers wins.
+        turns: also try B's other quarter turns (ranked by ScaleNet).
+        same_log2: hypotheses whose scales differ by less than this (log2) and have the same turn
+            are tried once.
+        geometry_log2: a verified result whose own geometry differs from its hypothesis by more
+            than this (log2 of the scale), or by a quarter turn, is matched again at the geometry's
+            scale and turn.
+        seed: a name of :data:`~.matchers.MATCHERS` (scale- and rotation-invariant and cheap:
+            ``"sift"``) run once when the identity is not clear; its verified geometry is the first
+            hypothesis of the matcher's. Its run is listed among the trials but is not one of the
+            budget's and never the result. ``None``: no seed.
+        window_share: a verified geometry's hypothesis matches only the window of the image whose
+            content is smaller that the other image shows, when it is at most this share of that
+            image (0: never a window).
+    """
+
+    budget: int = 4
+    accept_inliers: int = 60
+    accept_ratio: float = 0.3
+    turns: bool = True
+    same_log2: float = 0.25
+    geometry_log2: float = 0.5
+    seed: Optional[str] = "sift"
+    window_share: float = 0.5
+
+    def check(self) -> "AutoConfig":
+        if self.seed is not None and not isinstance(self.seed, str):
+            raise LocalScaleError(f"auto seed must be None or a matcher's name, got {self.seed!r}")
+        if not (0 <= self.window_share <= 1):
+            raise LocalScaleError(f"auto window_share must be in [0, 1], got {self.window_share!r}")
+        if not (self.same_log2 >= 0 and self.geometry_log2 >= 0):
+            raise LocalScaleError(f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, "
+                                  f"{self.geometry_log2!r}")
+        if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
+            raise LocalScaleError(f"auto budget must be an integer >= 1, got {self.budget!r}")
+        if not (isinstance(self.accept_inliers, int) and self.accept_inliers >= 4):
+            raise LocalScaleError(f"auto accept_inliers must be an integer >= 4, got {self.accept_inliers!r}")
+        if not (0 <= self.accept_ratio <= 1):
+            raise LocalScaleError(f"auto accept_ratio must be in [0, 1], got {self.accept_ratio!r}")
+        return self
+
+
+@dataclass
+class Hypothesis:
+    """A guess of the pair's relation: B turned by ``turn`` quarter turns, then ``S_{A->B} = scale``.
+
+    ``maps``: ``(map of A, map of B)`` for the patch matcher (B's in the turned frame); ``None``: the
+    constant ``scale`` and ``1 / scale``. ``window``: ``(image, x0, y0, x1, y1)``, the part of A
+    (``image`` 0) or B (1, before its turn) that the other image shows, in its pixels; only that part
+    is matched (a verified geometry's, so that the wide view of a strong zoom is enlarged rather
+    than the zoomed view shrunk)."""
+
+    scale: float
+    turn: int
+    source: str
+    maps: Optional[tuple] = None
+    window: Optional[tuple] = None
+
+    def describe(self) -> str:
+        turn = f", B turned {90 * self.turn} deg" if self.turn else ""
+        window = f", in a window of {'AB'[self.window[0]]}" if self.window else ""
+        return f"{self.source}: x{self.scale:.3g}{turn}{window}"
+
+
+@dataclass
+class Trial:
+    """One hypothesis run: its verification's inlier count and ratio, whether it verified, seconds."""
+
+    hypothesis: Hypothesis
+    num_matches: int
+    num_inliers: int
+    inlier_ratio: float
+    verified: bool
+    seconds: float
+
+    def to_dict(self) -> dict:
+        h = self.hypothesis
+        return {"source": h.source, "scale": round(float(h.scale), 5), "turn": int(h.turn),
+                "window": None if h.window is None else [int(x) for x in h.window],
+                "num_matches": int(self.num_matches), "num_inliers": int(self.num_inliers),
+                "inlier_ratio": round(float(self.inlier_ratio), 4), "verified": bool(self.verified),
+                "seconds": round(float(self.seconds), 3)}
+
+
+@dataclass
+class AutoResult:
+    """What :func:`auto_match` returns: the chosen run's matches in original pixels, its
+    verification, the chosen hypothesis, every trial in the order tried, the seconds of the whole
+    loop, and Local-ScaleNet's ungated maps of A and B (``None`` when the networks did not run)."""
+
+    matches: object
+    verification: VerificationResult
+    chosen: Hypothesis
+    trials: list = field(default_factory=list)
+    seconds: float = 0.0
+    network_maps: Optional[tuple] = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the chosen hypothesis, whether it verified, and every trial."""
+        return {"chosen": self.chosen.describe(), "scale": round(float(self.chosen.scale), 5),
+                "turn": int(self.chosen.turn), "verified": self.verified,
+                "trials": [t.to_dict() for t in self.trials], "seconds": round(self.seconds, 3)}
+
+    @property
+    def verified(self) -> bool:
+        return bool(self.verification.verified)
+
+
+# ---------------------------------------------------------------- quarter turns
+
+def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
+    """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
+    ``np.rot90(image, turn)`` (counter-clockwise quarter turns)."""
+    h, w = shape[:2]
+    k = turn % 4
+    if k == 0:
+        return np.eye(3)
+    if k == 1:
+        return np.array([[0.0, 1, 0], [-1, 0, w - 1], [0, 0, 1]])
+    if k == 2:
+        return np.array([[-1.0, 0, w - 1], [0, -1, h - 1], [0, 0, 1]])
+    return np.array([[0.0, -1, h - 1], [1, 0, 0], [0, 0, 1]])
+
+
+def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    return (p @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
+
+
+# ---------------------------------------------------------------- hypotheses
+
+def _level(pred, gate) -> float:
+    """The level of a Local-ScaleNet map over the part of A that B shows (weighted median, log2)."""
+    from .correction import weighted_quantile
+
+    s = np.asarray(pred.scale, np.float64).ravel()
+    w = gate.weights_of(pred)
+    w = None if w is None else np.asarray(w, np.float64).ravel()
+    ok = np.isfinite(s) & (s > 0)
+    return float(2.0 ** weighted_quantile(np.log2(s[ok]), None if w is None else w[ok], 0.5)) if ok.any() else 1.0
+
+
+def propose(image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None, gate=None,
+            patches: bool = False, bf16: bool = False) -> tuple:
+    """The hypotheses of the networks, strongest evidence first, and a function that ranks B's
+    quarter turns at a scale (called only when the first hypotheses fail).
+
+    Returns ``(hypotheses, more, maps)``: ``more(scale) -> [Hypothesis, ...]`` gives B's three other
+    quarter turns ranked by ScaleNet's consistency on each; ``maps`` are Local-ScaleNet's ungated
+    ``(S_{A->B} on A, S_{B->A} on B)`` (``None`` without a local model).
+    """
+    from .correction import CorrectionGate
+
+    gate = gate or CorrectionGate()
+    out, maps_ab = [], None
+    if global_model is not None:
+        g = global_model.predict(image_a, image_b, bf16=bf16)
+        if math.isfinite(g.scale) and g.scale > 0:
+            turn = (g.turns[1] - g.turns[0]) % 4
+            out.append(Hypothesis(float(g.scale), turn, "ScaleNet" + (" (turned)" if turn else "")))
+    if local_model is not None:
+        pa = local_model.predict(image_a, image_b, bf16=bf16)
+        pb = local_model.predict(image_b, image_a, bf16=bf16)
+        level = math.sqrt(_level(pa, gate) / _level(pb, gate))
+        maps = gate.apply_predictions(pa, pb) if patches else None
+        out.append(Hypothesis(level, 0, "Local-ScaleNet", maps))
+        maps_ab = (np.asarray(pa.scale, np.float32), np.asarray(pb.scale, np.float32))
+    out.append(Hypothesis(1.0, 0, "identity"))
+
+    def more(scale: float) -> list:
+        if global_model is None:
+            return [Hypothesis(scale, k, "turn") for k in (2, 1, 3)]
+        ranked = []
+        for k in (1, 2, 3):
+            p = global_model.predict(image_a, np.rot90(image_b, k), bf16=bf16, turns=False)
+            ranked.append((p.inconsistency_log2 if math.isfinite(p.inconsistency_log2) else math.inf, k,
+                           float(p.scale) if math.isfinite(p.scale) and p.scale > 0 else scale))
+        return [Hypothesis(s, k, "ScaleNet turn") for _, k, s in sorted(ranked)]
+
+    return out, more, maps_ab
+
+
+def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
+    return any(t.turn == h.turn and abs(math.log2(h.scale) - math.log2(t.scale)) < same_log2
+               and (h.maps is None) == (t.maps is None) and (h.window is None) == (t.window is None) for t in tried)
+
+
+# ---------------------------------------------------------------- the geometry's own hypothesis
+
+def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
+    """The quarter turn of B (of ``shape_b``) after which the homography ``H`` (A -> B) rotates
+    least at ``point`` of A."""
+    return int(np.argmin([abs(homography_rotation_at(turn_matrix(k, shape_b) @ H, point)) for k in range(4)]))
+
+
+def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
+    """The ``(scale, quarter turn of B)`` that a verified result's own geometry implies: the
+    median geometric scale at its inliers, and the quarter turn of B that brings the homography's
+    rotation at the inliers' centre closest to none (for a fundamental or essential matrix: the
+    rotation of a similarity fitted to the inliers); with a homography, also the window of the
+    image whose content is smaller that the other image covers (its bounding box grown by
+    ``margin`` on each side), when that is at most ``max_share`` of it. ``None`` if it did not verify."""
+    if not v.verified or v.num_inliers == 0:
+        return None
+    inl = np.asarray(v.inliers, bool)
+    s = np.asarray(v.local_scales, np.float64)[inl]
+    s = s[np.isfinite(s) & (s > 0)]
+    if not len(s):
+        return None
+    scale = float(np.exp(np.median(np.log(s))))
+    pa, pb = np.asarray(v.points_a, np.float64)[inl], np.asarray(v.points_b, np.float64)[inl]
+    turn, window = 0, None
+    if v.H is not None:
+        turn = nearest_turn(v.H, pa.mean(0), v.shape_b)
+        window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
+    else:   # a fundamental or essential matrix: the rotation of a similarity fitted to the inliers
+        M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
+        if M is not None and np.isfinite(M).all():
+            turn = nearest_turn(np.vstack([M, [0.0, 0.0, 1.0]]), pa.mean(0), v.shape_b)
+    return Hypothesis(scale, turn, "geometry", window=window)
+
+
+def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin: float, max_share: float):
+    """``(image, x0, y0, x1, y1)``: the part of the image whose content is smaller (B if
+    ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
+    if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
+        return None
+    wide, M, shape_wide, shape_other = (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
+    h, w = shape_other[:2]
+    corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
+    if not (np.isfinite(corners).all() and (corners[:4, 2] * corners[4, 2] > 0).all()):
+        return None       # part of the other image is behind the camera: no bounded window
+    xy = corners[:, :2] / corners[:, 2:]
+    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    H_w, W_w = shape_wide[:2]
+    x0, y0 = max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my)))
+    x1, y1 = min(W_w, int(math.ceil(x1 + mx))), min(H_w, int(math.ceil(y1 + my)))
+    if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > max_share * W_w * H_w:
+        return None
+    return (wide, x0, y0, x1, y1)
+
+
+# ---------------------------------------------------------------- the loop
+
+def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None,
+               config: Optional[AutoConfig] = None, keys: tuple = (None, None), seed_matcher=None,
+               cameras: tuple = (None, None), verification: Optional[VerificationConfig] = None) -> AutoResult:
+    """Match ``image_a`` and ``image_b`` (``H x W x 3`` uint8) with ``matcher`` under the networks'
+    hypotheses, each verified by geometry (module docstring).
+
+    Args:
+        matcher: a :class:`~localscale.matching.Matcher`.
+        local_model, global_model: the networks that propose (either may be None).
+        config: the loop's settings (default: the matcher config's ``auto``).
+        keys: cache keys of the two images (the turn is added to B's).
+        seed_matcher: the :class:`~localscale.matching.Matcher` that ``config.seed`` names
+            (:func:`~localscale.matching.match_pair` builds it; None: no seed).
+        cameras: the cameras of A and B in the pixels of these images, for the two-view
+            geometry (``verification.model="two_view"``: essential matrix and relative pose).
+        verification: how each run is verified (default: the matcher config's ``verification``).
+    Returns:
+        :class:`AutoResult`; its ``matches`` are a :class:`~localscale.matching.Matches`
+        with keypoints in the pixels of the images given.
+    """
+    t_start = time.perf_counter()
+    loop = _Loop(matcher, image_a, image_b, (config or matcher.config.auto).check(), keys, cameras,
+                 verification or matcher.config.verification)
+    network_maps = loop.run(local_model, global_model, seed_matcher)
+    found, v, h = loop.best if loop.best is not None else loop.runs[0]   # nothing verified: the identity's, flagged
+    return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
+
+
+class _Loop:
+    """The hypothesis loop of :func:`auto_match` for one pair: what was tried, what each run found."""
+
+    def __init__(self, matcher, image_a: np.ndarray, image_b: np.ndarray, config: AutoConfig, keys: tuple,
+                 cameras: tuple, verification: VerificationConfig):
+        self.matcher, self.a, self.b, self.config, self.keys = matcher, image_a, image_b, config, keys
+        self.cameras = cameras
+        # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
+        # a small part of the wide one, and all of itself
+        self.vconf = dataclasses.replace(verification, coverage_of="either")
+        self.geometric_vconf = dataclasses.replace(self.vconf,
+                                                   min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS))
+        self.tried, self.trials, self.runs, self.queue = [], [], [], []
+        self.best = None
+        self.identity = Hypothesis(1.0, 0, "identity")
+
+    def clear(self, v) -> bool:
+        c = self.config
+        return bool(v.verified) and v.num_inliers >= c.accept_inliers and v.inlier_ratio >= c.accept_ratio
+
+    def attempt(self, h: Hypothesis):
+        self.tried.append(h)
+        t0 = time.perf_counter()
+        # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
+        vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
+        found, v = _run(self.matcher, self.a, self.b, h, self.keys, vconf, self.cameras)
+        self.trials.append(Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
+                                 time.perf_counter() - t0))
+        self.runs.append((found, v, h))
+        if v.verified and (self.best is None or v.num_inliers > self.best[1].num_inliers):
+            self.best = (found, v, h)
+        return v
+
+    def settled(self, v, h) -> bool:
+        """Whether the loop ends after ``h``: on a clear verification, unless the result's own
+        geometry says it was matched at another scale or turn: that hypothesis is then queued
+        first (also after a weak verification), and the loop ends after it if it verifies or
+        anything was clear. The identity's clear verification is final."""
+        if h.source.endswith("geometry"):     # the geometry confirmed by the matcher ends the loop
+            return bool(v.verified) or any(self.clear(r[1]) for r in self.runs)
+        g = geometry_hypothesis(v, max_share=self.config.window_share)
+        if g is not None and not _same(g, self.tried, self.config.geometry_log2) \
+                and not (self.clear(v) and h is self.identity):
+            self.queue.insert(0, g)
+            return False
+        return self.clear(v)
+
+    def run(self, local_model, global_model, seed_matcher):
+        """Try the images as they are, then the seed's geometry, then the networks' hypotheses, until
+        one settles or the budget is spent; returns Local-ScaleNet's maps when the networks ran."""
+        c, m = self.config, self.matcher
+        # the images as they are first: a pair that verifies clearly needs no network at all
+        if self.settled(self.attempt(self.identity), self.identity):
+            return None
+        if seed_matcher is not None and seed_matcher.name != m.config.name:
+            g = _seed_hypothesis(seed_matcher, self.a, self.b, self.keys, self.vconf, self.trials, c.window_share,
+                                 self.cameras)
+            if g is not None and not _same(g, self.tried, c.geometry_log2):
+                self.queue.insert(0, g)
+        hyps = more = network_maps = None          # the networks run once the geometry's hypotheses are spent
+        turns_added = False
+        while sum(not t.hypothesis.source.startswith("seed") for t in self.trials) < c.budget:
+            if not self.queue:
+                if hyps is None:
+                    hyps, more, network_maps = propose(self.a, self.b, local_model, global_model, m.config.gate,
+                                                       not m.extractor.rectified, m.config.bf16)
+                    self.queue += [h for h in hyps if h.source != "identity"]
+                    continue
+                if turns_added or not c.turns:
+                    break
+                self.queue, turns_added = more(hyps[0].scale if hyps else 1.0), True
+                continue
+            h = self.queue.pop(0)
+            if h.maps is None and abs(math.log2(h.scale)) < c.same_log2:
+                h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
+            if _same(h, self.tried, c.geometry_log2 if h.source.endswith("geometry") else c.same_log2):
+                continue
+            if self.settled(self.attempt(h), h):
+                break
+        return network_maps
+
+
+def _seed_hypothesis(seed_matcher, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list,
+                     window_share: float, cameras: tuple = (None, None)) -> Optional[Hypothesis]:
+    """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
+    its verified geometry gives (``None`` if it did not verify)."""
+    name = seed_matcher.name
+    seed = Hypothesis(1.0, 0, f"seed ({name})")
+    t0 = time.perf_counter()
+    # a proposal only (the matcher's own run at it is verified again): fewer inliers will do
+    vconf = dataclasses.replace(vconf, min_inliers=min(vconf.min_inliers, GEOMETRY_MIN_INLIERS))
+    found, v = _run(seed_matcher, a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf, cameras)
+    trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
+                        time.perf_counter() - t0))
+    g = geometry_hypothesis(v, max_share=window_share)
+    return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
+
+
+def match_turned(matcher, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None, turn: int = 0,
+                 keys: tuple = (None, None), maps_turned: bool = False):
+    """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
+    pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
+    (``maps_turned``), or a float."""
+    if turn % 4 == 0:
+        return matcher.match(image_a, image_b, scale_a, scale_b, keys)
+    bt = np.ascontiguousarray(np.rot90(image_b, turn))
+    if isinstance(scale_b, np.ndarray) and scale_b.ndim == 2 and not maps_turned:
+        scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
+    key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
+    found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b))
+    kb = _apply(np.linalg.inv(turn_matrix(turn, image_b.shape)), found.keypoints_b)
+    return dataclasses.replace(found, keypoints_b=kb)
+
+
+def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras: tuple = (None, None)):
+    """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale, map the
+    keypoints back to the given images' pixels, verify."""
+    keys = list(keys)
+    offsets = [np.zeros(2, np.float32), np.zeros(2, np.float32)]
+    images = [a, b]
+    if h.window is not None:
+        i, x0, y0, x1, y1 = h.window
+        images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
+        offsets[i] = np.array([x0, y0], np.float32)
+        keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
+    sa, sb = h.maps if h.maps is not None else (h.scale, 1.0 / h.scale)
+    found = match_turned(matcher, images[0], images[1], sa, sb, h.turn, tuple(keys), maps_turned=True)
+    found = dataclasses.replace(found, keypoints_a=found.keypoints_a + offsets[0],
+                                keypoints_b=found.keypoints_b + offsets[1])
+    m = found.matches
+    v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf,
+                       *cameras)
+    return found, v

@@ -1,0 +1,585 @@
+"""Two-view geometry of a match set, chosen per pair as COLMAP chooses it.
+
+:func:`estimate_two_view_geometry` fits a homography ``H``, a fundamental matrix ``F`` and, when
+both cameras' focal lengths are known, an essential matrix ``E`` (OpenCV ``USAC_MAGSAC``), and
+classifies the pair with COLMAP's rules (names of ``pycolmap.TwoViewGeometryConfiguration``):
+
+* ``E`` has at least ``min_num_inliers`` inliers and ``E``/``F`` inliers > ``min_E_F_inlier_ratio``:
+  ``CALIBRATED``, unless ``H``/``E`` inliers > ``max_H_inlier_ratio`` (``PLANAR_OR_PANORAMIC``);
+* else ``F`` has enough inliers: ``UNCALIBRATED``, or ``PLANAR_OR_PANORAMIC`` when
+  ``H``/``F`` inliers > ``max_H_inlier_ratio``;
+* else ``H`` has enough inliers: ``PLANAR_OR_PANORAMIC``; else ``DEGENERATE``.
+
+With cameras, ``PLANAR_OR_PANORAMIC`` is resolved: ``PANORAMIC`` when a pure rotation explains the
+homography's inliers (the baseline is too small to observe: no translation), else ``PLANAR``.
+The relative pose (``x_B = R x_A + t``, ``|t| = 1``) then comes from ``E`` (``CALIBRATED``, by
+``cv2.recoverPose``'s cheirality test on the normalised inliers), from ``K_B^T F K_A``
+(``UNCALIBRATED`` with cameras), or from the decomposition of ``H`` (``PLANAR``; ``PANORAMIC``:
+the rotation, ``t = 0``). The essential matrix's own pose is also kept (``R_E``, ``t_E``): the
+relative-pose benchmarks (SuperGlue/LightGlue protocol) score it whatever the configuration.
+
+Points are ``N x 2`` pixels (localscale convention: the top-left pixel's centre is ``(0, 0)``);
+with cameras, ``H`` and ``F`` are fitted to undistorted pixels (same ``K``) and ``E`` to undistorted
+normalised coordinates, its threshold ``max_error`` divided by the mean focal length (as COLMAP).
+
+Example::
+
+    from localscale.cameras import Camera
+    g = estimate_two_view_geometry(pts_a, pts_b, Camera.parse("PINHOLE 640 480 500 500 320 240"),
+                                   Camera.parse("PINHOLE 640 480 500 500 320 240"))
+    g.configuration, g.num_inliers, g.R, g.t
+    rot_err, trans_err = relative_pose_error(g.R_E, g.t_E, R_gt, t_gt)
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from ..cameras import Camera, as_camera
+from ..errors import LocalScaleError
+
+#: the configurations this module returns (names of ``pycolmap.TwoViewGeometryConfiguration``)
+CONFIGURATIONS = ("DEGENERATE", "CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
+
+#: the model whose inliers each configuration reports
+CONFIGURATION_MODEL = {"DEGENERATE": "none", "CALIBRATED": "essential", "UNCALIBRATED": "fundamental",
+                       "PLANAR": "homography", "PANORAMIC": "homography", "PLANAR_OR_PANORAMIC": "homography"}
+
+
+class TwoViewError(LocalScaleError):
+    """Points or options that two-view geometry cannot use."""
+
+
+@dataclass
+class TwoViewConfig:
+    """Thresholds of :func:`estimate_two_view_geometry` (defaults: COLMAP's ``TwoViewGeometryOptions``).
+
+    Attributes:
+        max_error: robust-estimation threshold in pixels (``H``: reprojection error in B; ``F``:
+            distance to the epipolar line; ``E``: the same divided by the mean focal length).
+        confidence, max_iters: RANSAC confidence and iteration cap.
+        min_num_inliers: inliers a model needs to count.
+        min_E_F_inlier_ratio: ``E`` inliers / ``F`` inliers above which the pair is calibrated.
+        max_H_inlier_ratio: ``H`` inliers / ``E`` (or ``F``) inliers above which the pair is planar
+            or panoramic.
+        min_inlier_ratio: inliers / matches of the chosen model below which the pair is
+            ``DEGENERATE`` (0: no check).
+        panoramic_min_inlier_ratio: with cameras, the share of the homography's inliers a pure
+            rotation (fitted to them) must explain within ``max_error`` for ``PANORAMIC``.
+        min_tri_angle: median triangulation angle (degrees) of the inliers under which a pose's
+            translation is flagged as weakly observed.
+        refine_pose: refine the essential matrix's pose on its inliers (Levenberg-Marquardt on
+            Sampson errors, :func:`refine_relative_pose`); ``E`` is then ``[t]x R`` of the refined pose.
+        refine_loss_scale: pixels where the refinement's Huber loss turns linear (inliers of the
+            ``max_error`` test that lie farther from their epipolar line count less).
+        seed: OpenCV's RNG seed before estimation (reproducible results); ``None`` leaves it.
+    """
+
+    max_error: float = 4.0
+    confidence: float = 0.999
+    max_iters: int = 10000
+    min_num_inliers: int = 15
+    min_E_F_inlier_ratio: float = 0.95
+    max_H_inlier_ratio: float = 0.8
+    min_inlier_ratio: float = 0.0
+    panoramic_min_inlier_ratio: float = 0.9
+    min_tri_angle: float = 1.0
+    refine_pose: bool = True
+    refine_loss_scale: float = 1.0
+    seed: Optional[int] = 0
+
+    def check(self) -> "TwoViewConfig":
+        if not (self.max_error > 0):
+            raise TwoViewError(f"two-view max_error must be > 0, got {self.max_error}")
+        if not (0 < self.confidence < 1):
+            raise TwoViewError(f"two-view confidence must be in (0, 1), got {self.confidence}")
+        if self.max_iters < 1 or self.min_num_inliers < 0:
+            raise TwoViewError("two-view max_iters must be >= 1 and min_num_inliers >= 0")
+        for name in ("min_E_F_inlier_ratio", "max_H_inlier_ratio", "min_inlier_ratio", "panoramic_min_inlier_ratio"):
+            v = getattr(self, name)
+            if not (0 <= v <= 1):
+                raise TwoViewError(f"two-view {name} must be in [0, 1], got {v}")
+        return self
+
+
+@dataclass
+class TwoViewGeometry:
+    """Two-view geometry of ``N`` matches (:func:`estimate_two_view_geometry`).
+
+    Attributes:
+        configuration: a name of :data:`CONFIGURATIONS`.
+        model: the model whose inliers are reported: ``"essential"``, ``"fundamental"``,
+            ``"homography"`` or ``"none"``.
+        H: ``3 x 3`` homography A -> B (pixels), ``F``: ``3 x 3`` fundamental matrix
+            (``x_B^T F x_A = 0``, pixels), ``E``: ``3 x 3`` essential matrix (normalised
+            coordinates); each ``None`` when not estimated.
+        R, t: relative pose of the configuration, ``x_B = R x_A + t`` (``3 x 3``, ``3``, ``|t| = 1``,
+            ``t = 0`` for ``PANORAMIC``); ``None`` without cameras or without a pose.
+        R_E, t_E: the pose of the essential matrix (``cv2.recoverPose``), whatever the configuration.
+        pose_source: ``"E"``, ``"F"``, ``"H"``, ``"rotation"`` or ``None``.
+        inliers: ``N`` bool mask of the chosen model's inliers; num_inliers: their count.
+        num_inliers_H, num_inliers_F, num_inliers_E: inliers of each fitted model (0 when not fitted).
+        tri_angle: median triangulation angle (degrees) of the pose's inliers (``None`` without pose).
+        num_matches: ``N``.
+        reasons: why the result is degenerate or its pose untrustworthy (empty when it is fine).
+    """
+
+    configuration: str
+    model: str
+    num_matches: int
+    inliers: np.ndarray
+    num_inliers: int = 0
+    H: Optional[np.ndarray] = None
+    F: Optional[np.ndarray] = None
+    E: Optional[np.ndarray] = None
+    R: Optional[np.ndarray] = None
+    t: Optional[np.ndarray] = None
+    R_E: Optional[np.ndarray] = None
+    t_E: Optional[np.ndarray] = None
+    pose_source: Optional[str] = None
+    num_inliers_H: int = 0
+    num_inliers_F: int = 0
+    num_inliers_E: int = 0
+    tri_angle: Optional[float] = None
+    reasons: List[str] = field(default_factory=list)
+
+    @property
+    def reliable(self) -> bool:
+        """A configuration other than ``DEGENERATE`` and nothing flagged in :attr:`reasons`."""
+        return self.configuration != "DEGENERATE" and not self.reasons
+
+    @property
+    def has_pose(self) -> bool:
+        return self.R is not None
+
+    def swapped(self) -> "TwoViewGeometry":
+        """The same geometry seen from B (B -> A): inverse ``H``, transposed ``F`` and ``E``, inverse poses."""
+        def inverse(R, t):
+            return (None, None) if R is None or t is None else (R.T, -R.T @ t)
+
+        R, t = inverse(self.R, self.t)
+        R_E, t_E = inverse(self.R_E, self.t_E)
+        return replace(self, H=None if self.H is None else np.linalg.inv(self.H),
+                       F=None if self.F is None else self.F.T, E=None if self.E is None else self.E.T,
+                       R=R, t=t, R_E=R_E, t_E=t_E, reasons=list(self.reasons))
+
+    def pycolmap_configuration(self):
+        """The configuration as ``pycolmap.TwoViewGeometryConfiguration`` (needs pycolmap)."""
+        from ..cameras import import_pycolmap
+
+        return getattr(import_pycolmap().TwoViewGeometryConfiguration, self.configuration)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: matrices as nested lists, the inlier mask as a list of match indices."""
+        out = {}
+        for k, v in asdict(self).items():
+            if k == "inliers":
+                out["inlier_indices"] = np.flatnonzero(v).tolist()
+            elif isinstance(v, np.ndarray):
+                out[k] = v.tolist()
+            else:
+                out[k] = v
+        out["reliable"] = self.reliable
+        return out
+
+
+def estimate_two_view_geometry(points_a, points_b, camera_a=None, camera_b=None,
+                               config: Optional[TwoViewConfig] = None) -> TwoViewGeometry:
+    """Two-view geometry of ``N`` matches, classified as COLMAP does (module docstring).
+
+    Args:
+        points_a, points_b: ``N x 2`` matched pixels in A and B (row ``i`` of both is match ``i``).
+        camera_a, camera_b: the cameras (:class:`~localscale.cameras.Camera`, ``pycolmap.Camera``,
+            ``cameras.txt`` line, dict or camera file), or ``None``. ``E`` is estimated when both
+            have a known focal length (``has_prior_focal_length``); with both cameras given, the
+            pose is computed also from ``F`` or ``H``.
+        config: thresholds (default :class:`TwoViewConfig`).
+
+    Returns:
+        :class:`TwoViewGeometry`. Too few matches give ``DEGENERATE`` with a reason, not an error.
+
+    Raises:
+        TwoViewError: points that are not ``N x 2`` finite numbers of equal length, or bad options.
+    """
+    cfg = (config or TwoViewConfig()).check()
+    pa, pb = _check_points(points_a, points_b)
+    cam_a, cam_b = as_camera(camera_a), as_camera(camera_b)
+    n = len(pa)
+    geo = TwoViewGeometry("DEGENERATE", "none", n, np.zeros(n, bool))
+    need = max(cfg.min_num_inliers, 5)
+    if n < need:
+        geo.reasons.append(f"only {n} matches, {need} needed")
+        return geo
+    if cfg.seed is not None:
+        cv2.setRNGSeed(int(cfg.seed))
+
+    both = cam_a is not None and cam_b is not None
+    calibrated = both and cam_a.has_prior_focal_length and cam_b.has_prior_focal_length
+    # H and F on undistorted pixels when the cameras are known; E on normalised coordinates
+    ua = cam_a.undistort_points(pa) if both else pa
+    ub = cam_b.undistort_points(pb) if both else pb
+
+    H, mask_H = _fit_homography(ua, ub, cfg)
+    F, mask_F = _fit_fundamental(ua, ub, cfg)
+    E, mask_E = (None, np.zeros(n, bool))
+    na = nb = None
+    if both:
+        na, nb = cam_a.normalize(pa), cam_b.normalize(pb)
+    if calibrated:
+        thr = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error))
+        E, mask_E = _fit_essential(na, nb, thr, cfg)
+    geo.H, geo.F, geo.E = H, F, E
+    nH, nF, nE = int(mask_H.sum()), int(mask_F.sum()), int(mask_E.sum())
+    geo.num_inliers_H, geo.num_inliers_F, geo.num_inliers_E = nH, nF, nE
+    m = cfg.min_num_inliers
+
+    config_name, mask = _classify(cfg, E, F, H, mask_E, mask_F, mask_H)
+    if config_name == "DEGENERATE":
+        geo.reasons.append(f"no model has {m} inliers (H {nH}, F {nF}, E {nE})")
+        return geo
+    if cfg.min_inlier_ratio > 0 and mask.sum() / n < cfg.min_inlier_ratio:
+        geo.reasons.append(f"inlier ratio {mask.sum() / n:.2f} < {cfg.min_inlier_ratio}")
+        return geo
+    geo.configuration, geo.inliers, geo.num_inliers = config_name, mask, int(mask.sum())
+    geo.model = CONFIGURATION_MODEL[config_name]
+
+    if E is not None and nE >= m:
+        geo.R_E, geo.t_E, _ = _pose_from_essential(E, na[mask_E], nb[mask_E])
+        if geo.R_E is not None and cfg.refine_pose:
+            scale = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.refine_loss_scale)
+                           + cam_b.pixel_threshold_to_normalized(cfg.refine_loss_scale))
+            geo.R_E, geo.t_E = refine_relative_pose(geo.R_E, geo.t_E, na[mask_E], nb[mask_E], scale)
+            geo.E = _skew(geo.t_E) @ geo.R_E
+    if not both:
+        return geo
+    if not calibrated:
+        geo.reasons.append("a focal length is a guess: the pose is approximate")
+
+    if config_name == "CALIBRATED":
+        geo.R, geo.t, geo.pose_source = geo.R_E, geo.t_E, "E"
+    elif config_name == "UNCALIBRATED":
+        E_f = cam_b.K().T @ F @ cam_a.K()
+        geo.R, geo.t, _ = _pose_from_essential(E_f, na[mask_F], nb[mask_F])
+        geo.pose_source = "F"
+    else:
+        R_rot, rot_share = _rotation_fit(ua[mask_H], ub[mask_H], cam_a, cam_b, cfg.max_error)
+        if rot_share >= cfg.panoramic_min_inlier_ratio:
+            geo.configuration, geo.R, geo.t, geo.pose_source = "PANORAMIC", R_rot, np.zeros(3), "rotation"
+            geo.reasons.append("panoramic: the baseline is too small to give a translation")
+            return geo
+        geo.configuration = "PLANAR"
+        pose = _pose_from_homography(H, cam_a, cam_b, na, nb, mask_H, cfg)
+        if pose is None:
+            geo.reasons.append("no decomposition of H puts the points in front of both cameras")
+            return geo
+        geo.R, geo.t = pose
+        geo.pose_source = "H"
+    if geo.R is None:
+        geo.reasons.append("no pose passes the cheirality test")
+        return geo
+    geo.tri_angle = _median_tri_angle(geo.R, geo.t, na[geo.inliers], nb[geo.inliers])
+    if geo.tri_angle is not None and geo.tri_angle < cfg.min_tri_angle:
+        geo.reasons.append(f"median triangulation angle {geo.tri_angle:.2f} deg < {cfg.min_tri_angle}: "
+                           "translation weakly observed")
+    return geo
+
+
+def _classify(cfg, E, F, H, mask_E, mask_F, mask_H) -> Tuple[str, np.ndarray]:
+    """COLMAP's decision among the fitted models: configuration name and inlier mask."""
+    m = cfg.min_num_inliers
+    nH, nF, nE = int(mask_H.sum()), int(mask_F.sum()), int(mask_E.sum())
+    if E is not None and nE >= m and nE > cfg.min_E_F_inlier_ratio * nF:
+        mask = mask_E if nE >= nF else mask_F
+        if nH > cfg.max_H_inlier_ratio * nE:
+            return "PLANAR_OR_PANORAMIC", (mask_H if nH > mask.sum() else mask)
+        return "CALIBRATED", mask
+    if F is not None and nF >= m:
+        if nH > cfg.max_H_inlier_ratio * nF:
+            return "PLANAR_OR_PANORAMIC", (mask_H if nH > nF else mask_F)
+        return "UNCALIBRATED", mask_F
+    if H is not None and nH >= m:
+        return "PLANAR_OR_PANORAMIC", mask_H
+    return "DEGENERATE", np.zeros_like(mask_H)
+
+
+# ---------------------------------------------------------------------- robust fits
+def _fit_homography(pa, pb, cfg):
+    n = len(pa)
+    if n < 4:
+        return None, np.zeros(n, bool)
+    try:
+        H, mask = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, cfg.max_error, maxIters=cfg.max_iters,
+                                     confidence=cfg.confidence)
+    except cv2.error:
+        return None, np.zeros(n, bool)
+    if H is None or mask is None or not np.all(np.isfinite(H)):
+        return None, np.zeros(n, bool)
+    return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H, mask.ravel().astype(bool)
+
+
+def _fit_fundamental(pa, pb, cfg):
+    n = len(pa)
+    if n < 8:
+        return None, np.zeros(n, bool)
+    try:
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, cfg.max_error, cfg.confidence, cfg.max_iters)
+    except cv2.error:
+        return None, np.zeros(n, bool)
+    if F is None or mask is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
+        return None, np.zeros(n, bool)
+    return F, mask.ravel().astype(bool)
+
+
+def _fit_essential(na, nb, threshold, cfg):
+    n = len(na)
+    if n < 5:
+        return None, np.zeros(n, bool)
+    try:
+        E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_MAGSAC, prob=cfg.confidence,
+                                       threshold=threshold, maxIters=cfg.max_iters)
+    except cv2.error:
+        return None, np.zeros(n, bool)
+    if E is None or mask is None or E.shape[0] < 3 or not np.all(np.isfinite(E[:3])):
+        return None, np.zeros(n, bool)
+    return E[:3], mask.ravel().astype(bool)
+
+
+# ---------------------------------------------------------------------- poses
+def _pose_from_essential(E, na, nb):
+    """``(R, t, n_front)`` from ``E`` by ``cv2.recoverPose`` on normalised inliers (``K = I``);
+    ``(None, None, 0)`` when no point passes the cheirality test."""
+    if len(na) < 5:
+        return None, None, 0
+    try:
+        n_front, R, t, _ = cv2.recoverPose(E, na, nb, np.eye(3))
+    except cv2.error:
+        return None, None, 0
+    if n_front == 0:
+        return None, None, 0
+    t = t.ravel()
+    return R, t / max(np.linalg.norm(t), 1e-12), int(n_front)
+
+
+def _rodrigues(w):
+    return cv2.Rodrigues(np.asarray(w, np.float64).reshape(3, 1))[0]
+
+
+def refine_relative_pose(R, t, na, nb, threshold: float, iterations: int = 20):
+    """Levenberg-Marquardt refinement of a relative pose on the Sampson errors of normalised
+    matches (``N x 2`` each), with Huber weights of scale ``threshold`` (normalised units).
+
+    ``R`` is updated as ``R exp([w]x)``, ``t`` on the unit sphere (two tangent directions).
+
+    Returns:
+        ``(R, t)``, ``|t| = 1``; the input when the cost does not decrease.
+    """
+    if len(na) < 6:
+        return R, t
+
+    def residuals(R_, t_):
+        return np.sqrt(_sampson(_skew(t_) @ R_, na, nb))
+
+    def apply(R_, t_, p):
+        R2 = R_ @ _rodrigues(p[:3])
+        _, _, Vt = np.linalg.svd(t_.reshape(1, 3))
+        t2 = t_ + Vt[1] * p[3] + Vt[2] * p[4]
+        return R2, t2 / np.linalg.norm(t2)
+
+    def cost(r):
+        a = np.abs(r)
+        return float(np.sum(np.where(a <= threshold, 0.5 * a ** 2, threshold * (a - 0.5 * threshold))))
+
+    t = np.asarray(t, np.float64).ravel() / np.linalg.norm(t)
+    r = residuals(R, t)
+    c = cost(r)
+    lam = 1e-3
+    eps = 1e-7
+    for _ in range(iterations):
+        w = np.where(np.abs(r) <= threshold, 1.0, threshold / np.maximum(np.abs(r), 1e-30))
+        J = np.empty((len(r), 5))
+        for k in range(5):
+            d = np.zeros(5)
+            d[k] = eps
+            J[:, k] = (residuals(*apply(R, t, d)) - r) / eps
+        JW = J * w[:, None]
+        A = JW.T @ J
+        g = JW.T @ r
+        improved = False
+        for _ in range(8):
+            try:
+                step = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+            except np.linalg.LinAlgError:
+                break
+            R2, t2 = apply(R, t, step)
+            r2 = residuals(R2, t2)
+            c2 = cost(r2)
+            if c2 < c:
+                R, t, r, lam = R2, t2, r2, max(lam / 10, 1e-9)
+                improved = c - c2 > 1e-12 * max(c, 1e-30)
+                c = c2
+                break
+            lam *= 10
+        if not improved:
+            break
+    return R, t
+
+
+def _rotation_fit(ua, ub, cam_a: Camera, cam_b: Camera, max_error: float):
+    """Best rotation between the bearings of undistorted pixels ``ua``/``ub`` (Kabsch) and the share
+    of the points it maps within ``max_error`` pixels of B."""
+    if len(ua) < 3:
+        return np.eye(3), 0.0
+    Ka, Kb = cam_a.K(), cam_b.K()
+    ba = _bearings(ua, Ka)
+    bb = _bearings(ub, Kb)
+    U, _, Vt = np.linalg.svd(bb.T @ ba)
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    proj = (Kb @ R @ np.linalg.inv(Ka) @ np.c_[ua, np.ones(len(ua))].T).T
+    err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - ub, axis=1)
+    return R, float(np.mean(err <= max_error))
+
+
+def _bearings(pix, K):
+    x = (np.linalg.inv(K) @ np.c_[pix, np.ones(len(pix))].T).T
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _pose_from_homography(H, cam_a, cam_b, na, nb, mask_H, cfg):
+    """The decomposition of ``H`` (``cv2.decomposeHomographyMat`` of ``K_B^-1 H K_A``) that puts the
+    most inliers in front of both cameras; ties broken by the Sampson support of its essential
+    matrix over all matches (points off the plane decide between the two mirror solutions)."""
+    Hn = np.linalg.inv(cam_b.K()) @ H @ cam_a.K()
+    try:
+        _, Rs, ts, normals = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    except cv2.error:
+        return None
+    thr = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error))
+    ia, ib = na[mask_H], nb[mask_H]
+    best, best_key = None, None
+    for R, t in zip(Rs, ts):
+        t = t.ravel()
+        if np.linalg.norm(t) < 1e-12:
+            continue
+        tn = t / np.linalg.norm(t)
+        front = _count_in_front(R, tn, ia, ib)
+        support = int(np.sum(_sampson(_skew(tn) @ R, na, nb) <= thr ** 2))
+        key = (front, support)
+        if best_key is None or key > best_key:
+            best, best_key = (R, tn), key
+    if best is None or best_key[0] == 0:
+        return None
+    return best
+
+
+def _skew(t):
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], np.float64)
+
+
+def _sampson(E, na, nb):
+    """Squared Sampson errors of normalised matches under ``E`` (``x_B^T E x_A = 0``)."""
+    xa = np.c_[na, np.ones(len(na))]
+    xb = np.c_[nb, np.ones(len(nb))]
+    Ex = xa @ E.T
+    Etx = xb @ E
+    num = np.sum(xb * Ex, axis=1) ** 2
+    den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
+    return num / np.maximum(den, 1e-30)
+
+
+def _triangulate(R, t, na, nb):
+    P1 = np.eye(3, 4)
+    P2 = np.c_[R, t]
+    X = cv2.triangulatePoints(P1, P2, na.T.astype(np.float64), nb.T.astype(np.float64))
+    w = X[3]
+    ok = np.abs(w) > 1e-12
+    Xe = np.full((3, len(na)), np.nan)
+    Xe[:, ok] = X[:3, ok] / w[ok]
+    return Xe.T
+
+
+def _count_in_front(R, t, na, nb) -> int:
+    if len(na) == 0:
+        return 0
+    X = _triangulate(R, t, na, nb)
+    za = X[:, 2]
+    zb = (X @ R.T + t)[:, 2]
+    return int(np.sum((za > 0) & (zb > 0)))
+
+
+def _median_tri_angle(R, t, na, nb) -> Optional[float]:
+    """Median angle (degrees) between the two viewing rays of the triangulated inliers."""
+    if len(na) == 0 or np.linalg.norm(t) < 1e-12:
+        return None
+    X = _triangulate(R, t, na, nb)
+    c_b = -R.T @ t                      # B's centre in A's frame
+    X = X[np.all(np.isfinite(X), axis=1)]
+    if len(X) == 0:
+        return None
+    ra = X / np.linalg.norm(X, axis=1, keepdims=True)
+    rb = (X - c_b) / np.linalg.norm(X - c_b, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.sum(ra * rb, axis=1), -1, 1)))
+    return float(np.median(ang))
+
+
+# ---------------------------------------------------------------------- evaluation
+def relative_pose_error(R_est, t_est, R_gt, t_gt) -> Tuple[float, float]:
+    """Rotation and translation-direction errors in degrees (SuperGlue/LightGlue protocol).
+
+    Rotation: the angle of ``R_est^T R_gt``. Translation: the angle between ``t_est`` and ``t_gt``,
+    folded to ``min(e, 180 - e)`` (an essential matrix fixes the direction only up to sign).
+    A missing estimate (``None``) or a zero translation gives 180 for that part.
+    """
+    if R_est is None:
+        return 180.0, 180.0
+    R_est, R_gt = np.asarray(R_est, np.float64), np.asarray(R_gt, np.float64)
+    cos = (np.trace(R_est.T @ R_gt) - 1) / 2
+    rot = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    if t_est is None:
+        return rot, 180.0
+    te, tg = np.asarray(t_est, np.float64).ravel(), np.asarray(t_gt, np.float64).ravel()
+    ne, ng = np.linalg.norm(te), np.linalg.norm(tg)
+    if ne < 1e-12 or ng < 1e-12:
+        return rot, 180.0
+    e = float(np.degrees(np.arccos(np.clip(te @ tg / (ne * ng), -1.0, 1.0))))
+    return rot, min(e, 180.0 - e)
+
+
+def pose_auc(errors: Sequence[float], thresholds: Sequence[float] = (5, 10, 20)) -> List[float]:
+    """Area under the recall-vs-error curve up to each threshold, normalised to [0, 1]
+    (SuperGlue/LightGlue ``pose_auc``): errors are ``max(rot, trans)`` degrees per pair,
+    failures counted as 180 (or inf)."""
+    err = np.sort(np.asarray(errors, np.float64).ravel())
+    if err.size == 0:
+        return [0.0 for _ in thresholds]
+    err = np.where(np.isnan(err), np.inf, err)
+    recall = np.arange(1, len(err) + 1) / len(err)
+    err = np.r_[0.0, err]
+    recall = np.r_[0.0, recall]
+    out = []
+    for thr in thresholds:
+        last = int(np.searchsorted(err, thr))
+        e = np.r_[err[:last], thr]
+        r = np.r_[recall[:last], recall[last - 1]]
+        out.append(float(np.trapezoid(r, x=e) / thr) if hasattr(np, "trapezoid") else float(np.trapz(r, x=e) / thr))
+    return out
+
+
+def _check_points(points_a, points_b) -> Tuple[np.ndarray, np.ndarray]:
+    try:
+        pa = np.asarray(points_a, np.float64)
+        pb = np.asarray(points_b, np.float64)
+    except (TypeError, ValueError):
+        raise TwoViewError("points must be N x 2 arrays of numbers") from None
+    if pa.size == 0 and pb.size == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    if pa.ndim != 2 or pa.shape[1] != 2 or pb.ndim != 2 or pb.shape[1] != 2:
+        raise TwoViewError(f"points must be N x 2, got {pa.shape} and {pb.shape}")
+    if len(pa) != len(pb):
+        raise TwoViewError(f"points_a and points_b must have the same number of rows, got {len(pa)} and {len(pb)}")
+    if not (np.all(np.isfinite(pa)) and np.all(np.isfinite(pb))):
+        raise TwoViewError("points must be finite (no NaN or inf)")
+    return np.ascontiguousarray(pa), np.ascontiguousarray(pb)

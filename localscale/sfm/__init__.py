@@ -1,0 +1,51 @@
+"""Structure from motion with localscale's matching, hloc style: one module per step, h5 files between them.
+
+Steps (each usable alone; :func:`reconstruct` runs them all):
+
+1. :mod:`.images`: the usable images of a folder (:func:`find_images`);
+2. :mod:`.extract`: local features, once per image (``features.h5``; :func:`extract_features`);
+3. :mod:`.pairs`: exhaustive, from a file, or the nearest by a global descriptor (``pairs.txt``);
+4. :mod:`.match`: matches with a correction (``none``, ``auto``, ...), one keypoint set per image
+   (``matches.h5``, ``keypoints.h5``; :func:`match_pairs`);
+5. :mod:`.geometry`: verified two-view geometries (``geometries.h5``; :func:`verify_pairs`);
+6. :mod:`.database`: the COLMAP database (:func:`write_database`, :func:`read_database`);
+7. :mod:`.mapping`: pycolmap's incremental mapping (``sparse/0``; :func:`run_mapping`);
+8. :mod:`.viz`: the model from above and the pair graph (:func:`plot_reconstruction`).
+
+The submodules (torch, pycolmap, h5py) are imported on first use of a name below.
+
+Example::
+
+    from localscale.sfm import reconstruct
+    summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
+"""
+import importlib
+
+_EXPORTS = {
+    ".images": ("ImageInfo", "find_images", "names_to_pair", "IMAGE_SUFFIXES", "ImageFolderError"),
+    ".extract": ("FeatureConf", "CONFS", "LevelMatcher", "extract_features", "read_features", "snap_factor"),
+    ".pairs": ("pairs_exhaustive", "pairs_from_file", "pairs_from_retrieval", "write_pairs", "read_pairs",
+               "PairsFileError"),
+    ".match": ("KeypointSet", "match_pairs", "read_all_matches", "SFM_CORRECTIONS"),
+    ".geometry": ("verify_pairs", "read_geometries", "estimate_pair"),
+    ".database": ("CAMERA_MODES", "CameraSetup", "CameraFileError", "image_cameras", "read_camera_file",
+                  "write_database", "read_database"),
+    ".mapping": ("run_mapping", "model_stats", "read_models"),
+    ".viz": ("plot_reconstruction",),
+    ".reconstruct": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),
+}
+_WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    mod = _WHERE.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(mod, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

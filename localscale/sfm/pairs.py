@@ -1,0 +1,142 @@
+"""Step 2: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
+
+* :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
+* :func:`pairs_from_file`: a pairs file of names (``A B`` or ``A<TAB>B`` per line; ``#`` comments;
+  names with spaces quoted as in a shell; or paths of the images), checked against the images;
+* :func:`pairs_from_retrieval`: each image with its ``N`` nearest by a cheap global descriptor,
+  the local descriptors of ``features.h5`` aggregated (GeM of the L2-normalised descriptors,
+  then normalised), compared by cosine similarity; both directions, as one pair.
+
+Example::
+
+    pairs = pairs_from_retrieval(images, "out/features.h5", num_nearest=10)
+    write_pairs("out/pairs.txt", pairs)
+"""
+from __future__ import annotations
+
+import itertools
+import shlex
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LocalScaleError
+from ..outputs import write_text
+from .h5io import read_group
+
+
+class PairsFileError(LocalScaleError):
+    """A pairs file cannot be used: missing, malformed, names that are not images."""
+
+
+def pairs_exhaustive(names: list) -> list:
+    """Every unordered pair of ``names``, in name order."""
+    return list(itertools.combinations(sorted(names), 2))
+
+
+def _unique(pairs) -> list:
+    seen, out = set(), []
+    for a, b in pairs:
+        if a == b:
+            continue
+        key = (a, b) if a < b else (b, a)
+        if key not in seen:
+            seen.add(key)
+            out.append((a, b))
+    return out
+
+
+def pairs_from_file(path, names: list, images_dir=None) -> list:
+    """The pairs of a pairs file: one pair per line, ``A<TAB>B`` or ``A B`` (quote a name with
+    spaces, as in a shell); blank lines and ``#`` comments ignored. A field is an image name (its
+    path relative to the images folder, as in ``pairs.txt``), or, with ``images_dir``, a path
+    (relative to the pairs file's folder) of an image in that folder. A pair repeated (in either
+    order) is kept once; a pair of an image with itself is dropped.
+
+    Raises:
+        PairsFileError: the file is missing or not text, a line is not two names, a name is not
+            one of ``names`` (e.g. an image that was skipped as unreadable), or no pair is left.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PairsFileError(f"pairs file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise PairsFileError(f"cannot read pairs file {path} as text ({e})") from None
+    known = set(names)
+    root = None if images_dir is None else Path(images_dir).resolve()
+
+    def name_of(field: str):
+        if field in known or root is None:
+            return field if field in known else None
+        try:
+            rel = (path.parent / field).resolve().relative_to(root).as_posix()
+        except (ValueError, OSError):
+            return None
+        return rel if rel in known else None
+
+    pairs = []
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            parts = [f for f in line.split("\t") if f] if "\t" in line else shlex.split(line)
+        except ValueError as e:
+            raise PairsFileError(f"{path}:{i}: cannot split the line into two names ({e})") from None
+        if len(parts) != 2:
+            raise PairsFileError(f"{path}:{i}: expected two image names, got {len(parts)}: {line.strip()[:120]!r}")
+        resolved = [name_of(p) for p in parts]
+        if None in resolved:
+            bad = parts[resolved.index(None)]
+            raise PairsFileError(f"{path}:{i}: {bad!r} is not one of the usable images "
+                                 f"(names are paths relative to the images folder, e.g. {sorted(known)[0]!r})")
+        pairs.append(tuple(resolved))
+    pairs = _unique(pairs)
+    if not pairs:
+        raise PairsFileError(f"{path}: no pair of two different images in the file")
+    return pairs
+
+
+def global_descriptors(features_path, names: list, p: float = 3.0) -> np.ndarray:
+    """``len(names) x D``: each image's local descriptors aggregated by generalised mean pooling
+    (GeM, power ``p``, of their absolute values after L2 normalisation), L2-normalised."""
+    out = []
+    for name in names:
+        d = read_group(features_path, name, ("descriptors",))["descriptors"].astype(np.float32)   # D x N
+        d = d / np.maximum(np.linalg.norm(d, axis=0, keepdims=True), 1e-12)
+        g = np.mean(np.abs(d) ** p, axis=1) ** (1.0 / p) if d.shape[1] else np.zeros(d.shape[0], np.float32)
+        out.append(g / max(float(np.linalg.norm(g)), 1e-12))
+    return np.stack(out)
+
+
+def pairs_from_retrieval(names: list, features_path, num_nearest: int) -> list:
+    """Each image with its ``num_nearest`` most similar images (:func:`global_descriptors`,
+    cosine similarity); a pair found from both sides is kept once."""
+    if num_nearest < 1:
+        raise LocalScaleError(f"--pairs-nearest must be >= 1, got {num_nearest}")
+    names = sorted(names)
+    g = global_descriptors(features_path, names)
+    sim = g @ g.T
+    np.fill_diagonal(sim, -np.inf)
+    k = min(num_nearest, len(names) - 1)
+    pairs = []
+    for i in range(len(names)):
+        for j in np.argsort(-sim[i], kind="stable")[:k]:
+            pairs.append((names[i], names[int(j)]))
+    return _unique(pairs)
+
+
+def write_pairs(path, pairs: list) -> Path:
+    """``pairs.txt`` (one ``A B`` per line, names with spaces quoted), atomically."""
+    return write_text(path, "".join(f"{shlex.quote(a)} {shlex.quote(b)}\n" for a, b in pairs))
+
+
+def read_pairs(path) -> list:
+    """The pairs of a ``pairs.txt`` written by :func:`write_pairs` (no check against images)."""
+    out = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        parts = shlex.split(line, comments=True)
+        if len(parts) == 2:
+            out.append(tuple(parts))
+    return out

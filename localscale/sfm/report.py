@@ -1,0 +1,77 @@
+"""Warnings, the JSON files and the table of a reconstruction.
+
+:func:`warn` prints one ``warning: ...`` line to stderr and keeps it in the warnings that
+:func:`collecting_warnings` gathers (the summary lists them), so a result that should not be
+trusted is flagged both on the terminal and in ``summary.json``.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Iterator
+
+from ..outputs import write_text
+
+_COLLECTED: contextvars.ContextVar = contextvars.ContextVar("sfm_warnings", default=None)
+
+
+def warn(message: str) -> None:
+    """Print ``warning: <message>`` (one line) to stderr and keep it for the summary."""
+    line = " ".join(str(message).split())
+    print(f"warning: {line}", file=sys.stderr, flush=True)
+    kept = _COLLECTED.get()
+    if kept is not None:
+        kept.append(line)
+
+
+@contextlib.contextmanager
+def collecting_warnings() -> Iterator[list]:
+    """Within the block, every :func:`warn` is also appended to the yielded list."""
+    kept: list = []
+    token = _COLLECTED.set(kept)
+    try:
+        yield kept
+    finally:
+        _COLLECTED.reset(token)
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:   # numpy scalars
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path, data: dict) -> Path:
+    """``data`` as indented JSON, written atomically (non-finite floats as null)."""
+    return write_text(path, json.dumps(_jsonable(data), indent=2) + "\n")
+
+
+def read_json(path) -> dict:
+    with open(path, encoding="utf-8") as f:
+        return json.load(f)
+
+
+def markdown_table(rows: list, columns: list) -> str:
+    """A markdown table of ``rows`` (dicts) with ``columns`` ``[(key, title), ...]``; floats with 3 digits."""
+    def cell(v):
+        if v is None:
+            return "-"
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(t for _, t in columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(r.get(k)) for k, _ in columns) + " |" for r in rows]
+    return "\n".join(lines)

@@ -1,0 +1,99 @@
+"""Pictures of a reconstruction: the model from above and the pair graph (matplotlib, PNG).
+
+:func:`plot_reconstruction` draws, side by side, (left) the 3D points and camera centres of the
+largest model seen from above ("up" is the cameras' mean upward image direction, so it holds for
+any orientation of the model), and (right) the pair graph: every image on a circle, each
+matched pair an edge, green when its two-view geometry verified, red when it did not, registered
+images filled. Written atomically.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..outputs import atomic_path
+
+
+def _top_view_axes(rec) -> np.ndarray:
+    """``3 x 2``: two world axes perpendicular to "up", taken as the cameras' mean upward image
+    direction (photos are mostly taken upright); the first along the cameras' mean image x axis."""
+    rots = []
+    for im in rec.images.values():
+        if im.has_pose:
+            pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+            rots.append(np.asarray(pose.rotation.matrix()))
+    if not rots:
+        return np.eye(3)[:, :2]
+    up = -np.mean([R[1] for R in rots], 0)          # image y points down: its world direction, negated
+    up /= max(np.linalg.norm(up), 1e-12)
+    x = np.mean([R[0] for R in rots], 0)
+    x -= up * (x @ up)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
+    x /= np.linalg.norm(x)
+    y = np.cross(up, x)
+    return np.stack([x, y], 1)
+
+
+def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: str = "") -> Path:
+    """Write the figure (module docstring) to ``path``.
+
+    ``rec``: the largest ``pycolmap.Reconstruction`` (or None); ``image_names``: every image;
+    ``pair_status``: ``{(a, b): True/False}`` verified or not.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .mapping import camera_centers
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 6))
+    registered = set()
+    if rec is not None and rec.num_reg_images():
+        names, centres = camera_centers(rec)
+        registered = set(names)
+        pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+        cols = np.array([p.color for p in rec.points3D.values()]).reshape(-1, 3) / 255.0
+        if len(pts):     # the points within the 1st..99th percentiles (a few far outliers would shrink the rest)
+            lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+            keep = np.all((pts >= lo) & (pts <= hi), axis=1)
+            pts, cols = pts[keep], cols[keep]
+        axes = _top_view_axes(rec)
+        mean = centres.mean(0) if len(centres) else 0
+        p2 = (pts - mean) @ axes
+        c2 = (centres - mean) @ axes
+        ax0.scatter(p2[:, 0], p2[:, 1], s=1, c=cols if len(cols) else None)
+        ax0.scatter(c2[:, 0], c2[:, 1], s=30, c="red", marker="^", label="cameras")
+        for n, (x, y) in zip(names, c2):
+            ax0.annotate(Path(n).stem, (x, y), fontsize=6)
+        ax0.set_aspect("equal", adjustable="datalim")
+        ax0.legend(loc="upper right", fontsize=7)
+        ax0.set_title(f"from above: {len(names)} cameras, {rec.num_points3D()} points", fontsize=9)
+    else:
+        ax0.text(0.5, 0.5, "no model", ha="center", va="center")
+        ax0.set_title("from above", fontsize=9)
+    n = len(image_names)
+    angle = {name: 2 * math.pi * i / max(1, n) for i, name in enumerate(image_names)}
+    xy = {name: (math.cos(a), math.sin(a)) for name, a in angle.items()}
+    for (a, b), ok in pair_status.items():
+        if a in xy and b in xy:
+            ax1.plot([xy[a][0], xy[b][0]], [xy[a][1], xy[b][1]], color="tab:green" if ok else "tab:red",
+                     alpha=0.7 if ok else 0.35, lw=1.0)
+    for name, (x, y) in xy.items():
+        ax1.scatter([x], [y], s=40, c="black" if name in registered else "white", edgecolors="black", zorder=3)
+        ax1.annotate(Path(name).stem, (x * 1.08, y * 1.08), fontsize=6, ha="center", va="center")
+    nv = sum(bool(v) for v in pair_status.values())
+    ax1.set_title(f"pairs: {nv} verified (green), {len(pair_status) - nv} not (red); filled = registered",
+                  fontsize=9)
+    ax1.set_aspect("equal")
+    ax1.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
