@@ -23,6 +23,7 @@ _EXPORTS = {
     ".correction": ("CORRECTIONS", "CORRECTION_METHODS", "Correction", "CorrectionGate", "NO_GATE",
                     "GATE_WEIGHTINGS", "get_correction", "models_for_correction", "scale_maps_for_pair",
                     "fuse_local_global"),
+    ".two_view": ("TwoViewConfig", "TwoViewGeometry", "estimate_two_view_geometry", "relative_pose_error", "pose_auc"),
     ".verification": ("VerificationConfig", "VerificationResult", "verify_matches", "estimate_homography",
                       "estimate_fundamental", "local_affine_scales"),
     ".refinement": ("RefinedScale", "RefinedMatching", "refine_scale_map", "refine_pair_maps", "refine_matching",

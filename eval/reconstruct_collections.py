@@ -1,0 +1,258 @@
+"""3D reconstruction of the photo collections: pycolmap's SIFT pipeline vs ALIKED + LightGlue, without
+and with ``auto``, on each collection as it is and with close-ups added.
+
+    OMP_NUM_THREADS=1 python eval/reconstruct_collections.py --collections kermit_bundler cyprus_dim \\
+        -o results/reconstruct_collections
+
+Collections: folders of ``--root`` (default ``/work/shared/data/collections``, see its README), each
+``<name>/images``. The close-up version (``<name>+closeups``) adds, for every third photo (at least
+two), a window showing ``1/z`` of its width and height (``z`` log-uniform in ``--zoom``, default
+2.5-5), centred at a random point of the photo's central half, resized to the photo's size (the
+window's camera is the photo's with a larger focal length and a shifted principal point,
+:func:`localscale.cameras.cut_window`) and turned by a random quarter turn (1-3). They are written
+to ``OUT/_closeup_images/<name>`` (the photos linked beside them), described in
+``OUT/_closeup_images/<name>.json`` (source, window, zoom, turn). A close-up has the camera
+centre of its source photo, so the distance between the two centres in the model (over the median
+distance of the cameras to their centroid) says whether a registered close-up sits where it
+should (column ``close-up centre err``).
+
+Pipelines (``--pipelines``):
+
+* ``colmap-sift``: ``pycolmap.extract_features`` / ``match_exhaustive`` (COLMAP's SIFT, its own
+  verification) / ``incremental_mapping``;
+* ``aliked-lg``: :func:`localscale.sfm.reconstruct` with ALIKED + LightGlue, 2048 keypoints at 1024 px,
+  exhaustive pairs, no correction (what an hloc user runs);
+* ``aliked-lg-auto``: the same with ``correction="auto"``.
+
+Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_image`` on the
+close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
+would be wrong, and a real zoomed photo's EXIF would say so).
+
+Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/results.json``
+(written atomically after each run); a rerun skips the rows already there (``--overwrite`` redoes
+them). The markdown table is printed and written to ``OUT/results.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from localscale.outputs import write_text
+
+PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto")
+COLUMNS = [("collection", "collection"), ("pipeline", "pipeline"), ("registered", "registered"),
+           ("closeups_registered", "close-ups reg."), ("closeup_centre_error", "close-up centre err"),
+           ("points", "points"), ("observations", "observations"), ("mean_track_length", "mean track"),
+           ("mean_reprojection_error", "reproj. err (px)"), ("extract_s", "extract s"), ("match_s", "match s"),
+           ("verify_s", "verify s"), ("map_s", "db + map s"), ("total_s", "total s")]
+
+
+# ---------------------------------------------------------------- close-ups
+
+def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> dict:
+    """``out_dir`` with links to the photos of ``images_dir`` and the close-ups (module docstring);
+    returns ``{close-up name: {"source", "window", "zoom", "turn"}}`` (also ``<out_dir>.json``)."""
+    import cv2
+
+    from localscale.cameras import Camera, cut_window
+
+    meta_path = out_dir.with_name(out_dir.name + ".json")
+    inside = out_dir / "closeups.json"          # where an earlier version kept it (then read as a non-image)
+    if inside.is_file() and not meta_path.is_file():
+        write_text(meta_path, inside.read_text())
+        inside.unlink()
+    if meta_path.is_file() and out_dir.is_dir():
+        return json.loads(meta_path.read_text())
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    photos = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    for p in photos:
+        os.symlink(p.resolve(), tmp / p.name)
+    rng = random.Random(seed)
+    count = max(2, round(len(photos) / 3))
+    sources = [photos[int(round(i * (len(photos) - 1) / max(1, count - 1)))] for i in range(count)]
+    meta = {}
+    for p in dict.fromkeys(sources):
+        bgr = cv2.imread(str(p))
+        H, W = bgr.shape[:2]
+        z = math.exp(rng.uniform(math.log(zoom[0]), math.log(zoom[1])))
+        w, h = int(round(W / z)), int(round(H / z))
+        cx = rng.uniform(W / 4, 3 * W / 4)
+        cy = rng.uniform(H / 4, 3 * H / 4)
+        x0 = int(np.clip(round(cx - w / 2), 0, W - w))
+        y0 = int(np.clip(round(cy - h / 2), 0, H - h))
+        turn = rng.randint(1, 3)
+        img, cam, _ = cut_window(bgr, Camera.from_prior(W, H), (x0, y0, w, h), (W, H), turn)
+        name = f"closeup_{p.stem}_z{z:.2f}_t{turn}.jpg"
+        cv2.imwrite(str(tmp / name), img, [cv2.IMWRITE_JPEG_QUALITY, 92])
+        meta[name] = {"source": p.name, "window": [x0, y0, w, h], "zoom": round(z, 3), "turn": turn}
+    shutil.rmtree(out_dir, ignore_errors=True)
+    tmp.rename(out_dir)
+    write_text(meta_path, json.dumps(meta, indent=2) + "\n")
+    return meta
+
+
+# ---------------------------------------------------------------- pipelines
+
+def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int) -> dict:
+    import pycolmap
+
+    from localscale.sfm.mapping import colmap_log, model_stats
+
+    shutil.rmtree(run_dir, ignore_errors=True)
+    run_dir.mkdir(parents=True)
+    db = run_dir / "database.db"
+    mode = {"auto": pycolmap.CameraMode.AUTO, "per_image": pycolmap.CameraMode.PER_IMAGE}[camera_mode]
+    names = sorted(p.name for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    seconds = {}
+    with colmap_log(False):
+        t = time.perf_counter()
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.num_threads = threads
+        pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode, extraction_options=ext,
+                                  device=pycolmap.Device.cpu)
+        seconds["extract"] = time.perf_counter() - t
+        t = time.perf_counter()
+        mopt = pycolmap.FeatureMatchingOptions()
+        mopt.num_threads = threads
+        pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
+        seconds["match"] = time.perf_counter() - t
+        t = time.perf_counter()
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.num_threads = threads
+        opts.random_seed = 0
+        models = pycolmap.incremental_mapping(db, images_dir, run_dir / "sparse", opts)
+        seconds["map"] = time.perf_counter() - t
+    ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+    stats = model_stats(ordered[0]) if ordered else None
+    return {"stats": stats, "model": ordered[0] if ordered else None, "images": len(names),
+            "seconds": {"extract": seconds["extract"], "match": seconds["match"], "verify": None,
+                        "map": seconds["map"], "total": sum(seconds.values())}}
+
+
+def run_ours(images_dir: Path, run_dir: Path, correction: str, camera_mode: str, threads: int) -> dict:
+    from localscale.sfm import read_models, reconstruct
+
+    summary = reconstruct(images_dir, run_dir, matcher="aliked-lightglue", correction=correction,
+                          camera_mode=camera_mode, num_keypoints=2048, max_side=1024, num_threads=threads,
+                          overwrite=True, show_progress=False)
+    models = read_models(run_dir / "sparse")
+    s = summary["seconds"]
+    stats = None if not models else {k: summary[k] for k in ("registered", "points", "observations",
+                                                               "mean_track_length", "mean_reprojection_error")}
+    return {"stats": stats, "model": models[0] if models else None, "images": summary["images"],
+            "seconds": {"extract": s["extract"], "match": s["pairs"] + s["match"], "verify": s["geometry"],
+                        "map": s["database"] + s["mapping"], "total": s["total"]},
+            "pairs_verified": summary["pairs_verified"], "pairs": summary["pairs"],
+            "added_keypoints": summary["matching"]["added_keypoints"],
+            "feature_sets": summary["matching"]["feature_sets_computed"], "warnings": summary["warnings"]}
+
+
+def closeup_check(model, closeups: dict) -> tuple:
+    """``(close-ups registered, median centre error)``: a close-up's centre vs its source photo's,
+    over the median distance of the registered cameras to their centroid (None when not measurable)."""
+    if model is None or not closeups:
+        return 0, None
+    centres = {im.name: np.asarray(im.projection_center()) for im in model.images.values() if im.has_pose}
+    registered = [n for n in closeups if n in centres]
+    if len(centres) < 3:
+        return len(registered), None
+    c = np.array(list(centres.values()))
+    scale = float(np.median(np.linalg.norm(c - c.mean(0), axis=1)))
+    errs = [float(np.linalg.norm(centres[n] - centres[closeups[n]["source"]])) / scale
+            for n in registered if closeups[n]["source"] in centres]
+    return len(registered), (float(np.median(errs)) if errs else None)
+
+
+# ---------------------------------------------------------------- table
+
+def markdown(rows: list) -> str:
+    from localscale.sfm.report import markdown_table
+    return markdown_table(rows, COLUMNS)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--root", default="/work/shared/data/collections", help="folder of the collections")
+    p.add_argument("--collections", nargs="+", default=["kermit_bundler"])
+    p.add_argument("--pipelines", nargs="+", default=list(PIPELINES), choices=PIPELINES)
+    p.add_argument("--versions", nargs="+", default=["plain", "closeups"], choices=("plain", "closeups"))
+    p.add_argument("--zoom", type=float, nargs=2, default=(2.5, 5.0), metavar=("MIN", "MAX"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=int(os.environ.get("OMP_NUM_THREADS", "1")),
+                   help="COLMAP threads (torch follows OMP_NUM_THREADS)")
+    p.add_argument("-o", "--output", default="results/reconstruct_collections")
+    p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
+    a = p.parse_args(argv)
+    if not 1 <= a.zoom[0] <= a.zoom[1]:
+        p.error("--zoom: 1 <= MIN <= MAX")
+    root, out = Path(a.root), Path(a.output)
+    for c in a.collections:
+        if not (root / c / "images").is_dir():
+            p.error(f"no collection {c} in {root} (no {root / c / 'images'})")
+    import torch
+    torch.set_num_threads(max(1, a.threads))
+    out.mkdir(parents=True, exist_ok=True)
+    results_path = out / "results.json"
+    rows = json.loads(results_path.read_text())["rows"] if results_path.is_file() else []
+    done = {(r["collection"], r["pipeline"]) for r in rows}
+    t_script = time.perf_counter()
+    for c in a.collections:
+        for version in a.versions:
+            label = c if version == "plain" else f"{c}+closeups"
+            if version == "plain":
+                images_dir, closeups, camera_mode = root / c / "images", {}, "auto"
+            else:
+                images_dir = out / "_closeup_images" / c
+                closeups = make_closeups(root / c / "images", images_dir, tuple(a.zoom), a.seed)
+                camera_mode = "per_image"
+            for pipe in a.pipelines:
+                if (label, pipe) in done and not a.overwrite:
+                    print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
+                    continue
+                print(f"{label} / {pipe} ...", flush=True)
+                t0 = time.perf_counter()
+                run_dir = out / label / pipe
+                if pipe == "colmap-sift":
+                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads)
+                else:
+                    res = run_ours(images_dir, run_dir, "auto" if pipe.endswith("auto") else "none", camera_mode,
+                                   a.threads)
+                wall = time.perf_counter() - t0
+                st = res["stats"] or {"registered": 0, "points": 0, "observations": 0, "mean_track_length": None,
+                                      "mean_reprojection_error": None}
+                n_close, centre_err = closeup_check(res["model"], closeups)
+                row = {"collection": label, "pipeline": pipe,
+                       "registered": f"{st['registered']}/{res['images']}",
+                       "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
+                       "closeup_centre_error": centre_err, "points": st["points"],
+                       "observations": st["observations"], "mean_track_length": st["mean_track_length"],
+                       "mean_reprojection_error": st["mean_reprojection_error"],
+                       **{f"{k}_s": (None if v is None else round(v, 1)) for k, v in res["seconds"].items()},
+                       "wall_s": round(wall, 1), "camera_mode": camera_mode, "threads": a.threads,
+                       **{k: res[k] for k in ("pairs", "pairs_verified", "added_keypoints", "feature_sets",
+                                              "warnings") if k in res}}
+                rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
+                metas = {k.stem: json.loads(k.read_text())
+                         for k in sorted((out / "_closeup_images").glob("*.json"))}
+                write_text(results_path, json.dumps({"rows": rows, "closeups": metas}, indent=2) + "\n")
+                print(f"{label} / {pipe}: {row['registered']} registered, {wall:.0f} s", flush=True)
+    table = markdown(rows)
+    write_text(out / "results.md", table + "\n")
+    print(table)
+    print(f"script wall time {time.perf_counter() - t_script:.0f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

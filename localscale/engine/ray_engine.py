@@ -1,0 +1,400 @@
+"""The Ray engine: a pool of actors, each holding its worker state (e.g. a loaded model) once.
+
+Each actor reserves ``threads_per_worker`` CPUs of the cluster and runs torch with that many
+threads (``torch.set_num_threads``, ``OMP_NUM_THREADS``), so ``workers`` actors never use more
+cores than the cluster gave them. The driver keeps at most ``in_flight`` calls queued on each
+actor, yields every result as it arrives (the caller writes it at once) and resubmits the items
+of an actor that died (``kill -9``, out of memory, a lost node) to a fresh actor, up to
+``max_retries`` times per item; after that the item fails with :class:`WorkerLostError`. An item
+whose work raised a :class:`~localscale.errors.LocalScaleError` comes back as that exception,
+never retried.
+
+Without ``address`` a local cluster is started (``ray.init(num_cpus=workers x threads)``, no
+dashboard) on the first ``map`` and stopped by :meth:`RayExecutor.close`; with ``address`` the
+driver joins that cluster (an unreachable address is an error within ``connect_timeout``
+seconds). Image paths and weight files must be readable on every node.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections import deque
+from typing import Optional
+
+from ..errors import LocalScaleError
+from .base import RAY_INSTALL_HINT, EngineError, Executor, RunStats, WorkerLostError, progress_bar, state_key
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise EngineError(f"the ray engine needs Ray, which is not installed: {RAY_INSTALL_HINT}") from None
+    return ray
+
+
+def _host_port(address: str) -> Optional[tuple[str, int]]:
+    """``(host, port)`` of ``host:port`` or ``ray://host:port``; None for ``auto``."""
+    if address == "auto":
+        return None
+    rest = address[len("ray://") :] if address.startswith("ray://") else address
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise EngineError(
+            f"--ray-address {address!r}: expected host:port (e.g. 127.0.0.1:6379), ray://host:port or auto"
+        )
+    return host.strip("[]"), int(port)
+
+
+def _resolve_refs(item):
+    """``item`` with every Ray object reference in it (at the top, or inside tuples, lists and
+    dicts) replaced by its value, all fetched in one ``ray.get``."""
+    import ray
+
+    refs: list = []
+
+    def find(x):
+        if isinstance(x, ray.ObjectRef):
+            refs.append(x)
+        elif isinstance(x, (list, tuple)):
+            for y in x:
+                find(y)
+        elif isinstance(x, dict):
+            for y in x.values():
+                find(y)
+
+    find(item)
+    if not refs:
+        return item
+    values = dict(zip(refs, ray.get(refs)))
+
+    def build(x):
+        if isinstance(x, ray.ObjectRef):
+            return values[x]
+        if isinstance(x, list):
+            return [build(y) for y in x]
+        if isinstance(x, tuple):
+            parts = [build(y) for y in x]
+            return type(x)(*parts) if hasattr(x, "_fields") else tuple(parts)
+        if isinstance(x, dict):
+            return {k: build(y) for k, y in x.items()}
+        return x
+
+    return build(item)
+
+
+class _Worker:
+    """One actor: builds the worker state once, then runs ``fn(state, item)`` per call."""
+
+    def __init__(self, factory, threads: int):
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ[var] = str(threads)
+        import torch
+
+        torch.set_num_threads(threads)
+        self.state, self.error = None, None
+        try:
+            self.state = factory() if factory is not None else None
+        except Exception as e:  # reported by ready(): the driver raises it
+            self.error = e
+
+    def ready(self):
+        """None, or the exception that building the worker state raised."""
+        return self.error
+
+    def info(self) -> dict:
+        import ray
+        import torch
+
+        return {
+            "pid": os.getpid(),
+            "node_id": ray.get_runtime_context().get_node_id(),
+            "threads": torch.get_num_threads(),
+        }
+
+    def _call(self, fn, item):
+        if self.error is not None:
+            raise RuntimeError(f"the worker state could not be built: {self.error}")
+        return fn(self.state, _resolve_refs(item))
+
+    def run(self, fn, item):
+        """``(None, result)``, or ``(error, None)`` for a :class:`LocalScaleError`."""
+        try:
+            return None, self._call(fn, item)
+        except LocalScaleError as e:
+            return e, None
+
+
+class RayExecutor(Executor):
+    """Runs ``fn(state, item)`` on an actor pool of a local or remote Ray cluster.
+
+    ``workers``: actors (None: one per ``threads_per_worker`` CPUs of the cluster);
+    ``threads_per_worker``: CPUs each actor reserves and torch threads it runs;
+    ``address``: a running cluster (``host:port``, ``ray://host:port``, ``auto``) or None to start one;
+    ``max_retries``: resubmissions of an item after its actor died; ``in_flight``: calls queued per
+    actor; ``connect_timeout``: seconds to wait for ``address``; ``ready_timeout``: seconds for the
+    actors to start (their state built); ``temp_dir``: Ray's session folder of a started cluster."""
+
+    name = "ray"
+
+    def __init__(
+        self,
+        workers: Optional[int] = None,
+        threads_per_worker: int = 1,
+        address: Optional[str] = None,
+        max_retries: int = 2,
+        in_flight: int = 2,
+        connect_timeout: float = 5.0,
+        ready_timeout: float = 300.0,
+        temp_dir: Optional[str] = None,
+    ):
+        super().__init__()
+        for value, option in (
+            (workers, "workers"),
+            (threads_per_worker, "threads_per_worker"),
+            (in_flight, "in_flight"),
+        ):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise EngineError(f"{option} must be a whole number >= 1, got {value!r}")
+        if isinstance(max_retries, bool) or not isinstance(max_retries, int) or max_retries < 0:
+            raise EngineError(f"max_retries must be a whole number >= 0, got {max_retries!r}")
+        if address is not None:
+            _host_port(address)  # a malformed address is an error now, before anything starts
+        self._ray = _import_ray()
+        self._workers, self.threads_per_worker, self.address = workers, threads_per_worker, address
+        self.max_retries, self.in_flight = max_retries, in_flight
+        self.connect_timeout, self.ready_timeout, self.temp_dir = connect_timeout, ready_timeout, temp_dir
+        self._started = self._owns_session = False
+        self._actors: list = []
+        self._generation: list[int] = []
+        self._pool_key = None
+        self._factory = None
+        self.startup_seconds = 0.0
+
+    @property
+    def workers(self) -> int:
+        return self._workers or 0
+
+    # ------------------------------------------------------------------ cluster and pool
+
+    def start(self) -> "RayExecutor":
+        """Start the local cluster, or join ``address``; idempotent."""
+        if self._started:
+            return self
+        ray = self._ray
+        t0 = time.perf_counter()
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report (no network)
+        if ray.is_initialized():  # the caller's own Ray session
+            self._owns_session = False
+        elif self.address is None:
+            cpus = (self._workers or max(1, (os.cpu_count() or 1) // self.threads_per_worker)) * self.threads_per_worker
+            try:
+                ray.init(
+                    num_cpus=cpus,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    logging_level=logging.ERROR,
+                    _node_ip_address="127.0.0.1",
+                    _temp_dir=self.temp_dir,
+                )
+            except (OSError, RuntimeError, ValueError) as e:  # e.g. a temp_dir too long for Ray's sockets
+                raise EngineError(f"cannot start a local Ray cluster: {' '.join(str(e).split())[:300]}") from None
+            self._owns_session = True
+        else:
+            self._check_reachable()
+            try:
+                ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
+            except (ConnectionError, RuntimeError, ValueError) as e:
+                raise EngineError(
+                    f"cannot join the Ray cluster at {self.address}: {' '.join(str(e).split())[:300]}"
+                ) from None
+            self._owns_session = True
+        self._started = True
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        if self._workers is None:
+            self._workers = max(1, cpus // self.threads_per_worker)
+        need = self._workers * self.threads_per_worker
+        if cpus < need:
+            self.close()
+            raise EngineError(
+                f"the Ray cluster has {cpus} CPU(s); {self._workers} worker(s) x "
+                f"{self.threads_per_worker} thread(s) need {need}"
+            )
+        self.startup_seconds += time.perf_counter() - t0
+        return self
+
+    def _check_reachable(self) -> None:
+        target = _host_port(self.address)
+        if target is None:
+            return
+        try:
+            socket.create_connection(target, timeout=self.connect_timeout).close()
+        except OSError as e:
+            reason = "timed out" if isinstance(e, socket.timeout) else (e.strerror or str(e))
+            raise EngineError(
+                f"cannot reach the Ray cluster at {self.address}: {reason} "
+                "(start it with `ray start --head`, or drop --ray-address for a local one)"
+            ) from None
+
+    def _new_actor(self):
+        ray = self._ray
+        cls = ray.remote(_Worker).options(
+            num_cpus=self.threads_per_worker, max_restarts=0, max_task_retries=0, scheduling_strategy="SPREAD"
+        )
+        return cls.remote(self._factory, self.threads_per_worker)
+
+    def _pool(self, factory) -> None:
+        """Actors holding ``factory``'s state (one factory's pool at a time)."""
+        key = state_key(factory)
+        if self._actors and self._pool_key == key:
+            return
+        self._kill_actors()
+        ray = self._ray
+        t0 = time.perf_counter()
+        self._factory, self._pool_key = factory, key
+        self._actors = [self._new_actor() for _ in range(self._workers)]
+        self._generation = [0] * len(self._actors)
+        deadline = time.perf_counter() + self.ready_timeout
+        for slot in range(len(self._actors)):
+            for attempt in range(self.max_retries + 1):  # an actor whose process died while starting is replaced
+                try:
+                    error = ray.get(self._actors[slot].ready.remote(), timeout=max(0.0, deadline - time.perf_counter()))
+                    break
+                except ray.exceptions.GetTimeoutError:
+                    self._kill_actors()
+                    raise EngineError(
+                        f"the {self._workers} Ray worker(s) did not start within {self.ready_timeout:g} "
+                        "s (are the cluster's CPUs in use by others?)"
+                    ) from None
+                except ray.exceptions.RayActorError as e:
+                    if attempt == self.max_retries:
+                        self._kill_actors()
+                        raise EngineError(
+                            f"a Ray worker died while starting, {attempt + 1} time(s): {' '.join(str(e).split())[:200]}"
+                        ) from None
+                    self._replace(slot)
+            if error is not None:
+                self._kill_actors()
+                raise error
+        self.startup_seconds += time.perf_counter() - t0
+
+    def _replace(self, slot: int) -> None:
+        try:
+            self._ray.kill(self._actors[slot], no_restart=True)
+        except Exception:  # already gone
+            pass
+        self._actors[slot] = self._new_actor()
+        self._generation[slot] += 1
+
+    def _kill_actors(self) -> None:
+        for a in self._actors:
+            try:
+                self._ray.kill(a, no_restart=True)
+            except Exception:
+                pass
+        self._actors, self._generation, self._pool_key, self._factory = [], [], None, None
+
+    def worker_info(self, state=None) -> list[dict]:
+        """``{"pid", "node_id", "threads"}`` of each actor of ``state``'s pool (started if needed)."""
+        self.start()
+        self._pool(state)
+        return self._ray.get([a.info.remote() for a in self._actors])
+
+    def close(self) -> None:
+        if not self._started:
+            return
+        self._kill_actors()
+        if self._owns_session and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._started = self._owns_session = False
+
+    # ------------------------------------------------------------------ map
+
+    def map(self, fn, items, *, state=None, keep=False, progress=None, unit="item"):
+        ray = self._ray
+        items = list(items)
+        startup = self.startup_seconds
+        self.start()
+        self._pool(state)
+        stats = RunStats(
+            self.name, self._workers, self.threads_per_worker, startup_seconds=self.startup_seconds - startup
+        )
+        self.last_run = stats
+        pending = deque(range(len(items)))
+        attempts = [0] * len(items)
+        running: dict = {}  # status reference -> (index, slot, generation)
+        company: dict = {}  # (slot, generation) of a dead actor -> calls it had out
+        isolated: set = set()  # items that died in company: next time they run alone
+        alone: list = [None] * len(self._actors)  # slot -> the isolated item it runs, if any
+        values: dict = {}  # keep: index -> value reference
+        load = [0] * len(self._actors)  # calls out per actor slot
+        bar = progress_bar(len(items), progress, unit)
+        t0 = time.perf_counter()
+
+        def submit(i: int, slot: int) -> None:
+            actor = self._actors[slot]
+            if keep:  # two returns: the status comes to the driver, the value stays in the object store
+                status, values[i] = actor.run.options(num_returns=2).remote(fn, items[i])
+            else:
+                status = actor.run.remote(fn, items[i])
+            running[status] = (i, slot, self._generation[slot])
+            load[slot] += 1
+
+        try:
+            while pending or running:
+                for slot in range(len(self._actors)):
+                    while pending and load[slot] < self.in_flight and alone[slot] is None:
+                        if pending[0] in isolated:
+                            if load[slot]:
+                                break
+                            alone[slot] = pending[0]
+                        submit(pending.popleft(), slot)
+                ready, _ = ray.wait(list(running), num_returns=1)
+                for ref in ready:
+                    i, slot, generation = running.pop(ref)
+                    load[slot] -= 1
+                    if alone[slot] == i:
+                        alone[slot] = None
+                    try:
+                        got = ray.get(ref)
+                        error, value = (got, values.pop(i)) if keep else got
+                    except ray.exceptions.RayActorError:  # the actor died (kill -9, out of memory, lost node)
+                        values.pop(i, None)
+                        if (slot, generation) not in company:  # first news of this death: replace the actor once
+                            company[slot, generation] = 1 + sum(
+                                (sl, g) == (slot, generation) for _, sl, g in running.values()
+                            )
+                            self._replace(slot)
+                        if company[slot, generation] > 1:
+                            # which of its calls killed it is unknown (a finished call's reply can die with
+                            # the process too): each runs again alone, without using up a retry
+                            isolated.add(i)
+                            stats.retried += 1
+                            pending.appendleft(i)
+                            continue
+                        attempts[i] += 1
+                        if attempts[i] <= self.max_retries:
+                            stats.retried += 1
+                            pending.appendleft(i)
+                            continue
+                        error = WorkerLostError(f"its worker process died {attempts[i]} time(s) while running it")
+                    except ray.exceptions.RayTaskError as e:  # a bug in the work function: end the run
+                        raise e.as_instanceof_cause() from None
+                    stats.items += 1
+                    stats.failed += error is not None
+                    stats.seconds = time.perf_counter() - t0
+                    if bar is not None:
+                        bar.update()
+                    yield i, (error if error is not None else value)
+        finally:
+            stats.seconds = time.perf_counter() - t0
+            if bar is not None:
+                bar.close()
+            for ref in running:  # the caller stopped early: drop what is still queued
+                try:
+                    ray.cancel(ref)
+                except Exception:
+                    pass

