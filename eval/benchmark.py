@@ -44,6 +44,7 @@ cache (1 vs N images, all pairs) is measured with ``--throughput``.
 Only the public API is used, so the same script times another checkout of the same API:
 ``PYTHONPATH=/path/to/other/checkout python eval/benchmark.py``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,13 +65,13 @@ import torch
 import localscale
 from localscale.errors import LocalScaleError
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
-from localscale.matching import match_descriptors, match_pair
-from localscale.matching.correction import CORRECTIONS, get_correction, scale_maps_for_pair
 from localscale.features.descriptors import PRECISIONS
 from localscale.features.detector import HessianDetector
-from localscale.matching.config import MATCHERS, match_config
-from localscale.matching.matcher import Matcher
 from localscale.io import load_image, read_homography
+from localscale.matching import match_descriptors, match_pair
+from localscale.matching.config import MATCHERS, match_config
+from localscale.matching.correction import CORRECTIONS, get_correction, scale_maps_for_pair
+from localscale.matching.matcher import Matcher
 from localscale.models import LocalScaleNet, ScaleNet
 
 ASSETS = Path(localscale.__file__).resolve().parent / "assets"
@@ -119,8 +120,11 @@ def subprocess_ms(cmd: list, repeat: int, cwd: str, env=None) -> dict:
         wall.append(time.perf_counter() - t)
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu.append(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime)
-    return {"ms": float(np.median(wall) * 1000), "ms_p90": float(np.percentile(wall, 90) * 1000),
-            "cpu_ms": float(np.median(cpu) * 1000)}
+    return {
+        "ms": float(np.median(wall) * 1000),
+        "ms_p90": float(np.percentile(wall, 90) * 1000),
+        "cpu_ms": float(np.median(cpu) * 1000),
+    }
 
 
 def test_pair(size=(640, 480)):
@@ -169,8 +173,7 @@ def eval_pair_times(a, b, H, methods, cfg, device, local, glob, repeat, tmp) -> 
     out = {"all_methods": timeit(lambda m: run(methods, m), repeat, setup=fresh)}
     recs = run(methods, fresh())
     out["mma5"] = {r["method"]: r["mma"][4] for r in recs}
-    out["record_seconds"] = {r["method"]: {"seconds": r["seconds"], "scale_seconds": r["scale_seconds"]}
-                             for r in recs}
+    out["record_seconds"] = {r["method"]: {"seconds": r["seconds"], "scale_seconds": r["scale_seconds"]} for r in recs}
     out["alone"] = {m: timeit(lambda matcher, m=m: run([m], matcher), repeat, setup=fresh) for m in methods}
     out["alone_sum_ms"] = sum(v["ms"] for v in out["alone"].values())
     out["alone_sum_cpu_ms"] = sum(v["cpu_ms"] for v in out["alone"].values())
@@ -204,20 +207,30 @@ def pairs_per_second(img_a, img_b, H, local, matcher, device, n: int) -> dict:
         done += k
     synchronize(device)
     map_s = time.perf_counter() - t
-    return {"device": str(device), "pairs": n, "match_pair_local_pairs_per_s": n / match_s,
-            "scale_map_batched_pairs_per_s": n / map_s, "map_batch": batch}
+    return {
+        "device": str(device),
+        "pairs": n,
+        "match_pair_local_pairs_per_s": n / match_s,
+        "scale_map_batched_pairs_per_s": n / map_s,
+        "map_batch": batch,
+    }
 
 
 def throughput_sections(model, rng) -> dict:
     """Scale-model pairs/s uncached vs with the feature cache (1 vs N, all pairs of N images)."""
-    from localscale.cache import encode_batch, predict_batch
     from skimage import data
+
+    from localscale.cache import encode_batch, predict_batch
 
     base = [data.astronaut(), data.coffee(), data.chelsea(), data.rocket()]
 
     def images(k):
-        return [np.clip(cv2.resize(base[i % 4], (640, 480)).astype(np.int16) + rng.integers(-8, 8, (480, 640, 3)),
-                        0, 255).astype(np.uint8) for i in range(k)]
+        return [
+            np.clip(
+                cv2.resize(base[i % 4], (640, 480)).astype(np.int16) + rng.integers(-8, 8, (480, 640, 3)), 0, 255
+            ).astype(np.uint8)
+            for i in range(k)
+        ]
 
     res = {}
     for n in (1, 10):
@@ -236,29 +249,53 @@ def throughput_sections(model, rng) -> dict:
     t = time.perf_counter()
     encs = encode_batch(model, ims)
     for k in range(0, len(pairs), 16):
-        chunk = pairs[k:k + 16]
+        chunk = pairs[k : k + 16]
         predict_batch(model, [encs[i] for i, _ in chunk], [encs[j] for _, j in chunk])
     res["all_pairs_8_images"] = {"pairs": len(pairs), "cached_pairs_per_s": len(pairs) / (time.perf_counter() - t)}
     return res
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__
+    )
     p.add_argument("--repeat", type=int, default=5, help="timed runs per stage (after one warm-up)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--num-features", type=int, default=1000, help="keypoints per image (every matcher)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--matcher", nargs="+", default=["hardnet"], choices=list(MATCHERS), metavar="NAME",
-                   help=f"matchers timed: {', '.join(MATCHERS)} (default: hardnet)")
-    p.add_argument("--corrections", nargs="+", default=list(CORRECTIONS), choices=CORRECTIONS, metavar="NAME",
-                   help=f"corrections of the match_pair stages: {', '.join(CORRECTIONS)} (default: all)")
-    p.add_argument("--methods", nargs="+", default=["none", "local", "gt"], choices=CORRECTIONS, metavar="NAME",
-                   help="eval-hpatches methods timed (default: none local gt)")
+    p.add_argument(
+        "--matcher",
+        nargs="+",
+        default=["hardnet"],
+        choices=list(MATCHERS),
+        metavar="NAME",
+        help=f"matchers timed: {', '.join(MATCHERS)} (default: hardnet)",
+    )
+    p.add_argument(
+        "--corrections",
+        nargs="+",
+        default=list(CORRECTIONS),
+        choices=CORRECTIONS,
+        metavar="NAME",
+        help=f"corrections of the match_pair stages: {', '.join(CORRECTIONS)} (default: all)",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["none", "local", "gt"],
+        choices=CORRECTIONS,
+        metavar="NAME",
+        help="eval-hpatches methods timed (default: none local gt)",
+    )
     p.add_argument("--no-cli", action="store_true", help="skip the subprocess timings (--help, match)")
     p.add_argument("--throughput", action="store_true", help="also time scale-model throughput with the cache")
-    p.add_argument("--pairs-per-second", type=int, default=0, metavar="N",
-                   help="also measure throughput on --device over N pairs (match_pair local, batched maps)")
+    p.add_argument(
+        "--pairs-per-second",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also measure throughput on --device over N pairs (match_pair local, batched maps)",
+    )
     p.add_argument("--descriptor", default=None, metavar="WEIGHTS", help="HardNet weights (default: bundled)")
     p.add_argument("--local-weights", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
     p.add_argument("--global-weights", default=None, help="ScaleNet checkpoint (default: bundled)")
@@ -271,25 +308,44 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     n, rep = a.num_features, a.repeat
     names = list(dict.fromkeys(a.matcher))
-    try:   # every matcher's weights load before anything is timed
+    try:  # every matcher's weights load before anything is timed
         hardnet = HardNetDescriptor.from_pretrained(a.descriptor, device=a.device)
         configs = {name: matcher_config(name, n, hardnet) for name in names}
         matchers = {name: Matcher(cfg, a.device) for name, cfg in configs.items()}
-        kornia_defaults = Matcher(match_config("aliked-lightglue", name="aliked-lightglue (kornia defaults)",
-                                               num_features=2048, channels_last=False), a.device) \
-            if "aliked-lightglue" in names else None
+        kornia_defaults = (
+            Matcher(
+                match_config(
+                    "aliked-lightglue",
+                    name="aliked-lightglue (kornia defaults)",
+                    num_features=2048,
+                    channels_last=False,
+                ),
+                a.device,
+            )
+            if "aliked-lightglue" in names
+            else None
+        )
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     img_a, img_b, H = test_pair()
-    res = {"device": a.device, "threads": torch.get_num_threads(), "torch": torch.__version__,
-           "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-           "load_average_start": os.getloadavg(), "localscale": str(Path(localscale.__file__).parent),
-           "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints", "repeat": rep,
-           "matchers": names, "descriptor": a.descriptor or "bundled",
-           "descriptor_precision_auto": hardnet.resolved_precision(a.device),
-           "local_weights": a.local_weights or "bundled", "global_weights": a.global_weights or "bundled"}
-    st = {}   # stage -> timing dict
+    res = {
+        "device": a.device,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_average_start": os.getloadavg(),
+        "localscale": str(Path(localscale.__file__).parent),
+        "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints",
+        "repeat": rep,
+        "matchers": names,
+        "descriptor": a.descriptor or "bundled",
+        "descriptor_precision_auto": hardnet.resolved_precision(a.device),
+        "local_weights": a.local_weights or "bundled",
+        "global_weights": a.global_weights or "bundled",
+    }
+    st = {}  # stage -> timing dict
 
     with tempfile.TemporaryDirectory() as tmp:
         if not a.no_cli:
@@ -299,8 +355,22 @@ def main(argv=None) -> int:
             cv2.imwrite(str(pa), img_a[..., ::-1])
             cv2.imwrite(str(pb), img_b[..., ::-1])
             np.savetxt(ph, H)
-            cmd = [sys.executable, "-m", "localscale", "match", str(pa), str(pb), "-o", str(Path(tmp) / "m"),
-                   "--correction", "local", "--H", str(ph), "--num-features", str(n)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "localscale",
+                "match",
+                str(pa),
+                str(pb),
+                "-o",
+                str(Path(tmp) / "m"),
+                "--correction",
+                "local",
+                "--H",
+                str(ph),
+                "--num-features",
+                str(n),
+            ]
             st["cli: localscale match (local)"] = subprocess_ms(cmd, max(1, min(rep, 3)), tmp, env)
 
         st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(a.local_weights, a.device), rep)
@@ -310,13 +380,15 @@ def main(argv=None) -> int:
         glob = ScaleNet.from_pretrained(a.global_weights, a.device)
         sift = SIFTPatchDescriptor().to(a.device).eval()
 
-        fast = max(rep, 15)   # short stages: more runs, a steadier median
+        fast = max(rep, 15)  # short stages: more runs, a steadier median
         st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), fast)
         ea, eb = local.encode_image(img_a), local.encode_image(img_b)
-        st["scale map: local, cached encodings, A's self terms kept (head)"] = \
-            timeit(lambda: local.predict_from_features(ea, eb), fast)
-        st["scale map: local, cached encodings, A's self terms recomputed (head)"] = \
-            timeit(lambda _: local.predict_from_features(ea, eb), fast, setup=ea.terms.clear)
+        st["scale map: local, cached encodings, A's self terms kept (head)"] = timeit(
+            lambda: local.predict_from_features(ea, eb), fast
+        )
+        st["scale map: local, cached encodings, A's self terms recomputed (head)"] = timeit(
+            lambda _: local.predict_from_features(ea, eb), fast, setup=ea.terms.clear
+        )
         st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), fast)
 
         ga, gb = image_to_gray_tensor(img_a), image_to_gray_tensor(img_b)
@@ -334,11 +406,13 @@ def main(argv=None) -> int:
                 continue
             hardnet.set_precision(prec)
             tag = " (default)" if prec == default else ""
-            st[f"describe: HardNet {prec}{tag}, {len(patches)} patches, one call"] = \
-                timeit(lambda: hardnet.describe(patches), rep)
+            st[f"describe: HardNet {prec}{tag}, {len(patches)} patches, one call"] = timeit(
+                lambda: hardnet.describe(patches), rep
+            )
         hardnet.set_precision("auto")
-        st[f"describe: HardNet {default}, {len(patches)} patches, two calls (A, B)"] = \
-            timeit(lambda: (hardnet.describe(pa_), hardnet.describe(pb_)), rep)
+        st[f"describe: HardNet {default}, {len(patches)} patches, two calls (A, B)"] = timeit(
+            lambda: (hardnet.describe(pa_), hardnet.describe(pb_)), rep
+        )
         st[f"describe: RootSIFT, {len(patches)} patches"] = timeit(lambda: sift.describe(patches), rep)
         da, db = hardnet.describe(pa_), hardnet.describe(pb_)
         st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
@@ -346,8 +420,13 @@ def main(argv=None) -> int:
         res["matches"], res["eval_pair"] = {}, {}
         for name, m in matchers.items():
             cfg = configs[name]
-            what = ("HardNet loaded above" if cfg.extractor == "patches" and not isinstance(cfg.descriptor, str)
-                    else "OpenCV" if cfg.extractor == "sift" else "loads its weights")
+            what = (
+                "HardNet loaded above"
+                if cfg.extractor == "patches" and not isinstance(cfg.descriptor, str)
+                else "OpenCV"
+                if cfg.extractor == "sift"
+                else "loads its weights"
+            )
             st[f"matcher {name}: build ({what})"] = timeit(lambda cfg=cfg: Matcher(cfg, a.device), rep)
             st[f"matcher {name}: extract 2 images"] = timeit(lambda m=m: (m.extract(img_a), m.extract(img_b)), rep)
             st[f"matcher {name}: match (extract + match, no maps)"] = timeit(lambda m=m: m.match(img_a, img_b), rep)
@@ -365,41 +444,65 @@ def main(argv=None) -> int:
             st[f"eval pair {name}: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
             for meth, t in ev["alone"].items():
                 st[f"eval pair {name}: {meth} alone"] = t
-            res["eval_pair"][name] = {"mma5": ev["mma5"], "record_seconds": ev["record_seconds"],
-                                      "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]}}
+            res["eval_pair"][name] = {
+                "mma5": ev["mma5"],
+                "record_seconds": ev["record_seconds"],
+                "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]},
+            }
 
         if kornia_defaults is not None:
             km = kornia_defaults
-            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): extract 2 images"] = \
-                timeit(lambda: (km.extract(img_a), km.extract(img_b)), rep)
-            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"] = \
-                timeit(lambda: km.match(img_a, img_b), rep)
+            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): extract 2 images"] = timeit(
+                lambda: (km.extract(img_a), km.extract(img_b)), rep
+            )
+            st[
+                "matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"
+            ] = timeit(lambda: km.match(img_a, img_b), rep)
             ours = st["matcher aliked-lightglue: match (extract + match, no maps)"]
-            kd = st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"]
-            res["aliked_lightglue_speedup_over_kornia_defaults"] = {"wall": kd["ms"] / ours["ms"],
-                                                                     "cpu": kd["cpu_ms"] / ours["cpu_ms"]}
+            kd = st[
+                "matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"
+            ]
+            res["aliked_lightglue_speedup_over_kornia_defaults"] = {
+                "wall": kd["ms"] / ours["ms"],
+                "cpu": kd["cpu_ms"] / ours["cpu_ms"],
+            }
         # the targets' comparisons, interleaved (ratios robust to a drifting machine)
         sift_ref = lambda: opencv_sift(img_a, img_b, n)  # noqa: E731
         pairs = {}
         if "hardnet" in matchers:
             hm = matchers["hardnet"]
             pairs["match_pair hardnet local / OpenCV SIFT pipeline"] = interleaved(
-                {"ours": lambda: match_pair(img_a, img_b, "local", H, local, None, hm), "reference": sift_ref}, max(rep, 5))
+                {"ours": lambda: match_pair(img_a, img_b, "local", H, local, None, hm), "reference": sift_ref},
+                max(rep, 5),
+            )
         pairs["scale map uncached / OpenCV SIFT pipeline"] = interleaved(
-            {"ours": lambda: local.predict(img_a, img_b), "reference": sift_ref}, max(rep, 15))
+            {"ours": lambda: local.predict(img_a, img_b), "reference": sift_ref}, max(rep, 15)
+        )
         if kornia_defaults is not None:
             am = matchers["aliked-lightglue"]
             pairs["aliked-lightglue default / kornia's defaults (match, no maps)"] = interleaved(
                 {"ours": lambda: am.match(img_a, img_b), "reference": lambda: kornia_defaults.match(img_a, img_b)},
-                max(rep, 5))
+                max(rep, 5),
+            )
         for v in pairs.values():
-            v["ratio"], v["ratio_cpu"] = v["ours"]["ms"] / v["reference"]["ms"], v["ours"]["cpu_ms"] / v["reference"]["cpu_ms"]
+            v["ratio"], v["ratio_cpu"] = (
+                v["ours"]["ms"] / v["reference"]["ms"],
+                v["ours"]["cpu_ms"] / v["reference"]["cpu_ms"],
+            )
         res["interleaved"] = pairs
         if a.pairs_per_second:
-            res["pairs_per_second"] = pairs_per_second(img_a, img_b, H, local, matchers.get("hardnet")
-                                                       or Matcher(matcher_config("hardnet", n, hardnet), a.device),
-                                                       a.device, a.pairs_per_second)
-        st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(lambda: opencv_sift(img_a, img_b, n), rep)
+            res["pairs_per_second"] = pairs_per_second(
+                img_a,
+                img_b,
+                H,
+                local,
+                matchers.get("hardnet") or Matcher(matcher_config("hardnet", n, hardnet), a.device),
+                a.device,
+                a.pairs_per_second,
+            )
+        st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(
+            lambda: opencv_sift(img_a, img_b, n), rep
+        )
         res["opencv_sift_matches"] = len(opencv_sift(img_a, img_b, n))
 
     if a.throughput:
@@ -412,18 +515,24 @@ def main(argv=None) -> int:
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["load_average_end"] = os.getloadavg()
 
-    print(f"\n### localscale user path ({a.device}, {res['threads']} threads, torch {torch.__version__}, "
-          f"{res['input']}; load average {res['load_average_start'][0]:.1f} -> {res['load_average_end'][0]:.1f})\n")
+    print(
+        f"\n### localscale user path ({a.device}, {res['threads']} threads, torch {torch.__version__}, "
+        f"{res['input']}; load average {res['load_average_start'][0]:.1f} -> {res['load_average_end'][0]:.1f})\n"
+    )
     print("| stage | ms (median) | ms p90 | CPU ms | x OpenCV SIFT (wall) | x OpenCV SIFT (CPU) |")
     print("|---|---|---|---|---|---|")
     for name, t in st.items():
-        print(f"| {name} | {t['ms']:.1f} | {t['ms_p90']:.1f} | {t['cpu_ms']:.1f} | {t['x_opencv_sift']:.2f} | "
-              f"{t['x_opencv_sift_cpu']:.2f} |")
+        print(
+            f"| {name} | {t['ms']:.1f} | {t['ms_p90']:.1f} | {t['cpu_ms']:.1f} | {t['x_opencv_sift']:.2f} | "
+            f"{t['x_opencv_sift_cpu']:.2f} |"
+        )
     print()
     for name, ev in res["eval_pair"].items():
         s = ev["alone_sum"]
-        print(f"eval pair {name}, methods alone summed: {s['ms']:.0f} ms ({s['cpu_ms']:.0f} CPU ms); "
-              f"MMA@5 {', '.join(f'{k} {v:.3f}' for k, v in ev['mma5'].items())}")
+        print(
+            f"eval pair {name}, methods alone summed: {s['ms']:.0f} ms ({s['cpu_ms']:.0f} CPU ms); "
+            f"MMA@5 {', '.join(f'{k} {v:.3f}' for k, v in ev['mma5'].items())}"
+        )
     for name, ms in res["matches"].items():
         print(f"matches {name}: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in ms.items()))
     print(f"matches OpenCV SIFT: {res['opencv_sift_matches']}")
@@ -431,15 +540,19 @@ def main(argv=None) -> int:
     print("| comparison | ours ms | reference ms | ratio (wall) | ratio (CPU) |")
     print("|---|---|---|---|---|")
     for name, v in res["interleaved"].items():
-        print(f"| {name} | {v['ours']['ms']:.1f} | {v['reference']['ms']:.1f} | {v['ratio']:.2f} | {v['ratio_cpu']:.2f} |")
+        print(
+            f"| {name} | {v['ours']['ms']:.1f} | {v['reference']['ms']:.1f} | {v['ratio']:.2f} | {v['ratio_cpu']:.2f} |"
+        )
     print()
     if "aliked_lightglue_speedup_over_kornia_defaults" in res:
         v = res["aliked_lightglue_speedup_over_kornia_defaults"]
         print(f"aliked-lightglue default vs kornia's defaults: {v['wall']:.2f}x faster (wall), {v['cpu']:.2f}x (CPU)")
     if "pairs_per_second" in res:
         v = res["pairs_per_second"]
-        print(f"throughput on {v['device']} ({v['pairs']} pairs): match_pair local {v['match_pair_local_pairs_per_s']:.2f} "
-              f"pairs/s, scale maps in batches of {v['map_batch']} {v['scale_map_batched_pairs_per_s']:.1f} pairs/s")
+        print(
+            f"throughput on {v['device']} ({v['pairs']} pairs): match_pair local {v['match_pair_local_pairs_per_s']:.2f} "
+            f"pairs/s, scale maps in batches of {v['map_batch']} {v['scale_map_batched_pairs_per_s']:.1f} pairs/s"
+        )
     if "throughput_local" in res:
         for k, v in res["throughput_local"].items():
             print(f"local model {k}: " + ", ".join(f"{kk} {vv:.1f}" for kk, vv in v.items()))

@@ -15,6 +15,7 @@ A detector this installation cannot run (``akaze`` on OpenCV 5) is skipped with 
 the script again for it in an environment that has it, with the same ``-o``, and the table
 includes it (its row names the OpenCV version).
 """
+
 import argparse
 import json
 import sys
@@ -35,12 +36,29 @@ def run_one(pairs, detector, descriptor, methods, models, args) -> dict:
     import kornia
 
     t0 = time.time()
-    res = evaluate(pairs, methods, "hardnet", models.get("local"), models.get("global"), max_side=0,
-                   progress=not args.quiet, descriptor=descriptor, num_features=args.num_features, detector=detector)
-    return {"detector": detector, "descriptor": descriptor, "methods": list(methods), "root": str(args.root),
-            "num_features": args.num_features, "local_weights": args.local_weights or "bundled",
-            "versions": {"opencv": cv2.__version__, "torch": torch.__version__, "kornia": kornia.__version__},
-            "seconds": round(time.time() - t0, 1), **res}
+    res = evaluate(
+        pairs,
+        methods,
+        "hardnet",
+        models.get("local"),
+        models.get("global"),
+        max_side=0,
+        progress=not args.quiet,
+        descriptor=descriptor,
+        num_features=args.num_features,
+        detector=detector,
+    )
+    return {
+        "detector": detector,
+        "descriptor": descriptor,
+        "methods": list(methods),
+        "root": str(args.root),
+        "num_features": args.num_features,
+        "local_weights": args.local_weights or "bundled",
+        "versions": {"opencv": cv2.__version__, "torch": torch.__version__, "kornia": kornia.__version__},
+        "seconds": round(time.time() - t0, 1),
+        **res,
+    }
 
 
 def table(docs: list, methods) -> tuple[str, list]:
@@ -48,9 +66,14 @@ def table(docs: list, methods) -> tuple[str, list]:
     rows = []
     for d in docs:
         s = d["summary"]
-        row = {"detector": d["detector"], "descriptor": d["descriptor"], "opencv": d["versions"]["opencv"],
-               "pairs": s["all"]["num_pairs"], "hard_pairs": s.get("hard", {}).get("num_pairs", 0),
-               "features": round(s["all"][methods[0]]["num_features"])}
+        row = {
+            "detector": d["detector"],
+            "descriptor": d["descriptor"],
+            "opencv": d["versions"]["opencv"],
+            "pairs": s["all"]["num_pairs"],
+            "hard_pairs": s.get("hard", {}).get("num_pairs", 0),
+            "features": round(s["all"][methods[0]]["num_features"]),
+        }
         for m in methods:
             row[f"mma5_{m}"] = s["all"][m]["mma"][4]
             row[f"mma5_hard_{m}"] = s["hard"][m]["mma"][4] if m in s.get("hard", {}) else None
@@ -63,16 +86,26 @@ def table(docs: list, methods) -> tuple[str, list]:
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     pairs = rows[0]["pairs"] if rows else 0
     hard = rows[0]["hard_pairs"] if rows else 0
-    head = (" | ".join(f"MMA@5 {m}" for m in methods) + " | " + " | ".join(f"hard ({hard}) {m}" for m in methods)
-            + " | " + " | ".join(f"matches {m}" for m in methods))
-    lines = [f"| detector + descriptor ({pairs} pairs) | features | {head} |",
-             "|---|---|" + "---|" * (3 * len(methods))]
+    head = (
+        " | ".join(f"MMA@5 {m}" for m in methods)
+        + " | "
+        + " | ".join(f"hard ({hard}) {m}" for m in methods)
+        + " | "
+        + " | ".join(f"matches {m}" for m in methods)
+    )
+    lines = [
+        f"| detector + descriptor ({pairs} pairs) | features | {head} |",
+        "|---|---|" + "---|" * (3 * len(methods)),
+    ]
     for r in rows:
         name = f"{r['detector']} + {r['descriptor']}"
         if r["opencv"] != usual_cv and r["detector"] in ("sift", "orb", "akaze"):
             name += f" (OpenCV {r['opencv']})"
-        vals = ([fmt(r[f"mma5_{m}"]) for m in methods] + [fmt(r[f"mma5_hard_{m}"]) for m in methods]
-                + [f"{r[f'matches_{m}']:.0f}" for m in methods])
+        vals = (
+            [fmt(r[f"mma5_{m}"]) for m in methods]
+            + [fmt(r[f"mma5_hard_{m}"]) for m in methods]
+            + [f"{r[f'matches_{m}']:.0f}" for m in methods]
+        )
         lines.append(f"| {name} | {r['features']} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n", rows
 
@@ -118,8 +151,12 @@ def main(argv=None) -> int:
                     doc = run_one(pairs, det, desc, methods, models, args)
                     f.write_text(json.dumps(doc, indent=1))
                     a = doc["summary"]["all"]
-                    print(f"{det} + {desc}: " + ", ".join(f"MMA@5 {m} {a[m]['mma'][4]:.3f}" for m in methods)
-                          + f" ({doc['seconds']:.0f} s)", flush=True)
+                    print(
+                        f"{det} + {desc}: "
+                        + ", ".join(f"MMA@5 {m} {a[m]['mma'][4]:.3f}" for m in methods)
+                        + f" ({doc['seconds']:.0f} s)",
+                        flush=True,
+                    )
         docs = [json.loads(f.read_text()) for f in sorted(out.glob("*.json")) if f.name != "table.json"]
         if not docs:
             raise LocalScaleError(f"no results in {out}")

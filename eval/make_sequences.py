@@ -5,6 +5,7 @@
 ``--held-out`` uses only the held-out part of ``localscale.data.split_images`` (use it for
 the training photo pool, so evaluation never sees training photos).
 """
+
 import argparse
 import sys
 
@@ -21,15 +22,19 @@ def main(argv=None) -> int:
     p.add_argument("--images", type=int, default=6, help="images per sequence")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--held-out", action="store_true")
-    p.add_argument("--crop", type=float, default=1.0,
-                   help="< 1: image 1 is this central part of the photo, the others show its real surroundings")
+    p.add_argument(
+        "--crop",
+        type=float,
+        default=1.0,
+        help="< 1: image 1 is this central part of the photo, the others show its real surroundings",
+    )
     a = p.parse_args(argv)
     if not 0 < a.crop <= 1:
         p.error(f"--crop must be in (0, 1], got {a.crop}")
     files = list_images(a.photos)
     if a.held_out:
         files = split_images(files)[1]
-    files = files[:a.num] if a.num else files
+    files = files[: a.num] if a.num else files
     folders = make_sequences(files, a.out, a.images, a.size, a.seed, crop=a.crop)
     print(f"wrote {len(folders)} sequences to {a.out}")
     return 0

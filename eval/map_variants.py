@@ -29,6 +29,7 @@ ends of the bin range (B 4.5-8x closer; B 4.5-8x further, i.e. A's content in 1/
     OMP_NUM_THREADS=1 python eval/map_variants.py --photos ../shared/data/train_images --pairs 60 \
         --out results/map_variants.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,25 +47,38 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 
 from localscale import LocalScaleNet, ScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
-from localscale.matching.correction import weighted_quantile  # noqa: E402
 from localscale.geometry import HomographyConfig  # noqa: E402
+from localscale.matching.correction import weighted_quantile  # noqa: E402
 from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
 
-VARIANTS = ("local", "symmetric", "symmetric-weighted", "fused", "global", "global-upright", "rotation-search",
-            "shrink-0", "shrink-0.5", "window-search", "window-search-turns", "const-1")
-PAIR_SETS = {"paper ranges": (HomographyConfig(), 1.0),
-             "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
-             "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7),
-             "zoom-in end (4.5-8x)": (HomographyConfig(scale_range=(4.5, 8.0)), 1.0),
-             "zoom-out end (1/8-1/4.5)": (HomographyConfig(scale_range=(0.125, 0.22)), 1.0)}
+VARIANTS = (
+    "local",
+    "symmetric",
+    "symmetric-weighted",
+    "fused",
+    "global",
+    "global-upright",
+    "rotation-search",
+    "shrink-0",
+    "shrink-0.5",
+    "window-search",
+    "window-search-turns",
+    "const-1",
+)
+PAIR_SETS = {
+    "paper ranges": (HomographyConfig(), 1.0),
+    "rotation over the whole circle": (HomographyConfig(rotation_deg=180.0), 1.0),
+    "paper ranges, A a 70 % crop": (HomographyConfig(), 0.7),
+    "zoom-in end (4.5-8x)": (HomographyConfig(scale_range=(4.5, 8.0)), 1.0),
+    "zoom-out end (1/8-1/4.5)": (HomographyConfig(scale_range=(0.125, 0.22)), 1.0),
+}
 
 
 def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     return weighted_quantile(values.ravel(), weights.ravel(), 0.5)
 
 
-def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray,
-                 variants=VARIANTS) -> dict:
+def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.ndarray, variants=VARIANTS) -> dict:
     """``{variant: H_A x W_A map}`` for one pair."""
     out = {}
     if "window-search" in variants:
@@ -98,12 +112,17 @@ def variant_maps(local: LocalScaleNet, scalenet: ScaleNet, a: np.ndarray, b: np.
         p = local.predict_from_features(ea, local.encode_image(np.ascontiguousarray(np.rot90(b, k))))
         if float(weight(p).mean()) > best_score:
             best, best_score = p, float(weight(p).mean())
-    return out | {"local": fwd.scale, "symmetric": np.exp(lf - c / 2), "symmetric-weighted": np.exp(lf - cw / 2),
-            "fused": np.exp(lf - weighted_median(lf, weight(fwd)) + math.log(g)),
-            "global": np.full_like(fwd.scale, g), "rotation-search": best.scale,
-            "shrink-0": np.full_like(fwd.scale, math.exp(weighted_median(lf, weight(fwd)))),
-            "shrink-0.5": np.exp(0.5 * lf + 0.5 * weighted_median(lf, weight(fwd))),
-            "const-1": np.ones_like(fwd.scale)}
+    return out | {
+        "local": fwd.scale,
+        "symmetric": np.exp(lf - c / 2),
+        "symmetric-weighted": np.exp(lf - cw / 2),
+        "fused": np.exp(lf - weighted_median(lf, weight(fwd)) + math.log(g)),
+        "global": np.full_like(fwd.scale, g),
+        "rotation-search": best.scale,
+        "shrink-0": np.full_like(fwd.scale, math.exp(weighted_median(lf, weight(fwd)))),
+        "shrink-0.5": np.exp(0.5 * lf + 0.5 * weighted_median(lf, weight(fwd))),
+        "const-1": np.ones_like(fwd.scale),
+    }
 
 
 def main(argv=None) -> int:
@@ -113,8 +132,12 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=777)
     p.add_argument("--model", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
     p.add_argument("--global-model", default=None, help="ScaleNet checkpoint (default: bundled)")
-    p.add_argument("--variants", nargs="+", default=list(VARIANTS),
-                   help="read-outs to measure (default: all; local, shrink-A and const-1 alone are fast)")
+    p.add_argument(
+        "--variants",
+        nargs="+",
+        default=list(VARIANTS),
+        help="read-outs to measure (default: all; local, shrink-A and const-1 alone are fast)",
+    )
     p.add_argument("--sets", nargs="+", default=list(PAIR_SETS), help="pair sets (default: all)")
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)

@@ -5,6 +5,7 @@
 Each command runs in its own process (one thread); the pair is the bundled example pair enlarged
 to the size asked for (content looks 1.3x bigger in B).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,8 +52,9 @@ def make_pair(folder: Path, megapixels: float) -> tuple[Path, Path]:
 
 def measure(args: list[str]) -> dict:
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", _PEAK, *args], capture_output=True, text=True,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    r = subprocess.run(
+        [sys.executable, "-c", _PEAK, *args], capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
     if r.returncode != 0:
         return {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
     out = json.loads(r.stdout.strip().splitlines()[-1])
@@ -75,8 +77,10 @@ def main(argv=None) -> int:
                 print(json.dumps(rows[-1]), file=sys.stderr)
             for f in (a, b):
                 f.unlink()
-    lines = ["| command | " + " | ".join(f"{mp:g} MP" for mp in args.megapixels) + " |",
-             "|---|" + "---|" * len(args.megapixels)]
+    lines = [
+        "| command | " + " | ".join(f"{mp:g} MP" for mp in args.megapixels) + " |",
+        "|---|" + "---|" * len(args.megapixels),
+    ]
     for name in args.commands:
         cells = []
         for mp in args.megapixels:

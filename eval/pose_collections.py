@@ -33,6 +33,7 @@ summary written atomically to ``--out``.
     OMP_NUM_THREADS=1 python eval/pose_collections.py --methods opencv-sift aliked-lightglue:none \\
         aliked-lightglue:auto --pairs 55 --out results/pose_collections.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,7 +45,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Tuple
 
 import cv2
 import numpy as np
@@ -84,14 +85,18 @@ class View:
 class Collection:
     name: str
     views: Dict[str, View]
-    points: Dict[int, np.ndarray]          # 3D point id -> xyz (empty without points)
+    points: Dict[int, np.ndarray]  # 3D point id -> xyz (empty without points)
 
 
 def _qvec_to_R(q) -> np.ndarray:
     w, x, y, z = q
-    return np.array([[1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * w * z, 2 * x * z + 2 * w * y],
-                     [2 * x * y + 2 * w * z, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * w * x],
-                     [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y]])
+    return np.array(
+        [
+            [1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * w * z, 2 * x * z + 2 * w * y],
+            [2 * x * y + 2 * w * z, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * w * x],
+            [2 * x * z - 2 * w * y, 2 * y * z + 2 * w * x, 1 - 2 * x * x - 2 * y * y],
+        ]
+    )
 
 
 def _read_images_txt(path: Path):
@@ -104,8 +109,13 @@ def _read_images_txt(path: Path):
             i += 1
             continue
         tok = lines[i].split()
-        image_id, q, t, cam_id, name = int(tok[0]), [float(v) for v in tok[1:5]], [float(v) for v in tok[5:8]], \
-            int(tok[8]), tok[9]
+        image_id, q, t, cam_id, name = (
+            int(tok[0]),
+            [float(v) for v in tok[1:5]],
+            [float(v) for v in tok[5:8]],
+            int(tok[8]),
+            tok[9],
+        )
         pts = lines[i + 1].split() if i + 1 < len(lines) else []
         ids = [int(v) for v in pts[2::3] if int(v) >= 0]
         out[image_id] = (name, cam_id, _qvec_to_R(q), np.array(t), ids)
@@ -134,7 +144,7 @@ def _read_points3d_bin(path: Path):
         (n,) = struct.unpack("<Q", f.read(8))
         for _ in range(n):
             pid, x, y, z = struct.unpack("<Qddd", f.read(32))
-            f.read(3 + 8)                                    # colour, error
+            f.read(3 + 8)  # colour, error
             (length,) = struct.unpack("<Q", f.read(8))
             track = np.frombuffer(f.read(8 * length), dtype="<u4").reshape(-1, 2)
             xyz[pid] = np.array([x, y, z])
@@ -180,13 +190,14 @@ def axis_angle(a: View, b: View) -> float:
     return math.degrees(math.acos(float(np.clip(a.axis @ b.axis, -1, 1))))
 
 
-def choose_pairs(col: Collection, n: int, seed: int, min_covisible: int, min_share: float,
-                 max_axis_angle: float) -> List[Tuple[str, str]]:
+def choose_pairs(
+    col: Collection, n: int, seed: int, min_covisible: int, min_share: float, max_axis_angle: float
+) -> List[Tuple[str, str]]:
     """Up to ``n`` seeded pairs with enough co-visibility (tracks) or close optical axes (no tracks)."""
     names = sorted(col.views)
     cands = []
     for i, a in enumerate(names):
-        for b in names[i + 1:]:
+        for b in names[i + 1 :]:
             va, vb = col.views[a], col.views[b]
             if axis_angle(va, vb) > max_axis_angle:
                 continue
@@ -228,8 +239,14 @@ def zoom_window(col: Collection, a: View, b: View, rng: random.Random, zoom_rang
         X = np.array([col.points[i] for i in shared])
         in_b, in_a = X @ b.R.T + b.t, X @ a.R.T + a.t
         pb, pa = b.camera.project(in_b), a.camera.project(in_a)
-        ok = (in_b[:, 2] > 0) & (in_a[:, 2] > 0) & (pb >= 0).all(1) & (pb < [W, H]).all(1) & \
-             (pa >= 0).all(1) & (pa < [a.camera.width, a.camera.height]).all(1)
+        ok = (
+            (in_b[:, 2] > 0)
+            & (in_a[:, 2] > 0)
+            & (pb >= 0).all(1)
+            & (pb < [W, H]).all(1)
+            & (pa >= 0).all(1)
+            & (pa < [a.camera.width, a.camera.height]).all(1)
+        )
         centres = pb[ok].tolist()
     if not centres:
         Xc = _axes_meeting_point(col)
@@ -265,8 +282,11 @@ class SiftMatcher:
         bf = cv2.BFMatcher(cv2.NORM_L2)
         ab = bf.knnMatch(da, db, k=2)
         ba = {m.queryIdx: m.trainIdx for m in bf.match(db, da)}
-        keep = [(m.queryIdx, m.trainIdx) for m, n2 in (p for p in ab if len(p) == 2)
-                if m.distance < self.ratio * n2.distance and ba.get(m.trainIdx) == m.queryIdx]
+        keep = [
+            (m.queryIdx, m.trainIdx)
+            for m, n2 in (p for p in ab if len(p) == 2)
+            if m.distance < self.ratio * n2.distance and ba.get(m.trainIdx) == m.queryIdx
+        ]
         idx = np.array(keep, int).reshape(-1, 2)
         return xa[idx[:, 0]], xb[idx[:, 1]]
 
@@ -284,8 +304,9 @@ class LibraryMatcher:
     def match(self, key_a, a, key_b, b):
         from localscale.matching import match_pair
 
-        res = match_pair(a, b, self.correction, local_model=self.models[0], global_model=self.models[1],
-                         matcher=self.matcher)
+        res = match_pair(
+            a, b, self.correction, local_model=self.models[0], global_model=self.models[1], matcher=self.matcher
+        )
         m = np.asarray(res.matches, int).reshape(-1, 2)
         return np.asarray(res.keypoints_a, np.float64)[m[:, 0]], np.asarray(res.keypoints_b, np.float64)[m[:, 1]]
 
@@ -322,10 +343,17 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     g = estimate_two_view_geometry(pa, pb, cam_a, cam_b, cfg)
     rot, trans = relative_pose_error(g.R_E, g.t_E, R_gt, t_gt)
     rot_c, trans_c = relative_pose_error(g.R, g.t, R_gt, t_gt)
-    rec = {"matches": int(len(pa)), "inliers_E": g.num_inliers_E, "configuration": g.configuration,
-           "err_rot": rot, "err_t": trans, "err": max(rot, trans),
-           "err_colmap": max(rot_c, trans_c), "seconds_match": round(t_match, 3),
-           "seconds_total": round(time.perf_counter() - t0, 3)}
+    rec = {
+        "matches": int(len(pa)),
+        "inliers_E": g.num_inliers_E,
+        "configuration": g.configuration,
+        "err_rot": rot,
+        "err_t": trans,
+        "err": max(rot, trans),
+        "err_colmap": max(rot_c, trans_c),
+        "seconds_match": round(t_match, 3),
+        "seconds_total": round(time.perf_counter() - t0, 3),
+    }
     if error:
         rec["error"] = error
     return rec
@@ -336,10 +364,14 @@ def summarise(records: List[dict], pose: str = "err") -> dict:
     if not errs:
         return {"pairs": 0}
     auc = pose_auc(errs, THRESHOLDS)
-    return {"pairs": len(errs), **{f"auc@{t}": 100 * a for t, a in zip(THRESHOLDS, auc)},
-            "within10": 100 * float(np.mean(np.asarray(errs) <= 10)),
-            "median_err": float(np.median(errs)), "median_matches": float(np.median([r["matches"] for r in records])),
-            "seconds_per_pair": float(np.mean([r["seconds_total"] for r in records]))}
+    return {
+        "pairs": len(errs),
+        **{f"auc@{t}": 100 * a for t, a in zip(THRESHOLDS, auc)},
+        "within10": 100 * float(np.mean(np.asarray(errs) <= 10)),
+        "median_err": float(np.median(errs)),
+        "median_matches": float(np.median([r["matches"] for r in records])),
+        "seconds_per_pair": float(np.mean([r["seconds_total"] for r in records])),
+    }
 
 
 def markdown(rows: List[dict]) -> str:
@@ -349,9 +381,11 @@ def markdown(rows: List[dict]) -> str:
         s = r["summary"]
         if not s.get("pairs"):
             continue
-        out.append(f"| {r['collection']} | {r['kind']} | {r['method']} | {s['pairs']} | {s['auc@5']:.1f} | "
-                   f"{s['auc@10']:.1f} | {s['auc@20']:.1f} | {s['within10']:.1f} | {s['median_matches']:.0f} | "
-                   f"{s['seconds_per_pair']:.1f} |")
+        out.append(
+            f"| {r['collection']} | {r['kind']} | {r['method']} | {s['pairs']} | {s['auc@5']:.1f} | "
+            f"{s['auc@10']:.1f} | {s['auc@20']:.1f} | {s['within10']:.1f} | {s['median_matches']:.0f} | "
+            f"{s['seconds_per_pair']:.1f} |"
+        )
     return "\n".join(out)
 
 
@@ -391,7 +425,7 @@ def main(argv=None) -> int:
             try:
                 r = json.loads(ln)
             except json.JSONDecodeError:
-                continue                      # a line cut by an interruption
+                continue  # a line cut by an interruption
             if r.get("options") == options:
                 done[r["key"]] = r
     cfg = TwoViewConfig(max_error=a.max_error)
@@ -427,14 +461,24 @@ def main(argv=None) -> int:
                 R, t = relative_pose(va, vb)
                 cam_b, key_b = vb.camera, str(vb.path)
                 if kind == "zoom":
-                    img_b, cam_b, R_turn = cut_window(img_b, vb.camera, window, (vb.camera.width, vb.camera.height),
-                                                      turns)
+                    img_b, cam_b, R_turn = cut_window(
+                        img_b, vb.camera, window, (vb.camera.width, vb.camera.height), turns
+                    )
                     R, t = R_turn @ R, R_turn @ t
                     key_b = f"{vb.path}|{window}|{turns}"
                 rec = evaluate_pair(method, str(va.path), img_a, va.camera, key_b, img_b, cam_b, R, t, cfg)
-                rec.update(key=key, collection=col.name, a=va.name, b=vb.name, kind=kind, method=spec,
-                           zoom=round(z, 3) if kind == "zoom" else 1.0, turns=turns if kind == "zoom" else 0,
-                           window=list(window) if kind == "zoom" else None, options=options)
+                rec.update(
+                    key=key,
+                    collection=col.name,
+                    a=va.name,
+                    b=vb.name,
+                    kind=kind,
+                    method=spec,
+                    zoom=round(z, 3) if kind == "zoom" else 1.0,
+                    turns=turns if kind == "zoom" else 0,
+                    window=list(window) if kind == "zoom" else None,
+                    options=options,
+                )
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
                 done[key] = rec
@@ -446,21 +490,46 @@ def main(argv=None) -> int:
         for kind in a.kinds:
             for spec in a.methods:
                 recs = [r for r in current if r["collection"] == name and r["kind"] == kind and r["method"] == spec]
-                rows.append({"collection": name, "kind": kind, "method": spec, "summary": summarise(recs),
-                             "summary_colmap_pose": summarise(recs, "err_colmap")})
+                rows.append(
+                    {
+                        "collection": name,
+                        "kind": kind,
+                        "method": spec,
+                        "summary": summarise(recs),
+                        "summary_colmap_pose": summarise(recs, "err_colmap"),
+                    }
+                )
     for kind in a.kinds:
         for spec in a.methods:
             recs = [r for r in current if r["kind"] == kind and r["method"] == spec]
-            rows.append({"collection": "all", "kind": kind, "method": spec, "summary": summarise(recs),
-                         "summary_colmap_pose": summarise(recs, "err_colmap")})
+            rows.append(
+                {
+                    "collection": "all",
+                    "kind": kind,
+                    "method": spec,
+                    "summary": summarise(recs),
+                    "summary_colmap_pose": summarise(recs, "err_colmap"),
+                }
+            )
     table = markdown(rows)
     print(table)
-    doc = {"command": " ".join([Path(sys.argv[0]).name] + (argv if argv is not None else sys.argv[1:])),
-           "options": {**options, "pairs": a.pairs, "min_covisible": a.min_covisible, "min_share": a.min_share,
-                       "max_axis_angle": a.max_axis_angle, "collections": a.collections, "methods": a.methods},
-           "protocol": "error = max(rotation, translation direction) in degrees of the essential matrix's pose "
-                       "(estimate_two_view_geometry with the known cameras), 180 without a pose; AUC in %",
-           "wall_seconds_this_run": round(time.time() - t_start, 1), "rows": rows, "table": table}
+    doc = {
+        "command": " ".join([Path(sys.argv[0]).name] + (argv if argv is not None else sys.argv[1:])),
+        "options": {
+            **options,
+            "pairs": a.pairs,
+            "min_covisible": a.min_covisible,
+            "min_share": a.min_share,
+            "max_axis_angle": a.max_axis_angle,
+            "collections": a.collections,
+            "methods": a.methods,
+        },
+        "protocol": "error = max(rotation, translation direction) in degrees of the essential matrix's pose "
+        "(estimate_two_view_geometry with the known cameras), 180 without a pose; AUC in %",
+        "wall_seconds_this_run": round(time.time() - t_start, 1),
+        "rows": rows,
+        "table": table,
+    }
     with atomic_path(out) as tmp:
         tmp.write_text(json.dumps(doc, indent=1))
     return 0

@@ -32,6 +32,7 @@ Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/re
 (written atomically after each run); a rerun skips the rows already there (``--overwrite`` redoes
 them). The markdown table is printed and written to ``OUT/results.md``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,14 +50,26 @@ import numpy as np
 from localscale.outputs import write_text
 
 PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto")
-COLUMNS = [("collection", "collection"), ("pipeline", "pipeline"), ("registered", "registered"),
-           ("closeups_registered", "close-ups reg."), ("closeup_centre_error", "close-up centre err"),
-           ("points", "points"), ("observations", "observations"), ("mean_track_length", "mean track"),
-           ("mean_reprojection_error", "reproj. err (px)"), ("extract_s", "extract s"), ("match_s", "match s"),
-           ("verify_s", "verify s"), ("map_s", "db + map s"), ("total_s", "total s")]
+COLUMNS = [
+    ("collection", "collection"),
+    ("pipeline", "pipeline"),
+    ("registered", "registered"),
+    ("closeups_registered", "close-ups reg."),
+    ("closeup_centre_error", "close-up centre err"),
+    ("points", "points"),
+    ("observations", "observations"),
+    ("mean_track_length", "mean track"),
+    ("mean_reprojection_error", "reproj. err (px)"),
+    ("extract_s", "extract s"),
+    ("match_s", "match s"),
+    ("verify_s", "verify s"),
+    ("map_s", "db + map s"),
+    ("total_s", "total s"),
+]
 
 
 # ---------------------------------------------------------------- close-ups
+
 
 def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> dict:
     """``out_dir`` with links to the photos of ``images_dir`` and the close-ups (module docstring);
@@ -66,7 +79,7 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
     from localscale.cameras import Camera, cut_window
 
     meta_path = out_dir.with_name(out_dir.name + ".json")
-    inside = out_dir / "closeups.json"          # where an earlier version kept it (then read as a non-image)
+    inside = out_dir / "closeups.json"  # where an earlier version kept it (then read as a non-image)
     if inside.is_file() and not meta_path.is_file():
         write_text(meta_path, inside.read_text())
         inside.unlink()
@@ -104,6 +117,7 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
 
 # ---------------------------------------------------------------- pipelines
 
+
 def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int) -> dict:
     import pycolmap
 
@@ -119,8 +133,9 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         t = time.perf_counter()
         ext = pycolmap.FeatureExtractionOptions()
         ext.num_threads = threads
-        pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode, extraction_options=ext,
-                                  device=pycolmap.Device.cpu)
+        pycolmap.extract_features(
+            db, images_dir, image_names=names, camera_mode=mode, extraction_options=ext, device=pycolmap.Device.cpu
+        )
         seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
         mopt = pycolmap.FeatureMatchingOptions()
@@ -135,27 +150,62 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         seconds["map"] = time.perf_counter() - t
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
     stats = model_stats(ordered[0]) if ordered else None
-    return {"stats": stats, "model": ordered[0] if ordered else None, "images": len(names),
-            "seconds": {"extract": seconds["extract"], "match": seconds["match"], "verify": None,
-                        "map": seconds["map"], "total": sum(seconds.values())}}
+    return {
+        "stats": stats,
+        "model": ordered[0] if ordered else None,
+        "images": len(names),
+        "seconds": {
+            "extract": seconds["extract"],
+            "match": seconds["match"],
+            "verify": None,
+            "map": seconds["map"],
+            "total": sum(seconds.values()),
+        },
+    }
 
 
 def run_ours(images_dir: Path, run_dir: Path, correction: str, camera_mode: str, threads: int) -> dict:
     from localscale.sfm import read_models, reconstruct
 
-    summary = reconstruct(images_dir, run_dir, matcher="aliked-lightglue", correction=correction,
-                          camera_mode=camera_mode, num_keypoints=2048, max_side=1024, num_threads=threads,
-                          overwrite=True, show_progress=False)
+    summary = reconstruct(
+        images_dir,
+        run_dir,
+        matcher="aliked-lightglue",
+        correction=correction,
+        camera_mode=camera_mode,
+        num_keypoints=2048,
+        max_side=1024,
+        num_threads=threads,
+        overwrite=True,
+        show_progress=False,
+    )
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
-    stats = None if not models else {k: summary[k] for k in ("registered", "points", "observations",
-                                                               "mean_track_length", "mean_reprojection_error")}
-    return {"stats": stats, "model": models[0] if models else None, "images": summary["images"],
-            "seconds": {"extract": s["extract"], "match": s["pairs"] + s["match"], "verify": s["geometry"],
-                        "map": s["database"] + s["mapping"], "total": s["total"]},
-            "pairs_verified": summary["pairs_verified"], "pairs": summary["pairs"],
-            "added_keypoints": summary["matching"]["added_keypoints"],
-            "feature_sets": summary["matching"]["feature_sets_computed"], "warnings": summary["warnings"]}
+    stats = (
+        None
+        if not models
+        else {
+            k: summary[k]
+            for k in ("registered", "points", "observations", "mean_track_length", "mean_reprojection_error")
+        }
+    )
+    return {
+        "stats": stats,
+        "model": models[0] if models else None,
+        "images": summary["images"],
+        "seconds": {
+            "extract": s["extract"],
+            "match": s["pairs"] + s["match"],
+            "verify": s["geometry"],
+            "map": s["database"] + s["mapping"],
+            "total": s["total"],
+        },
+        "pairs_verified": summary["pairs_verified"],
+        "pairs": summary["pairs"],
+        "added_keypoints": summary["matching"]["added_keypoints"],
+        "feature_sets": summary["matching"]["feature_sets_computed"],
+        "warnings": summary["warnings"],
+    }
 
 
 def closeup_check(model, closeups: dict) -> tuple:
@@ -169,15 +219,20 @@ def closeup_check(model, closeups: dict) -> tuple:
         return len(registered), None
     c = np.array(list(centres.values()))
     scale = float(np.median(np.linalg.norm(c - c.mean(0), axis=1)))
-    errs = [float(np.linalg.norm(centres[n] - centres[closeups[n]["source"]])) / scale
-            for n in registered if closeups[n]["source"] in centres]
+    errs = [
+        float(np.linalg.norm(centres[n] - centres[closeups[n]["source"]])) / scale
+        for n in registered
+        if closeups[n]["source"] in centres
+    ]
     return len(registered), (float(np.median(errs)) if errs else None)
 
 
 # ---------------------------------------------------------------- table
 
+
 def markdown(rows: list) -> str:
     from localscale.sfm.report import markdown_table
+
     return markdown_table(rows, COLUMNS)
 
 
@@ -189,8 +244,12 @@ def main(argv=None) -> int:
     p.add_argument("--versions", nargs="+", default=["plain", "closeups"], choices=("plain", "closeups"))
     p.add_argument("--zoom", type=float, nargs=2, default=(2.5, 5.0), metavar=("MIN", "MAX"))
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=int(os.environ.get("OMP_NUM_THREADS", "1")),
-                   help="COLMAP threads (torch follows OMP_NUM_THREADS)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=int(os.environ.get("OMP_NUM_THREADS", "1")),
+        help="COLMAP threads (torch follows OMP_NUM_THREADS)",
+    )
     p.add_argument("-o", "--output", default="results/reconstruct_collections")
     p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
     a = p.parse_args(argv)
@@ -201,6 +260,7 @@ def main(argv=None) -> int:
         if not (root / c / "images").is_dir():
             p.error(f"no collection {c} in {root} (no {root / c / 'images'})")
     import torch
+
     torch.set_num_threads(max(1, a.threads))
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "results.json"
@@ -226,25 +286,40 @@ def main(argv=None) -> int:
                 if pipe == "colmap-sift":
                     res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads)
                 else:
-                    res = run_ours(images_dir, run_dir, "auto" if pipe.endswith("auto") else "none", camera_mode,
-                                   a.threads)
+                    res = run_ours(
+                        images_dir, run_dir, "auto" if pipe.endswith("auto") else "none", camera_mode, a.threads
+                    )
                 wall = time.perf_counter() - t0
-                st = res["stats"] or {"registered": 0, "points": 0, "observations": 0, "mean_track_length": None,
-                                      "mean_reprojection_error": None}
+                st = res["stats"] or {
+                    "registered": 0,
+                    "points": 0,
+                    "observations": 0,
+                    "mean_track_length": None,
+                    "mean_reprojection_error": None,
+                }
                 n_close, centre_err = closeup_check(res["model"], closeups)
-                row = {"collection": label, "pipeline": pipe,
-                       "registered": f"{st['registered']}/{res['images']}",
-                       "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
-                       "closeup_centre_error": centre_err, "points": st["points"],
-                       "observations": st["observations"], "mean_track_length": st["mean_track_length"],
-                       "mean_reprojection_error": st["mean_reprojection_error"],
-                       **{f"{k}_s": (None if v is None else round(v, 1)) for k, v in res["seconds"].items()},
-                       "wall_s": round(wall, 1), "camera_mode": camera_mode, "threads": a.threads,
-                       **{k: res[k] for k in ("pairs", "pairs_verified", "added_keypoints", "feature_sets",
-                                              "warnings") if k in res}}
+                row = {
+                    "collection": label,
+                    "pipeline": pipe,
+                    "registered": f"{st['registered']}/{res['images']}",
+                    "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
+                    "closeup_centre_error": centre_err,
+                    "points": st["points"],
+                    "observations": st["observations"],
+                    "mean_track_length": st["mean_track_length"],
+                    "mean_reprojection_error": st["mean_reprojection_error"],
+                    **{f"{k}_s": (None if v is None else round(v, 1)) for k, v in res["seconds"].items()},
+                    "wall_s": round(wall, 1),
+                    "camera_mode": camera_mode,
+                    "threads": a.threads,
+                    **{
+                        k: res[k]
+                        for k in ("pairs", "pairs_verified", "added_keypoints", "feature_sets", "warnings")
+                        if k in res
+                    },
+                }
                 rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
-                metas = {k.stem: json.loads(k.read_text())
-                         for k in sorted((out / "_closeup_images").glob("*.json"))}
+                metas = {k.stem: json.loads(k.read_text()) for k in sorted((out / "_closeup_images").glob("*.json"))}
                 write_text(results_path, json.dumps({"rows": rows, "closeups": metas}, indent=2) + "\n")
                 print(f"{label} / {pipe}: {row['registered']} registered, {wall:.0f} s", flush=True)
     table = markdown(rows)

@@ -1,7 +1,8 @@
 """Figure of one real pair: A, the local map, the refined map, the ground truth and the geometry weight.
 
-    python eval/refined_figure.py ../shared/data/sequences/v_churchill 3 -o docs/refined_map.png
+python eval/refined_figure.py ../shared/data/sequences/v_churchill 3 -o docs/refined_map.png
 """
+
 from __future__ import annotations
 
 import argparse
@@ -12,10 +13,10 @@ import numpy as np
 import torch
 
 from localscale import LocalScaleNet
-from localscale.matching.correction import CorrectionGate
-from localscale.matching.pipeline import refine_match
 from localscale.geometry import covisible_mask, homography_scale_map
 from localscale.io import load_image, read_homography
+from localscale.matching.correction import CorrectionGate
+from localscale.matching.pipeline import refine_match
 from localscale.viz import plot_refined_map
 
 
@@ -36,10 +37,10 @@ def main(argv=None) -> int:
     gt = homography_scale_map(H, *a.shape[:2])
     gt[~covisible_mask(H, a.shape[:2], b.shape[:2])] = np.nan
     v = res.verification
-    title = (f"{seq.name} 1-{args.k}: {v.model} {'verified' if v.verified else 'not verified'}, "
-             f"{v.num_inliers} inliers")
+    title = f"{seq.name} 1-{args.k}: {v.model} {'verified' if v.verified else 'not verified'}, {v.num_inliers} inliers"
     plot_refined_map(a, fwd.scale, res.refined_a.scale, res.refined_a.source, gt, args.output, title)
-    from PIL import Image   # a small PNG: 128-colour palette
+    from PIL import Image  # a small PNG: 128-colour palette
+
     Image.open(args.output).convert("RGB").quantize(128).save(args.output, optimize=True)
     print(args.output)
     return 0

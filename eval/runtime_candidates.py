@@ -16,6 +16,7 @@ eager float32 (descriptor L2 distance, or feature L2 distance for the extractor)
 
     OMP_NUM_THREADS=2 python eval/runtime_candidates.py --threads 2 --out results/runtime_candidates.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,15 +48,23 @@ def onnx_session(module: nn.Module, example: torch.Tensor, path: Path, threads: 
     """An ONNX Runtime session of ``module`` (optionally statically quantised to int8)."""
     import onnxruntime as ort
 
-    torch.onnx.export(module, example, str(path), input_names=["x"], output_names=["y"],
-                      dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}}, opset_version=17, dynamo=False)
+    torch.onnx.export(
+        module,
+        example,
+        str(path),
+        input_names=["x"],
+        output_names=["y"],
+        dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
     if int8_calib is not None:
         from onnxruntime.quantization import CalibrationDataReader, QuantFormat, quantize_static
         from onnxruntime.quantization.shape_inference import quant_pre_process
 
         class Reader(CalibrationDataReader):
             def __init__(self):
-                self.batches = iter([{"x": int8_calib[i:i + 256].numpy()} for i in range(0, len(int8_calib), 256)])
+                self.batches = iter([{"x": int8_calib[i : i + 256].numpy()} for i in range(0, len(int8_calib), 256)])
 
             def get_next(self):
                 return next(self.batches, None)
@@ -72,8 +81,9 @@ def onnx_session(module: nn.Module, example: torch.Tensor, path: Path, threads: 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__
+    )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--patches", type=int, default=2000)
     p.add_argument("--repeat", type=int, default=5)
@@ -84,6 +94,7 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     try:
         import onnxruntime  # noqa: F401
+
         have_ort = True
     except ImportError:
         have_ort = False
@@ -99,10 +110,11 @@ def main(argv=None) -> int:
                 model.set_precision(prec)
                 ms = timed(lambda: model.describe(x), a.repeat)
                 err = float((model.describe(x) - ref).norm(dim=1).max())
-                rows.append({"network": f"{name} {model.widths}", "runtime": f"PyTorch eager {prec}", "ms": ms,
-                             "max_err": err})
+                rows.append(
+                    {"network": f"{name} {model.widths}", "runtime": f"PyTorch eager {prec}", "ms": ms, "max_err": err}
+                )
             model.set_precision("fp32")
-            net = model.net.eval()   # per-patch standardisation and unit output included
+            net = model.net.eval()  # per-patch standardisation and unit output included
             if not a.no_compile:
                 t = time.perf_counter()
                 comp = torch.compile(net)
@@ -110,15 +122,24 @@ def main(argv=None) -> int:
                     comp(x[:128])
                 compile_s = time.perf_counter() - t
                 with torch.inference_mode():
-                    ms = timed(lambda: [comp(x[i:i + 128]) for i in range(0, len(x), 128)], a.repeat)
-                    err = float((torch.cat([comp(x[i:i + 128]) for i in range(0, len(x), 128)]) - ref).norm(dim=1).max())
-                rows.append({"network": f"{name} {model.widths}", "runtime": "torch.compile fp32", "ms": ms,
-                             "max_err": err, "compile_s": compile_s})
+                    ms = timed(lambda: [comp(x[i : i + 128]) for i in range(0, len(x), 128)], a.repeat)
+                    err = float(
+                        (torch.cat([comp(x[i : i + 128]) for i in range(0, len(x), 128)]) - ref).norm(dim=1).max()
+                    )
+                rows.append(
+                    {
+                        "network": f"{name} {model.widths}",
+                        "runtime": "torch.compile fp32",
+                        "ms": ms,
+                        "max_err": err,
+                        "compile_s": compile_s,
+                    }
+                )
             if have_ort:
                 for label, cal in (("ONNX Runtime fp32", None), ("ONNX Runtime int8 (static, QDQ)", calib)):
                     sess = onnx_session(net, x[:128], Path(tmp) / f"{name}.onnx", a.threads, cal)
                     xn = x.numpy()
-                    run = lambda: [sess.run(None, {"x": xn[i:i + 256]})[0] for i in range(0, len(xn), 256)]  # noqa: E731
+                    run = lambda: [sess.run(None, {"x": xn[i : i + 256]})[0] for i in range(0, len(xn), 256)]  # noqa: E731
                     ms = timed(run, a.repeat)
                     err = float((torch.from_numpy(np.concatenate(run())) - ref).norm(dim=1).max())
                     rows.append({"network": f"{name} {model.widths}", "runtime": label, "ms": ms, "max_err": err})
@@ -130,41 +151,74 @@ def main(argv=None) -> int:
         plain = LocalScaleNet.from_pretrained().extractor.to(memory_format=torch.contiguous_format).eval()
         with torch.inference_mode():
             ref = ext(imgc)
-            rows.append({"network": "Local-ScaleNet extractor", "runtime": "PyTorch eager fp32 (channels-last)",
-                         "ms": timed(lambda: ext(imgc), a.repeat), "max_err": 0.0})
-            rows.append({"network": "Local-ScaleNet extractor", "runtime": "PyTorch eager fp32 (contiguous)",
-                         "ms": timed(lambda: plain(img), a.repeat),
-                         "max_err": float((plain(img) - ref).norm(dim=1).max())})
+            rows.append(
+                {
+                    "network": "Local-ScaleNet extractor",
+                    "runtime": "PyTorch eager fp32 (channels-last)",
+                    "ms": timed(lambda: ext(imgc), a.repeat),
+                    "max_err": 0.0,
+                }
+            )
+            rows.append(
+                {
+                    "network": "Local-ScaleNet extractor",
+                    "runtime": "PyTorch eager fp32 (contiguous)",
+                    "ms": timed(lambda: plain(img), a.repeat),
+                    "max_err": float((plain(img) - ref).norm(dim=1).max()),
+                }
+            )
 
             def bf16():
                 with torch.autocast("cpu", dtype=torch.bfloat16):
                     return ext(imgc).float()
-            rows.append({"network": "Local-ScaleNet extractor", "runtime": "PyTorch eager bf16",
-                         "ms": timed(bf16, a.repeat), "max_err": float((bf16() - ref).norm(dim=1).max())})
+
+            rows.append(
+                {
+                    "network": "Local-ScaleNet extractor",
+                    "runtime": "PyTorch eager bf16",
+                    "ms": timed(bf16, a.repeat),
+                    "max_err": float((bf16() - ref).norm(dim=1).max()),
+                }
+            )
             if not a.no_compile:
                 t = time.perf_counter()
                 comp = torch.compile(ext)
                 comp(imgc)
                 compile_s = time.perf_counter() - t
-                rows.append({"network": "Local-ScaleNet extractor", "runtime": "torch.compile fp32",
-                             "ms": timed(lambda: comp(imgc), a.repeat),
-                             "max_err": float((comp(imgc) - ref).norm(dim=1).max()), "compile_s": compile_s})
+                rows.append(
+                    {
+                        "network": "Local-ScaleNet extractor",
+                        "runtime": "torch.compile fp32",
+                        "ms": timed(lambda: comp(imgc), a.repeat),
+                        "max_err": float((comp(imgc) - ref).norm(dim=1).max()),
+                        "compile_s": compile_s,
+                    }
+                )
         if have_ort:
             sess = onnx_session(plain, img, Path(tmp) / "extractor.onnx", a.threads)
             xn = img.numpy()
             out = torch.from_numpy(sess.run(None, {"x": xn})[0])
-            rows.append({"network": "Local-ScaleNet extractor", "runtime": "ONNX Runtime fp32",
-                         "ms": timed(lambda: sess.run(None, {"x": xn}), a.repeat),
-                         "max_err": float((out - ref).norm(dim=1).max())})
+            rows.append(
+                {
+                    "network": "Local-ScaleNet extractor",
+                    "runtime": "ONNX Runtime fp32",
+                    "ms": timed(lambda: sess.run(None, {"x": xn}), a.repeat),
+                    "max_err": float((out - ref).norm(dim=1).max()),
+                }
+            )
 
-    print(f"\n### Inference runtimes (cpu, {a.threads} threads, torch {torch.__version__}; HardNet on {a.patches} "
-          f"patches, the extractor on one {local.config.image_size} px image)\n")
+    print(
+        f"\n### Inference runtimes (cpu, {a.threads} threads, torch {torch.__version__}; HardNet on {a.patches} "
+        f"patches, the extractor on one {local.config.image_size} px image)\n"
+    )
     print("| network | runtime | ms (median) | max error vs eager fp32 | compile s |")
     print("|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['network']} | {r['runtime']} | {r['ms']:.1f} | {r['max_err']:.4f} | "
-              f"{r['compile_s']:.0f} |" if "compile_s" in r else
-              f"| {r['network']} | {r['runtime']} | {r['ms']:.1f} | {r['max_err']:.4f} | |")
+        print(
+            f"| {r['network']} | {r['runtime']} | {r['ms']:.1f} | {r['max_err']:.4f} | {r['compile_s']:.0f} |"
+            if "compile_s" in r
+            else f"| {r['network']} | {r['runtime']} | {r['ms']:.1f} | {r['max_err']:.4f} | |"
+        )
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         tmp_out = Path(a.out).with_suffix(".tmp")

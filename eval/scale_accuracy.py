@@ -30,6 +30,7 @@ co-visible region (the paper's average in log space).
     python eval/scale_accuracy.py --mode local --photos ../shared/data/train_images \
         --sequences ../shared/data/sequences --out results/scale_accuracy_local.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,8 +47,15 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
-from localscale.geometry import (HomographyConfig, central_crop, covisible_mask, homography_scale_map,
-                                 sample_homography, translation, warp_image)
+from localscale.geometry import (
+    HomographyConfig,
+    central_crop,
+    covisible_mask,
+    homography_scale_map,
+    sample_homography,
+    translation,
+    warp_image,
+)
 from localscale.io import load_image, read_homography
 from localscale.planar import planarize
 
@@ -102,8 +110,14 @@ def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b, planar: np.ndarray | 
     sub = lambda x: x[np.ix_(ys, xs)][m]  # noqa: E731  (pixel nearest to each grid cell centre)
     lg = np.log(gt[m])
     spread = float(np.log2(gt[m]).std()) if m.sum() > 1 else 0.0
-    out = {"log_gt": lg, "log_pred": np.log(sub(pred)), "err": np.abs(np.log(sub(pred)) - lg), "const1": np.abs(lg),
-           "oracle": np.abs(lg - np.median(lg)), "spread": spread}
+    out = {
+        "log_gt": lg,
+        "log_pred": np.log(sub(pred)),
+        "err": np.abs(np.log(sub(pred)) - lg),
+        "const1": np.abs(lg),
+        "oracle": np.abs(lg - np.median(lg)),
+        "spread": spread,
+    }
     if planar is not None:
         out["planar"] = np.abs(np.log(sub(planar)) - lg)
     return out
@@ -126,26 +140,36 @@ def summarise(rows: list[dict], select=None) -> dict:
             continue
         e = np.concatenate(errs[k])
         out[name] = {"mean_r": float(np.exp(e).mean()), "median_r": float(np.exp(np.median(e)))}
-    out["local_beats_oracle_pairs"] = float(np.mean([np.exp(r["err"]).mean() < np.exp(r["oracle"]).mean()
-                                                     for r in rows if select is None or select(r).any()]))
+    out["local_beats_oracle_pairs"] = float(
+        np.mean(
+            [np.exp(r["err"]).mean() < np.exp(r["oracle"]).mean() for r in rows if select is None or select(r).any()]
+        )
+    )
     return out
 
 
 def local_table(rows: list[dict]) -> dict:
     table = {"all": summarise(rows)}
     for name, lo, hi in BANDS:
-        table[f"scale {name}"] = summarise(rows, lambda r, lo=lo, hi=hi: (np.abs(r["log_gt"] / math.log(2)) >= lo)
-                                           & (np.abs(r["log_gt"] / math.log(2)) < hi))
+        table[f"scale {name}"] = summarise(
+            rows,
+            lambda r, lo=lo, hi=hi: (
+                (np.abs(r["log_gt"] / math.log(2)) >= lo) & (np.abs(r["log_gt"] / math.log(2)) < hi)
+            ),
+        )
     for name, lo, hi in PERSPECTIVE:
         table[f"perspective {name}"] = summarise(
-            rows, lambda r, lo=lo, hi=hi: np.full(r["err"].shape, lo <= r["spread"] < hi))
+            rows, lambda r, lo=lo, hi=hi: np.full(r["err"].shape, lo <= r["spread"] < hi)
+        )
     return table
 
 
 def print_local_table(title: str, table: dict) -> None:
     print(f"\n### {title}\n")
-    print("| subset | pairs | local mean r | local median r | local+planar mean / median r | const-1 mean r "
-          "| oracle-const mean r | local < oracle (pairs) |")
+    print(
+        "| subset | pairs | local mean r | local median r | local+planar mean / median r | const-1 mean r "
+        "| oracle-const mean r | local < oracle (pairs) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for k, v in table.items():
         if not v.get("pairs"):
@@ -153,8 +177,10 @@ def print_local_table(title: str, table: dict) -> None:
             continue
         pl = v.get("local+planar")
         pl = f"{pl['mean_r']:.3f} / {pl['median_r']:.3f}" if pl else "-"
-        print(f"| {k} | {v['pairs']} | {v['local']['mean_r']:.3f} | {v['local']['median_r']:.3f} | {pl} | "
-              f"{v['const-1']['mean_r']:.3f} | {v['oracle const']['mean_r']:.3f} | {100 * v['local_beats_oracle_pairs']:.0f}% |")
+        print(
+            f"| {k} | {v['pairs']} | {v['local']['mean_r']:.3f} | {v['local']['median_r']:.3f} | {pl} | "
+            f"{v['const-1']['mean_r']:.3f} | {v['oracle const']['mean_r']:.3f} | {100 * v['local_beats_oracle_pairs']:.0f}% |"
+        )
 
 
 def run_local(args) -> dict:
@@ -165,13 +191,20 @@ def run_local(args) -> dict:
         _, held = split_images(list_images(args.photos))
         cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
         rows = []
-        for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="synthetic"):
+        for _name, a, b, H in tqdm(
+            list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="synthetic"
+        ):
             pred = model.predict(a, b)
             rows.append(pixel_errors(pred.scale, H, b.shape[:2], planarize(pred.scale, pred.confidence)))
         results["synthetic"] = local_table(rows)
-        results["synthetic_setup"] = {"photos": "held-out split (every 10th sorted file) of " + str(args.photos),
-                                      "pairs": len(rows), "seed": args.seed, "perspective": args.perspective, "crop": args.crop,
-                                      "scale_range": [0.16, 6.0]}
+        results["synthetic_setup"] = {
+            "photos": "held-out split (every 10th sorted file) of " + str(args.photos),
+            "pairs": len(rows),
+            "seed": args.seed,
+            "perspective": args.perspective,
+            "crop": args.crop,
+            "scale_range": [0.16, 6.0],
+        }
         print_local_table(f"held-out synthetic pairs ({len(rows)})", results["synthetic"])
     if args.sequences:
         rows, names = [], []
@@ -180,11 +213,16 @@ def run_local(args) -> dict:
             rows.append(pixel_errors(pred.scale, H, b.shape[:2], planarize(pred.scale, pred.confidence)))
             names.append(name)
         results["sequences"] = local_table(rows)
-        results["sequences_per_pair"] = {n: {"mean_r": float(np.exp(r["err"]).mean()),
-                                             "const1_mean_r": float(np.exp(r["const1"]).mean()),
-                                             "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
-                                             "planar_mean_r": float(np.exp(r["planar"]).mean()),
-                                             "spread": r["spread"]} for n, r in zip(names, rows)}
+        results["sequences_per_pair"] = {
+            n: {
+                "mean_r": float(np.exp(r["err"]).mean()),
+                "const1_mean_r": float(np.exp(r["const1"]).mean()),
+                "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+                "planar_mean_r": float(np.exp(r["planar"]).mean()),
+                "spread": r["spread"],
+            }
+            for n, r in zip(names, rows)
+        }
         print_local_table(f"real sequences ({len(rows)} pairs)", results["sequences"])
     return results
 
@@ -196,12 +234,13 @@ def run_global(args) -> dict:
     _, held = split_images(list_images(args.photos))
     cfg = HomographyConfig(scale_range=(0.16, 6.0), perspective=args.perspective)
     rng = np.random.default_rng(args.seed + 1)
-    err = {k: [] for k in ("consistency", "consistency, upright only", "A->B only", "D-ScaleNet", "const-1",
-                           "random bin")}
+    err = {
+        k: [] for k in ("consistency", "consistency, upright only", "A->B only", "D-ScaleNet", "const-1", "random bin")
+    }
     if local is not None:
         err["median of Local-ScaleNet map"] = []
     t_full, t_cached = [], []
-    for name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="global"):
+    for _name, a, b, H in tqdm(list(synthetic_pairs(held, args.pairs, args.seed, cfg, args.crop)), desc="global"):
         from localscale.geometry import global_scale
 
         g = math.log(global_scale(H, a.shape[:2], b.shape[:2]))
@@ -221,15 +260,20 @@ def run_global(args) -> dict:
         if local is not None:
             err["median of Local-ScaleNet map"].append(abs(float(np.median(np.log(local.predict(a, b).scale))) - g))
     res = {k: {"mean_r": float(np.mean(np.exp(v))), "median_r": float(np.exp(np.median(v)))} for k, v in err.items()}
-    res["timing_ms"] = {"uncached_pair_median": 1000 * float(np.median(t_full)),
-                        "cached_pair_median": 1000 * float(np.median(t_cached)), "threads": torch.get_num_threads()}
+    res["timing_ms"] = {
+        "uncached_pair_median": 1000 * float(np.median(t_full)),
+        "cached_pair_median": 1000 * float(np.median(t_cached)),
+        "threads": torch.get_num_threads(),
+    }
     res["setup"] = {"pairs": len(err["const-1"]), "seed": args.seed, "perspective": args.perspective, "crop": args.crop}
     print(f"\n### global ScaleNet, held-out synthetic pairs ({len(err['const-1'])})\n")
     print("| read-out | mean r | median r |\n|---|---|---|")
     for k in err:
         print(f"| {k} | {res[k]['mean_r']:.3f} | {res[k]['median_r']:.3f} |")
-    print(f"\ntiming per pair (median, {torch.get_num_threads()} threads): uncached "
-          f"{res['timing_ms']['uncached_pair_median']:.1f} ms, cached features {res['timing_ms']['cached_pair_median']:.1f} ms")
+    print(
+        f"\ntiming per pair (median, {torch.get_num_threads()} threads): uncached "
+        f"{res['timing_ms']['uncached_pair_median']:.1f} ms, cached features {res['timing_ms']['cached_pair_median']:.1f} ms"
+    )
     return res
 
 
@@ -239,8 +283,18 @@ def real_pairs(roots: list[Path]):
         yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
 
 
-def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bool = True,
-              search: bool = False, refine_matcher=None) -> dict:
+def _pair_row(
+    local,
+    scalenet,
+    name,
+    a,
+    b,
+    H,
+    refine: bool = True,
+    sift_seed: bool = True,
+    search: bool = False,
+    refine_matcher=None,
+) -> dict:
     from localscale.matching.correction import CorrectionGate
     from localscale.matching.pipeline import refine_match
     from localscale.reliability import pair_statistics
@@ -256,34 +310,52 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
     gt = homography_scale_map(H, h, w, STRIDE)
     cov = covisible_mask(H, (h, w), b.shape[:2], STRIDE)
     m = cov & np.isfinite(gt)
-    row = {"name": name, "local": pe["err"], "global": np.abs(math.log(g.scale) - pe["log_gt"]),
-           "gt_median_log2": float(np.median(pe["log_gt"])) / math.log(2),
-           "local_median_log2": float(np.median(pe["log_pred"])) / math.log(2), "global_log2": math.log2(g.scale),
-           "const1": pe["const1"], "oracle": pe["oracle"], "log_gt": pe["log_gt"],
-           "global_pair_error_log2": abs(math.log2(g.scale) - float(np.mean(pe["log_gt"])) / math.log(2)),
-           "global_inconsistency_log2": abs(math.log2(g.scale_ab) + math.log2(g.scale_ba))}
+    row = {
+        "name": name,
+        "local": pe["err"],
+        "global": np.abs(math.log(g.scale) - pe["log_gt"]),
+        "gt_median_log2": float(np.median(pe["log_gt"])) / math.log(2),
+        "local_median_log2": float(np.median(pe["log_pred"])) / math.log(2),
+        "global_log2": math.log2(g.scale),
+        "const1": pe["const1"],
+        "oracle": pe["oracle"],
+        "log_gt": pe["log_gt"],
+        "global_pair_error_log2": abs(math.log2(g.scale) - float(np.mean(pe["log_gt"])) / math.log(2)),
+        "global_inconsistency_log2": abs(math.log2(g.scale_ab) + math.log2(g.scale_ba)),
+    }
     if fwd.visible is not None:
         pv = fwd.visible[np.ix_(ys, xs)] > 0.5
         row["iou"] = float((pv & cov).sum() / max(1, (pv | cov).sum()))
     score = fwd.reliability if fwd.reliability is not None else fwd.confidence
     row["score"] = score[np.ix_(ys, xs)][m]
-    if refine and refine_matcher is not None:   # geometry from the auto loop of that matcher
+    if refine and refine_matcher is not None:  # geometry from the auto loop of that matcher
         from localscale.matching.pipeline import match_pair
 
         res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
         v = res.verification
-        row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
-                               "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
-                               "auto": res.meta["auto"]}
+        row["verification"] = {
+            "verified": bool(v.verified),
+            "model": v.model,
+            "num_inliers": int(v.num_inliers),
+            "num_matches": int(len(v.inliers)),
+            "reasons": list(v.reasons),
+            "auto": res.meta["auto"],
+        }
     elif refine:
         first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
         res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
         v = res.verification
-        row["verification"] = {"verified": bool(v.verified), "model": v.model, "num_inliers": int(v.num_inliers),
-                               "num_matches": int(len(v.inliers)), "reasons": list(v.reasons),
-                               "inlier_counts": res.meta["inlier_counts"], "seed_inliers": res.meta["seed_inliers"]}
+        row["verification"] = {
+            "verified": bool(v.verified),
+            "model": v.model,
+            "num_inliers": int(v.num_inliers),
+            "num_matches": int(len(v.inliers)),
+            "reasons": list(v.reasons),
+            "inlier_counts": res.meta["inlier_counts"],
+            "seed_inliers": res.meta["seed_inliers"],
+        }
     if search:
         from localscale.search import search_global_scale, search_scale_map
 
@@ -292,7 +364,7 @@ def _pair_row(local, scalenet, name, a, b, H, refine: bool = True, sift_seed: bo
         gs = gp.scale
         row["global-search"] = np.abs(math.log(gs) - pe["log_gt"])
         row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
-        if refine:   # the refinement seeded by the searched maps of both directions
+        if refine:  # the refinement seeded by the searched maps of both directions
             back = search_scale_map(local, b, a).prediction
             first_a, first_b = CorrectionGate().apply_predictions(res.prediction, back)
             sref = refine_match(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
@@ -312,9 +384,14 @@ def direction_errors(rows: list[dict]) -> dict:
     other side of 1: the correction goes the wrong way."""
     due = [r for r in rows if abs(r["gt_median_log2"]) >= DIRECTION_MIN_LOG2]
     wrong = lambda key: [r["name"] for r in due if r[key] * r["gt_median_log2"] < 0]  # noqa: E731
-    return {"pairs_counted": len(due), "rule": f"|log2 true median| >= {DIRECTION_MIN_LOG2}, prediction on the other side of 1",
-            "local": len(wrong("local_median_log2")), "global": len(wrong("global_log2")),
-            "local_pairs": wrong("local_median_log2"), "global_pairs": wrong("global_log2")}
+    return {
+        "pairs_counted": len(due),
+        "rule": f"|log2 true median| >= {DIRECTION_MIN_LOG2}, prediction on the other side of 1",
+        "local": len(wrong("local_median_log2")),
+        "global": len(wrong("global_log2")),
+        "local_pairs": wrong("local_median_log2"),
+        "global_pairs": wrong("global_log2"),
+    }
 
 
 def run_real(args) -> dict:
@@ -326,60 +403,105 @@ def run_real(args) -> dict:
     scalenet = ScaleNet.from_pretrained(args.global_model)
     torch.set_num_threads(args.threads) if args.threads else None
     roots = [Path(r) for r in args.real]
-    rows = [_pair_row(local, scalenet, *item, refine=not args.no_refined, sift_seed=args.refine_seed == "sift",
-                      search=args.search, refine_matcher=args.refine_matcher)
-            for item in tqdm(list(real_pairs(roots)), desc="real pairs")]
+    rows = [
+        _pair_row(
+            local,
+            scalenet,
+            *item,
+            refine=not args.no_refined,
+            sift_seed=args.refine_seed == "sift",
+            search=args.search,
+            refine_matcher=args.refine_matcher,
+        )
+        for item in tqdm(list(real_pairs(roots)), desc="real pairs")
+    ]
     if not rows:
-        raise SystemExit(f"error: no image pairs (1.* + H_1_k) in the sequence folders under {', '.join(map(str, roots))}")
-    keys = ("local", "refined", "global", "const1", "oracle") if not args.no_refined else \
-        ("local", "global", "const1", "oracle")
+        raise SystemExit(
+            f"error: no image pairs (1.* + H_1_k) in the sequence folders under {', '.join(map(str, roots))}"
+        )
+    keys = (
+        ("local", "refined", "global", "const1", "oracle")
+        if not args.no_refined
+        else ("local", "global", "const1", "oracle")
+    )
     if args.search:
         keys = keys[:1] + ("search",) + keys[1:] + ("global-search",)
         if not args.no_refined:
             keys = keys[:3] + ("search-refined",) + keys[3:]
     cfg = PairCheckConfig()
-    res = {"local_model": str(args.model or "bundled"), "global_model": str(args.global_model or "bundled"),
-           "roots": [str(r) for r in roots], "pairs": len(rows), "stride_px": STRIDE}
+    res = {
+        "local_model": str(args.model or "bundled"),
+        "global_model": str(args.global_model or "bundled"),
+        "roots": [str(r) for r in roots],
+        "pairs": len(rows),
+        "stride_px": STRIDE,
+    }
 
-    def pooled(key, sel=lambda r: True):   # mean over pairs of each pair's mean r
+    def pooled(key, sel=lambda r: True):  # mean over pairs of each pair's mean r
         e = [float(np.exp(r[key]).mean()) for r in rows if sel(r)]
         return float(np.mean(e)) if e else float("nan")
 
-    groups = {"all": lambda r: True, "sequences": lambda r: not r["name"].startswith("pairs/"),
-              "extreme pairs": lambda r: r["name"].startswith("pairs/"),
-              "bark": lambda r: "/bark/" in r["name"], "leuven 1-6": lambda r: r["name"].endswith("leuven/1-6"),
-              "ExtremeZoom": lambda r: "ExtremeZoom" in r["name"]}
-    res["table"] = {g: {k: pooled(k, sel) for k in keys}
-                    | {"pairs": sum(map(sel, rows))} for g, sel in groups.items()}
-    res["per_pair"] = {r["name"]: {"local_mean_r": float(np.exp(r["local"]).mean()),
-                                   "global_mean_r": float(np.exp(r["global"]).mean()),
-                                   "const1_mean_r": float(np.exp(r["const1"]).mean()),
-                                   "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
-                                   "gt_median_log2": r["gt_median_log2"], "local_median_log2": r["local_median_log2"],
-                                   "global_log2": r["global_log2"],
-                                   "iou": r.get("iou"), "inconsistency_log2": r["inconsistency_log2"],
-                                   "visible_fraction": r["visible_fraction"], "mean_reliability": r["mean_reliability"],
-                                   "flag_reasons": flag_reasons(r, cfg)}
-                       | ({"refined_mean_r": float(np.exp(r["refined"]).mean()), **r["verification"]}
-                          if "refined" in r else {})
-                       | ({"search_mean_r": float(np.exp(r["search"]).mean()),
-                           "global_search_mean_r": float(np.exp(r["global-search"]).mean()), **r["search_windows"]}
-                          if "search" in r else {})
-                       | ({"search_refined_mean_r": float(np.exp(r["search-refined"]).mean()),
-                           "search_refined_verified": r["search_refined_verified"]}
-                          if "search-refined" in r else {}) for r in rows}
+    groups = {
+        "all": lambda r: True,
+        "sequences": lambda r: not r["name"].startswith("pairs/"),
+        "extreme pairs": lambda r: r["name"].startswith("pairs/"),
+        "bark": lambda r: "/bark/" in r["name"],
+        "leuven 1-6": lambda r: r["name"].endswith("leuven/1-6"),
+        "ExtremeZoom": lambda r: "ExtremeZoom" in r["name"],
+    }
+    res["table"] = {g: {k: pooled(k, sel) for k in keys} | {"pairs": sum(map(sel, rows))} for g, sel in groups.items()}
+    res["per_pair"] = {
+        r["name"]: {
+            "local_mean_r": float(np.exp(r["local"]).mean()),
+            "global_mean_r": float(np.exp(r["global"]).mean()),
+            "const1_mean_r": float(np.exp(r["const1"]).mean()),
+            "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
+            "gt_median_log2": r["gt_median_log2"],
+            "local_median_log2": r["local_median_log2"],
+            "global_log2": r["global_log2"],
+            "iou": r.get("iou"),
+            "inconsistency_log2": r["inconsistency_log2"],
+            "visible_fraction": r["visible_fraction"],
+            "mean_reliability": r["mean_reliability"],
+            "flag_reasons": flag_reasons(r, cfg),
+        }
+        | ({"refined_mean_r": float(np.exp(r["refined"]).mean()), **r["verification"]} if "refined" in r else {})
+        | (
+            {
+                "search_mean_r": float(np.exp(r["search"]).mean()),
+                "global_search_mean_r": float(np.exp(r["global-search"]).mean()),
+                **r["search_windows"],
+            }
+            if "search" in r
+            else {}
+        )
+        | (
+            {
+                "search_refined_mean_r": float(np.exp(r["search-refined"]).mean()),
+                "search_refined_verified": r["search_refined_verified"],
+            }
+            if "search-refined" in r
+            else {}
+        )
+        for r in rows
+    }
     res["direction_errors"] = direction_errors(rows)
     if not args.no_refined:
         ver = [r for r in rows if r["verification"]["verified"]]
         unv = [r for r in rows if not r["verification"]["verified"]]
-        worse = lambda rs: sum(float(np.exp(r["refined"]).mean()) > float(np.exp(r["local"]).mean()) + 1e-9  # noqa: E731
-                               for r in rs)
+        worse = lambda rs: sum(
+            float(np.exp(r["refined"]).mean()) > float(np.exp(r["local"]).mean()) + 1e-9  # noqa: E731
+            for r in rs
+        )
         if args.search:
             res["search_refined_verified_pairs"] = sum(r["search_refined_verified"] for r in rows)
-        res["refined_summary"] = {"verified_pairs": len(ver), "unverified_pairs": len(unv),
-                                  "verified_refined_worse_than_local": worse(ver),
-                                  "unverified_refined_worse_than_local": worse(unv),
-                                  "unverified": [r["name"] for r in unv]}
+        res["refined_summary"] = {
+            "verified_pairs": len(ver),
+            "unverified_pairs": len(unv),
+            "verified_refined_worse_than_local": worse(ver),
+            "unverified_refined_worse_than_local": worse(unv),
+            "unverified": [r["name"] for r in unv],
+        }
     ious = [r["iou"] for r in rows if "iou" in r]
     res["visibility_iou_mean"] = float(np.mean(ious)) if ious else None
     err = np.exp(np.concatenate([r["local"] for r in rows]))
@@ -387,29 +509,48 @@ def run_real(args) -> dict:
     keep = (err <= 1.25) | (err > 1.5)
     res["reliability_auroc"] = auroc(score[keep], err[keep] <= 1.25)
     bins = np.linspace(0, 1, 11)
-    res["reliability_curve"] = [{"score": f"{lo:.1f}-{hi:.1f}", "pixels": int(((score >= lo) & (score < hi)).sum()),
-                                 "share_r_below_1.25": float((err[(score >= lo) & (score < hi)] <= 1.25).mean())
-                                 if ((score >= lo) & (score < hi)).any() else None}
-                                for lo, hi in zip(bins[:-1], bins[1:] + np.r_[np.zeros(9), 1e-9])]
+    res["reliability_curve"] = [
+        {
+            "score": f"{lo:.1f}-{hi:.1f}",
+            "pixels": int(((score >= lo) & (score < hi)).sum()),
+            "share_r_below_1.25": float((err[(score >= lo) & (score < hi)] <= 1.25).mean())
+            if ((score >= lo) & (score < hi)).any()
+            else None,
+        }
+        for lo, hi in zip(bins[:-1], bins[1:] + np.r_[np.zeros(9), 1e-9])
+    ]
     bad = [r for r in rows if np.exp(r["local"]).mean() > 2]
     good = [r for r in rows if np.exp(r["local"]).mean() < 1.3]
-    res["flag"] = {"fires_on_bad (mean r > 2)": f"{sum(bool(flag_reasons(r, cfg)) for r in bad)}/{len(bad)}",
-                   "fires_on_good (mean r < 1.3)": f"{sum(bool(flag_reasons(r, cfg)) for r in good)}/{len(good)}"}
+    res["flag"] = {
+        "fires_on_bad (mean r > 2)": f"{sum(bool(flag_reasons(r, cfg)) for r in bad)}/{len(bad)}",
+        "fires_on_good (mean r < 1.3)": f"{sum(bool(flag_reasons(r, cfg)) for r in good)}/{len(good)}",
+    }
     inv = []
     for seq in sorted(p for p in roots[0].iterdir() if p.is_dir()):
         a = load_image(next(iter(sorted(seq.glob("1.*")))))
         same = float(np.median(local.predict(a, a).scale))
         gray = float(np.median(local.predict(np.repeat(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)[..., None], 3, 2), a).scale))
-        inv.append({"image": f"{seq.name}/1", "identity_median": same, "gray_vs_colour_median": gray,
-                    "global_identity": scalenet.predict(a, a).scale})
+        inv.append(
+            {
+                "image": f"{seq.name}/1",
+                "identity_median": same,
+                "gray_vs_colour_median": gray,
+                "global_identity": scalenet.predict(a, a).scale,
+            }
+        )
     res["invariants"] = inv
 
     print(f"\n### real pairs ({len(rows)}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
-    titles = {"local": "local map", "search": "local map, window search",
-              "refined": "refined (verified geometry, else local)", "global": "global ScaleNet as a constant map",
-              "const1": "constant 1", "oracle": "best constant per pair (oracle)",
-              "global-search": "global ScaleNet on the searched windows",
-              "search-refined": "refined from the searched maps (verified geometry, else searched)"}
+    titles = {
+        "local": "local map",
+        "search": "local map, window search",
+        "refined": "refined (verified geometry, else local)",
+        "global": "global ScaleNet as a constant map",
+        "const1": "constant 1",
+        "oracle": "best constant per pair (oracle)",
+        "global-search": "global ScaleNet on the searched windows",
+        "search-refined": "refined from the searched maps (verified geometry, else searched)",
+    }
     print("| set | pairs | " + " | ".join(titles[k] for k in keys) + " |")
     print("|---|---|" + "---|" * len(keys))
     for g, v in res["table"].items():
@@ -425,36 +566,61 @@ def run_real(args) -> dict:
     print(f"wrong direction ({d['rule']}; {d['pairs_counted']} pairs): local {d['local']}, global {d['global']}")
     print("\n| image | predict(A, A) median | predict(gray A, A) median | ScaleNet(A, A) |\n|---|---|---|---|")
     for r in inv:
-        print(f"| {r['image']} | {r['identity_median']:.3f} | {r['gray_vs_colour_median']:.3f} | {r['global_identity']:.3f} |")
+        print(
+            f"| {r['image']} | {r['identity_median']:.3f} | {r['gray_vs_colour_median']:.3f} | {r['global_identity']:.3f} |"
+        )
     return res
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--mode", choices=["local", "global", "real"], default="local")
-    p.add_argument("--real", nargs="*", default=["../shared/data/sequences", "../shared/data/pairs"],
-                   help="real mode: HPatches-layout folders (the first one also gives the invariant images)")
+    p.add_argument(
+        "--real",
+        nargs="*",
+        default=["../shared/data/sequences", "../shared/data/pairs"],
+        help="real mode: HPatches-layout folders (the first one also gives the invariant images)",
+    )
     p.add_argument("--global-model", default=None, help="real mode: ScaleNet checkpoint (default: bundled)")
     p.add_argument("--model", default=None, help="checkpoint (default: bundled)")
-    p.add_argument("--local-model", default=None, help="global mode: also score the median of this Local-ScaleNet's "
-                   "map as a global estimate (default: bundled; 'none' to skip)")
+    p.add_argument(
+        "--local-model",
+        default=None,
+        help="global mode: also score the median of this Local-ScaleNet's "
+        "map as a global estimate (default: bundled; 'none' to skip)",
+    )
     p.add_argument("--photos", default=None, help="photo folder; its held-out split makes the synthetic pairs")
     p.add_argument("--sequences", default=None, help="HPatches-layout folder of real sequences (local mode)")
     p.add_argument("--pairs", type=int, default=200)
     p.add_argument("--perspective", type=float, default=0.45)
-    p.add_argument("--crop", type=float, default=1.0,
-                   help="< 1: A is this central part of the photo and B shows its real surroundings")
+    p.add_argument(
+        "--crop",
+        type=float,
+        default=1.0,
+        help="< 1: A is this central part of the photo and B shows its real surroundings",
+    )
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--no-refined", action="store_true", help="real mode: skip the refined column (no matching)")
-    p.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
-                   help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified")
-    p.add_argument("--refine-matcher", default=None, metavar="NAME",
-                   help="real mode: refine with the geometry of correction='auto' and this matcher (e.g. "
-                        "aliked-lightglue) instead of the hardnet refinement passes")
-    p.add_argument("--search", action="store_true",
-                   help="real mode: also score the window search (localscale.search), ScaleNet on its windows "
-                        "and the refinement seeded by the searched maps")
+    p.add_argument(
+        "--refine-seed",
+        choices=("sift", "none"),
+        default="sift",
+        help="real mode: OpenCV SIFT matches as the seed geometry when the first pass is not verified",
+    )
+    p.add_argument(
+        "--refine-matcher",
+        default=None,
+        metavar="NAME",
+        help="real mode: refine with the geometry of correction='auto' and this matcher (e.g. "
+        "aliked-lightglue) instead of the hardnet refinement passes",
+    )
+    p.add_argument(
+        "--search",
+        action="store_true",
+        help="real mode: also score the window search (localscale.search), ScaleNet on its windows "
+        "and the refinement seeded by the searched maps",
+    )
     p.add_argument("--out", default=None, help="JSON output")
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:

@@ -13,6 +13,7 @@ and with the OpenCV SIFT seed (used when the first pass is not verified).
     python eval/select_verification.py --photos ../shared/data/train_images --pairs 80 \
         --out results/select_verification.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,16 +30,18 @@ from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
 
 from localscale import LocalScaleNet  # noqa: E402
 from localscale.data import list_images, split_images  # noqa: E402
+from localscale.geometry import HomographyConfig  # noqa: E402
 from localscale.matching.correction import CorrectionGate  # noqa: E402
 from localscale.matching.pipeline import refine_match  # noqa: E402
-from localscale.matching.verification import VerificationConfig  # noqa: E402
 from localscale.matching.refinement import refine_pair_maps  # noqa: E402
-from localscale.geometry import HomographyConfig  # noqa: E402
+from localscale.matching.verification import VerificationConfig  # noqa: E402
 
-PERMISSIVE = VerificationConfig(min_inliers=8, min_inlier_ratio=0.0, min_coverage=0.0,
-                                max_scale_disagreement_log2=99.0)
-VARIANTS = {"covisible": VerificationConfig(), "hull": VerificationConfig(support="hull"),
-            "covisible, decay 0.25": VerificationConfig(decay=0.25)}
+PERMISSIVE = VerificationConfig(min_inliers=8, min_inlier_ratio=0.0, min_coverage=0.0, max_scale_disagreement_log2=99.0)
+VARIANTS = {
+    "covisible": VerificationConfig(),
+    "hull": VerificationConfig(support="hull"),
+    "covisible, decay 0.25": VerificationConfig(decay=0.25),
+}
 
 
 def main(argv=None) -> int:
@@ -58,9 +61,16 @@ def main(argv=None) -> int:
         fa, fb = CorrectionGate().apply_predictions(fwd, bwd)
         res = refine_match(a, b, fa, fb, fwd.scale, bwd.scale, verification=PERMISSIVE, max_passes=1)
         v = res.verification
-        r = {"name": name, "local": float(np.exp(pixel_errors(fwd.scale, H, b.shape[:2])["err"]).mean()),
-             "model": v.model, "inliers": v.num_inliers, "matches": len(v.inliers), "ratio": v.inlier_ratio,
-             "coverage": v.coverage, "disagreement_log2": v.scale_disagreement_log2}
+        r = {
+            "name": name,
+            "local": float(np.exp(pixel_errors(fwd.scale, H, b.shape[:2])["err"]).mean()),
+            "model": v.model,
+            "inliers": v.num_inliers,
+            "matches": len(v.inliers),
+            "ratio": v.inlier_ratio,
+            "coverage": v.coverage,
+            "disagreement_log2": v.scale_disagreement_log2,
+        }
         if v.model == "homography":
             forced = copy.copy(v)
             forced.verified = True
@@ -79,29 +89,45 @@ def main(argv=None) -> int:
         for q in (0.0, 0.05, 0.08, 0.1, 0.15):
             use = [("covisible" in r) and r["inliers"] >= n and r["ratio"] >= q for r in rows]
             rr = [r["covisible"] if u else r["local"] for r, u in zip(rows, use)]
-            grid.append({"min_inliers": n, "min_inlier_ratio": q, "verified": int(sum(use)),
-                         "mean_r": float(np.mean(rr)),
-                         "worse_than_local": int(sum(x > r["local"] + 1e-9 for x, r in zip(rr, rows)))})
+            grid.append(
+                {
+                    "min_inliers": n,
+                    "min_inlier_ratio": q,
+                    "verified": int(sum(use)),
+                    "mean_r": float(np.mean(rr)),
+                    "worse_than_local": int(sum(x > r["local"] + 1e-9 for x, r in zip(rr, rows))),
+                }
+            )
     ok = [r for r in rows if "covisible" in r and r["inliers"] >= 20 and r["ratio"] >= 0.15]
     support = {k: float(np.mean([r[k] for r in ok])) for k in VARIANTS} if ok else {}
     print(f"\n{len(rows)} pairs; local map mean r {np.mean([r['local'] for r in rows]):.3f}\n")
-    print("| min_inliers | min_inlier_ratio | verified pairs | mean r (refined where verified, else local) | "
-          "pairs worse than local |\n|---|---|---|---|---|")
+    print(
+        "| min_inliers | min_inlier_ratio | verified pairs | mean r (refined where verified, else local) | "
+        "pairs worse than local |\n|---|---|---|---|---|"
+    )
     for g in grid:
-        print(f"| {g['min_inliers']} | {g['min_inlier_ratio']} | {g['verified']} | {g['mean_r']:.3f} | "
-              f"{g['worse_than_local']} |")
+        print(
+            f"| {g['min_inliers']} | {g['min_inlier_ratio']} | {g['verified']} | {g['mean_r']:.3f} | "
+            f"{g['worse_than_local']} |"
+        )
     print("\nsupport variants on the pairs verified with 20 inliers / ratio 0.15 (mean r):", support)
     seed = {}
     for k in ("refined_noseed", "refined_seed"):
-        seed[k] = {"mean_r": float(np.mean([r[k] for r in rows])),
-                   "worse_than_local": int(sum(r[k] > r["local"] + 1e-9 for r in rows))}
+        seed[k] = {
+            "mean_r": float(np.mean([r[k] for r in rows])),
+            "worse_than_local": int(sum(r[k] > r["local"] + 1e-9 for r in rows)),
+        }
     seed["seed_used"] = int(sum(r["seed_used"] for r in rows))
     seed["seed_verified"] = int(sum(r["seed_used"] and r["refined_seed_verified"] for r in rows))
     print("refine_match with the default config, without / with the SIFT seed:", seed)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"pairs": rows, "grid": grid, "support_variants": support,
-                                              "sift_seed": seed, "args": vars(args)}, indent=1))
+        Path(args.out).write_text(
+            json.dumps(
+                {"pairs": rows, "grid": grid, "support_variants": support, "sift_seed": seed, "args": vars(args)},
+                indent=1,
+            )
+        )
     return 0
 
 

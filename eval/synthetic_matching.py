@@ -16,6 +16,7 @@ error and the seconds per pair, overall and by zoom band and turn.
         --pairs 40 --out results/synthetic_matching.json \\
         --run sift:none aliked-lightglue:none aliked-lightglue:auto
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,20 +34,21 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
-from localscale.matching.auto import AutoConfig, turn_matrix
-from localscale.matching.metrics import reprojection_errors
-from localscale.matching.matcher import get_matcher
-from localscale.matching.pipeline import match_pair
-from localscale.matching.verification import estimate_homography
 from localscale.geometry import HomographyConfig, covisible_mask, grid_points, project, sample_homography, warp_image
 from localscale.io import load_image
+from localscale.matching.auto import AutoConfig, turn_matrix
+from localscale.matching.matcher import get_matcher
+from localscale.matching.metrics import reprojection_errors
+from localscale.matching.pipeline import match_pair
+from localscale.matching.verification import estimate_homography
 from localscale.outputs import write_text
 
 SOLVED_PX = 5.0
 
 
-def zoom_pairs(photos: list, n: int, seed: int, zoom: tuple, turns: bool, rotation_deg: float = 10.0,
-               perspective: float = 0.1):
+def zoom_pairs(
+    photos: list, n: int, seed: int, zoom: tuple, turns: bool, rotation_deg: float = 10.0, perspective: float = 0.1
+):
     """``(name, A, B, H_{A->B}, zoom, turn)`` for ``n`` pairs (module docstring)."""
     rng = np.random.default_rng(seed)
     img = functools.lru_cache(maxsize=None)(lambda i: load_image(photos[i]))
@@ -57,8 +59,9 @@ def zoom_pairs(photos: list, n: int, seed: int, zoom: tuple, turns: bool, rotati
         z = math.exp(rng.uniform(math.log(zoom[0]), math.log(zoom[1])))
         # the wide view is rendered from the photo (anti-aliased), so the zoomed view keeps the
         # photo's own detail, as a real zoom does
-        cfg = HomographyConfig(scale_range=(1 / z, 1 / z), rotation_deg=rotation_deg, skew=0.05,
-                               perspective=perspective, translation=0.3)
+        cfg = HomographyConfig(
+            scale_range=(1 / z, 1 / z), rotation_deg=rotation_deg, skew=0.05, perspective=perspective, translation=0.3
+        )
         H = sample_homography(rng, a.shape[:2], a.shape[:2], cfg)
         b, _ = warp_image(a, H, a.shape[:2], fill=img(j))
         turn = int(rng.integers(4)) if turns else 0
@@ -66,7 +69,7 @@ def zoom_pairs(photos: list, n: int, seed: int, zoom: tuple, turns: bool, rotati
             H = turn_matrix(turn, b.shape) @ H
             b = np.ascontiguousarray(np.rot90(b, turn))
         s = 1 / z
-        if rng.random() < 0.5:        # the zoomed view second
+        if rng.random() < 0.5:  # the zoomed view second
             a, b, H, s = b, a, np.linalg.inv(H), z
         yield f"zoom_{k:04d}", a, b, H / H[2, 2], s, turn
 
@@ -93,8 +96,13 @@ def run_one(matcher, method: str, a, b, H, local, glob) -> dict:
     err = reprojection_errors(ka, kb, m, H)
     H_est, _ = estimate_homography(ka[m[:, 0]], kb[m[:, 1]]) if len(m) >= 4 else (None, None)
     t_err = transfer_error(H_est, H, a.shape[:2], b.shape[:2])
-    out = {"num_matches": int(len(m)), "mma3": float((err < 3).mean()) if len(m) else 0.0,
-           "transfer_error": t_err, "solved": bool(t_err < SOLVED_PX), "seconds": round(seconds, 3)}
+    out = {
+        "num_matches": int(len(m)),
+        "mma3": float((err < 3).mean()) if len(m) else 0.0,
+        "transfer_error": t_err,
+        "solved": bool(t_err < SOLVED_PX),
+        "seconds": round(seconds, 3),
+    }
     if "auto" in res.meta:
         out["chosen"] = res.meta["auto"]["chosen"]
         out["runs"] = len(res.meta["auto"]["trials"])
@@ -103,49 +111,72 @@ def run_one(matcher, method: str, a, b, H, local, glob) -> dict:
 
 def summarise(records: list, key) -> list:
     rows = []
-    for (name, method) in dict.fromkeys((r["matcher"], r["method"]) for r in records):
+    for name, method in dict.fromkeys((r["matcher"], r["method"]) for r in records):
         rs = [r for r in records if r["matcher"] == name and r["method"] == method and key(r)]
         if not rs:
             continue
         te = np.array([r["transfer_error"] for r in rs])
-        rows.append({"matcher": name, "method": method, "pairs": len(rs),
-                     "solved": float(np.mean([r["solved"] for r in rs])),
-                     "mma3": float(np.mean([r["mma3"] for r in rs])),
-                     "median_transfer_px": float(np.median(te)),
-                     "seconds": float(np.mean([r["seconds"] for r in rs]))})
+        rows.append(
+            {
+                "matcher": name,
+                "method": method,
+                "pairs": len(rs),
+                "solved": float(np.mean([r["solved"] for r in rs])),
+                "mma3": float(np.mean([r["mma3"] for r in rs])),
+                "median_transfer_px": float(np.median(te)),
+                "seconds": float(np.mean([r["seconds"] for r in rs])),
+            }
+        )
     return rows
 
 
-SPLITS = {"all": lambda r: True,
-          "zoom <5x": lambda r: abs(math.log(r["zoom"])) < math.log(5),
-          "zoom >=5x": lambda r: abs(math.log(r["zoom"])) >= math.log(5),
-          "upright": lambda r: r["turn"] == 0,
-          "turned": lambda r: r["turn"] != 0}
+SPLITS = {
+    "all": lambda r: True,
+    "zoom <5x": lambda r: abs(math.log(r["zoom"])) < math.log(5),
+    "zoom >=5x": lambda r: abs(math.log(r["zoom"])) >= math.log(5),
+    "upright": lambda r: r["turn"] == 0,
+    "turned": lambda r: r["turn"] != 0,
+}
 
 
 def table(records: list) -> str:
-    lines = ["| split | matcher | method | pairs | solved | MMA@3 | median transfer px | s/pair |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| split | matcher | method | pairs | solved | MMA@3 | median transfer px | s/pair |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for split, key in SPLITS.items():
         for row in summarise(records, key):
-            lines.append(f"| {split} | {row['matcher']} | {row['method']} | {row['pairs']} | {row['solved']:.0%} | "
-                         f"{row['mma3']:.3f} | {row['median_transfer_px']:.1f} | {row['seconds']:.2f} |")
+            lines.append(
+                f"| {split} | {row['matcher']} | {row['method']} | {row['pairs']} | {row['solved']:.0%} | "
+                f"{row['mma3']:.3f} | {row['median_transfer_px']:.1f} | {row['seconds']:.2f} |"
+            )
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--photos", required=True, help="training photo folder (its held-out split is used)")
     p.add_argument("--holdout-every", type=int, default=10, help="as in training (default: 10)")
     p.add_argument("--pairs", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--zoom", type=float, nargs=2, default=(3.0, 8.0), metavar=("LO", "HI"))
     p.add_argument("--no-turns", dest="turns", action="store_false", help="upright pairs only")
-    p.add_argument("--run", nargs="+", default=["sift:none", "aliked-lightglue:none", "aliked-lightglue:auto"],
-                   help="MATCHER:METHOD pairs (default: %(default)s)")
+    p.add_argument(
+        "--run",
+        nargs="+",
+        default=["sift:none", "aliked-lightglue:none", "aliked-lightglue:auto"],
+        help="MATCHER:METHOD pairs (default: %(default)s)",
+    )
     p.add_argument("--num-features", type=int, default=None, help="features per image of every matcher")
-    p.add_argument("--auto", nargs="+", default=[], metavar="FIELD=VALUE",
-                   help="auto settings (AutoConfig fields, e.g. accept_inliers=30 window_share=0 seed=none)")
+    p.add_argument(
+        "--auto",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="auto settings (AutoConfig fields, e.g. accept_inliers=30 window_share=0 seed=none)",
+    )
     p.add_argument("--rectify-min-side", type=int, default=None, help="MatchConfig.rectify_min_side")
     p.add_argument("--label", default="", help="suffix of the method names in the table (a variant's name)")
     p.add_argument("--threads", type=int, default=1)
@@ -186,15 +217,17 @@ def main(argv=None) -> int:
     for name, a, b, H, s, turn in tqdm(pairs, desc="pairs"):
         for mname, method, matcher in runs:
             matcher.clear_cache()
-            rec = run_one(matcher, method[:len(method) - len(args.label)] if args.label else method, a, b, H,
-                          local, glob)
+            rec = run_one(
+                matcher, method[: len(method) - len(args.label)] if args.label else method, a, b, H, local, glob
+            )
             records.append({"pair": name, "zoom": s, "turn": turn, "matcher": mname, "method": method, **rec})
     md = table(records)
     print(md)
     out = Path(args.out)
     summary = {split: summarise(records, key) for split, key in SPLITS.items()}
-    write_text(out, json.dumps({"args": vars(args), "summary": summary, "records": records}, indent=1,
-                               default=float) + "\n")
+    write_text(
+        out, json.dumps({"args": vars(args), "summary": summary, "records": records}, indent=1, default=float) + "\n"
+    )
     write_text(out.with_suffix(".md"), md + "\n")
     print(f"wrote {out}")
     return 0

@@ -4,6 +4,7 @@ A = Kodak kodim01 (held out from training), B = A seen under a strong perspectiv
 (left side zoomed in ~2.6x, right side ~0.9x), B's empty region filled from kodim14.
 The ground-truth homography A->B is written to ``localscale/assets/H_a_b.txt`` (HPatches convention).
 """
+
 import sys
 from pathlib import Path
 

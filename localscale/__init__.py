@@ -3,14 +3,34 @@
 The models (and torch) are imported on first use of a name below, so that ``import localscale``
 and the command line's ``--help`` stay fast.
 """
+
 from .errors import CheckpointError, HomographyError, ImageError, LocalScaleError
 
 __version__ = "0.1.0"
-__all__ = ["LocalScaleNet", "LocalScaleBatch", "LocalScaleNetConfig", "LocalScalePrediction", "ScaleNet", "ScaleNetConfig",
-           "predict_scale_map", "estimate_scale", "LocalScaleError", "ImageError", "HomographyError",
-           "CheckpointError"]
-_FROM_MODELS = ("LocalScaleNet", "LocalScaleBatch", "LocalScaleNetConfig", "LocalScalePrediction", "ScaleNet", "ScaleNetConfig",
-                "predict_scale_map", "estimate_scale")
+__all__ = [
+    "LocalScaleNet",
+    "LocalScaleBatch",
+    "LocalScaleNetConfig",
+    "LocalScalePrediction",
+    "ScaleNet",
+    "ScaleNetConfig",
+    "predict_scale_map",
+    "estimate_scale",
+    "LocalScaleError",
+    "ImageError",
+    "HomographyError",
+    "CheckpointError",
+]
+_FROM_MODELS = (
+    "LocalScaleNet",
+    "LocalScaleBatch",
+    "LocalScaleNetConfig",
+    "LocalScalePrediction",
+    "ScaleNet",
+    "ScaleNetConfig",
+    "predict_scale_map",
+    "estimate_scale",
+)
 
 
 def __getattr__(name):

@@ -4,6 +4,7 @@ Backbone+ASPP features dominate the cost of a pair; the heads are cheap. For ima
 collections (every image against many others) :class:`FeatureCache` keeps encodings in
 an LRU bounded by bytes, and :func:`predict_pairs` runs the heads batched.
 """
+
 from __future__ import annotations
 
 import os
@@ -30,7 +31,7 @@ class FeatureCache:
 
     @staticmethod
     def key(path: str | os.PathLike) -> tuple:
-        p = Path(os.path.realpath(os.path.abspath(path)))   # never raises on a symbolic link loop
+        p = Path(os.path.realpath(os.path.abspath(path)))  # never raises on a symbolic link loop
         try:
             return (str(p), p.stat().st_mtime_ns)
         except OSError:
@@ -75,7 +76,7 @@ def encode_batch(model: ScaleModel, images: list, bf16: bool = False) -> list[En
     """Encode several images (paths or arrays) in one backbone pass."""
     tensors, boxes = [], []
     for im in images:
-        rgb, shape = model.load(im, name="image")   # a file's messages name its path once
+        rgb, shape = model.load(im, name="image")  # a file's messages name its path once
         boxed, lb = letterbox(rgb, model.config.image_size, shape)
         tensors.append(to_tensor(boxed))
         boxes.append(lb)
@@ -85,8 +86,14 @@ def encode_batch(model: ScaleModel, images: list, bf16: bool = False) -> list[En
 
 
 @torch.inference_mode()
-def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[EncodedImage], bf16: bool = False,
-                  hard: bool = False, planar: bool = False):
+def predict_batch(
+    model: ScaleModel,
+    encs_a: list[EncodedImage],
+    encs_b: list[EncodedImage],
+    bf16: bool = False,
+    hard: bool = False,
+    planar: bool = False,
+):
     """Run the model's head on a batch of encoded pairs; returns one prediction per pair.
 
     ``hard`` / ``planar``: read-out options of :meth:`LocalScaleNet.predict` (ignored for ScaleNet)."""
@@ -94,31 +101,38 @@ def predict_batch(model: ScaleModel, encs_a: list[EncodedImage], encs_b: list[En
     fb = torch.cat([e.features for e in encs_b])
     local = hasattr(model, "forward_features_all")
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
-        if local:   # A's self-correlation terms: once per encoding, kept with it
+        if local:  # A's self-correlation terms: once per encoding, kept with it
             terms = [model.cached_self_terms(e, bf16) for e in encs_a]
             top = None if terms[0][1] is None else torch.cat([t[1] for t in terms])
             out = model.forward_features_all(fa, fb, (torch.cat([t[0] for t in terms]), top))
         else:
             out = model.forward_features(fa, fb)
-    if not local:   # global ScaleNet: both directions
+    if not local:  # global ScaleNet: both directions
         pa, pb = F.softmax(out[0].float(), 1), F.softmax(out[1].float(), 1)
         return [model._readout(pa[i], pb[i], a.letterbox, b.letterbox) for i, (a, b) in enumerate(zip(encs_a, encs_b))]
     probs = F.softmax(out[0].float(), 1)
     visible = torch.sigmoid(out[1].float())[:, 0] if out[1] is not None else None
-    return [model._readout(probs[i], a.letterbox, b.letterbox, hard, planar,
-                           visible[i] if visible is not None else None)
-            for i, (a, b) in enumerate(zip(encs_a, encs_b))]
+    return [
+        model._readout(probs[i], a.letterbox, b.letterbox, hard, planar, visible[i] if visible is not None else None)
+        for i, (a, b) in enumerate(zip(encs_a, encs_b))
+    ]
 
 
-def predict_pairs(model: ScaleModel, pairs: Iterable[tuple], cache: FeatureCache | None = None,
-                  batch_size: int = 8, hard: bool = False, planar: bool = False) -> Iterator[tuple[tuple, object]]:
+def predict_pairs(
+    model: ScaleModel,
+    pairs: Iterable[tuple],
+    cache: FeatureCache | None = None,
+    batch_size: int = 8,
+    hard: bool = False,
+    planar: bool = False,
+) -> Iterator[tuple[tuple, object]]:
     """Yield ``(pair, prediction)`` for each ``(path_a, path_b)``, in input order;
     a bad pair yields ``(pair, LocalScaleError)`` and the others are still processed.
 
     ``cache``: encodings to reuse (and its ``bf16`` setting); a new one when None.
     ``hard`` / ``planar``: read-out options as in :meth:`LocalScaleNet.predict`.
     """
-    if cache is None:   # an empty cache is falsy (it has __len__), so test for None
+    if cache is None:  # an empty cache is falsy (it has __len__), so test for None
         cache = FeatureCache(model)
     chunk: list[tuple] = []
 

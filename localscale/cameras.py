@@ -32,6 +32,7 @@ Example::
     xy_n = cam.normalize(keypoints)           # N x 2 undistorted normalised coordinates
     win, R_turn = window_camera(cam, (100, 50, 300, 200), (1024, 683), turns=1)
 """
+
 from __future__ import annotations
 
 import json
@@ -99,7 +100,9 @@ class Camera:
             raise CameraError(f"camera {model}: image size must be positive integers, got {self.width} x {self.height}")
         n = len(CAMERA_MODELS[model])
         if params.size != n:
-            raise CameraError(f"camera {model} takes {n} parameters ({', '.join(CAMERA_MODELS[model])}), got {params.size}")
+            raise CameraError(
+                f"camera {model} takes {n} parameters ({', '.join(CAMERA_MODELS[model])}), got {params.size}"
+            )
         if not np.all(np.isfinite(params)):
             raise CameraError(f"camera {model}: parameters must be finite, got {params.tolist()}")
         self.width, self.height, self.params = width, height, params
@@ -110,9 +113,12 @@ class Camera:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Camera):
             return NotImplemented
-        return (self.model, self.width, self.height, self.has_prior_focal_length) == \
-            (other.model, other.width, other.height, other.has_prior_focal_length) and \
-            np.array_equal(self.params, other.params)
+        return (self.model, self.width, self.height, self.has_prior_focal_length) == (
+            other.model,
+            other.width,
+            other.height,
+            other.has_prior_focal_length,
+        ) and np.array_equal(self.params, other.params)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -125,7 +131,7 @@ class Camera:
         if len(lines) != 1:
             raise CameraError(f"expected one camera line 'MODEL WIDTH HEIGHT PARAMS...', got {len(lines)} lines")
         tok = lines[0].replace(",", " ").split()
-        if tok and tok[0].isdigit():          # cameras.txt: CAMERA_ID first
+        if tok and tok[0].isdigit():  # cameras.txt: CAMERA_ID first
             tok = tok[1:]
         if len(tok) < 4:
             raise CameraError(f"camera line {lines[0]!r}: expected 'MODEL WIDTH HEIGHT PARAMS...'")
@@ -142,8 +148,13 @@ class Camera:
         ``has_prior_focal_length``, which COLMAP leaves False for a guessed focal length: set it on
         the pycolmap camera, or on the result, for a camera whose intrinsics are known)."""
         model = getattr(camera.model, "name", str(camera.model)).split(".")[-1]
-        return cls(model, camera.width, camera.height, np.array(camera.params, np.float64),
-                   bool(getattr(camera, "has_prior_focal_length", True)))
+        return cls(
+            model,
+            camera.width,
+            camera.height,
+            np.array(camera.params, np.float64),
+            bool(getattr(camera, "has_prior_focal_length", True)),
+        )
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
@@ -180,8 +191,9 @@ class Camera:
         return cls(model, width, height, base[model], has_prior_focal_length)
 
     @classmethod
-    def from_exif(cls, image_path: Union[str, Path], model: str = "SIMPLE_RADIAL",
-                  fallback_prior: bool = True) -> "Camera":
+    def from_exif(
+        cls, image_path: Union[str, Path], model: str = "SIMPLE_RADIAL", fallback_prior: bool = True
+    ) -> "Camera":
         """A camera from an image's EXIF focal length, as COLMAP's feature extractor does.
 
         ``FocalLengthIn35mmFilm`` gives ``f_px = f_35 / 43.27 mm * diag(W, H)`` (35 mm equivalent
@@ -192,7 +204,7 @@ class Camera:
         ``fallback_prior``, else :class:`CameraError`.
         """
         try:
-            from PIL import Image, ImageOps
+            from PIL import Image
         except ImportError:
             raise CameraError("reading EXIF needs Pillow (pip install pillow)") from None
         path = Path(image_path)
@@ -304,13 +316,26 @@ class Camera:
         size rounded. Single-focal models become two-focal ones when ``sx != sy``."""
         sy = sx if sy is None else sy
         w, h = int(round(self.width * sx)), int(round(self.height * sy))
-        return _with_pinhole(self, w, h, self.focal_lengths[0] * sx, self.focal_lengths[1] * sy,
-                             self.principal_point[0] * sx, self.principal_point[1] * sy, self.dist())
+        return _with_pinhole(
+            self,
+            w,
+            h,
+            self.focal_lengths[0] * sx,
+            self.focal_lengths[1] * sy,
+            self.principal_point[0] * sx,
+            self.principal_point[1] * sy,
+            self.dist(),
+        )
 
     def to_dict(self) -> dict:
         """JSON-ready ``{"model", "width", "height", "params", "has_prior_focal_length"}``."""
-        return {"model": self.model, "width": self.width, "height": self.height,
-                "params": [float(v) for v in self.params], "has_prior_focal_length": self.has_prior_focal_length}
+        return {
+            "model": self.model,
+            "width": self.width,
+            "height": self.height,
+            "params": [float(v) for v in self.params],
+            "has_prior_focal_length": self.has_prior_focal_length,
+        }
 
     def to_line(self, camera_id: Optional[int] = None) -> str:
         """The ``cameras.txt`` line (``[CAMERA_ID] MODEL W H PARAMS``)."""
@@ -348,14 +373,17 @@ def as_camera(camera) -> Optional[Camera]:
         return read_camera(camera)
     if isinstance(camera, str):
         first = camera.strip().split()[:2]
-        if first and (first[0].upper() in CAMERA_MODELS or (first[0].isdigit() and len(first) > 1
-                                                              and first[1].upper() in CAMERA_MODELS)):
+        if first and (
+            first[0].upper() in CAMERA_MODELS
+            or (first[0].isdigit() and len(first) > 1 and first[1].upper() in CAMERA_MODELS)
+        ):
             return Camera.parse(camera)
         return read_camera(camera)
     if hasattr(camera, "model") and hasattr(camera, "params") and hasattr(camera, "width"):
         return Camera.from_pycolmap(camera)
-    raise CameraError(f"cannot use {type(camera).__name__} as a camera (Camera, pycolmap.Camera, "
-                      "cameras.txt line, dict or file)")
+    raise CameraError(
+        f"cannot use {type(camera).__name__} as a camera (Camera, pycolmap.Camera, cameras.txt line, dict or file)"
+    )
 
 
 def read_camera(path: Union[str, Path]) -> Camera:
@@ -425,8 +453,9 @@ def turn_rotation(turns: int) -> np.ndarray:
     return np.linalg.matrix_power(R1, int(turns) % 4)
 
 
-def window_camera(camera: Camera, window: Sequence[float], out_size: Optional[Sequence[int]] = None,
-                  turns: int = 0) -> Tuple[Camera, np.ndarray]:
+def window_camera(
+    camera: Camera, window: Sequence[float], out_size: Optional[Sequence[int]] = None, turns: int = 0
+) -> Tuple[Camera, np.ndarray]:
     """The camera of a window cut from an image, resized and turned by quarter turns.
 
     The window ``(x0, y0, w, h)`` (COLMAP pixel coordinates of its top-left corner, i.e. column and
@@ -468,13 +497,14 @@ def window_pixels(window: Sequence[float], out_size: Sequence[int], turns: int =
     # continuous (COLMAP) coordinates: u = x + 0.5; window: u' = (u - x0) * s
     M = np.array([[sx, 0, (0.5 - x0) * sx], [0, sy, (0.5 - y0) * sy], [0, 0, 1]])
     for _ in range(int(turns) % 4):
-        M = np.array([[0, 1, 0], [-1, 0, W], [0, 0, 1]]) @ M       # u' = v, v' = W - u
+        M = np.array([[0, 1, 0], [-1, 0, W], [0, 0, 1]]) @ M  # u' = v, v' = W - u
         W, H = H, W
     return np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]]) @ M
 
 
-def cut_window(image: np.ndarray, camera: Camera, window: Sequence[int], out_size: Sequence[int],
-               turns: int = 0) -> Tuple[np.ndarray, Camera, np.ndarray]:
+def cut_window(
+    image: np.ndarray, camera: Camera, window: Sequence[int], out_size: Sequence[int], turns: int = 0
+) -> Tuple[np.ndarray, Camera, np.ndarray]:
     """Cut the window ``(x0, y0, w, h)`` (integers, inside the image) from ``image`` (``H x W [x C]``),
     resize it to ``out_size = (W', H')`` (``INTER_AREA`` when shrinking, else ``INTER_LINEAR``) and
     turn it by ``turns`` quarter turns (``np.rot90``).
@@ -490,7 +520,7 @@ def cut_window(image: np.ndarray, camera: Camera, window: Sequence[int], out_siz
     if (image.shape[1], image.shape[0]) != (camera.width, camera.height):
         raise CameraError(f"image is {image.shape[1]} x {image.shape[0]}, its camera {camera.width} x {camera.height}")
     W, H = int(out_size[0]), int(out_size[1])
-    crop = image[y0:y0 + h, x0:x0 + w]
+    crop = image[y0 : y0 + h, x0 : x0 + w]
     interp = cv2.INTER_AREA if W * H < w * h else cv2.INTER_LINEAR
     out = np.ascontiguousarray(np.rot90(cv2.resize(crop, (W, H), interpolation=interp), int(turns) % 4))
     cam, R_turn = window_camera(camera, (x0, y0, w, h), (W, H), turns)
@@ -507,7 +537,7 @@ def _with_pinhole(camera: Camera, width, height, fx, fy, cx, cy, dist) -> Camera
     same_f = math.isclose(fx, fy, rel_tol=1e-12)
     if camera.model == "FULL_OPENCV" or np.any(rest != 0):
         full = np.zeros(8)
-        full[:dist.size] = dist
+        full[: dist.size] = dist
         return Camera("FULL_OPENCV", width, height, [fx, fy, cx, cy, *full], camera.has_prior_focal_length)
     if camera.model == "OPENCV" or p1 != 0 or p2 != 0 or (not same_f and (k1 != 0 or k2 != 0)):
         return Camera("OPENCV", width, height, [fx, fy, cx, cy, k1, k2, p1, p2], camera.has_prior_focal_length)
@@ -536,6 +566,7 @@ def _points(points) -> np.ndarray:
 
 def _exif_focal_pixels(sub: dict, raw_w: int, raw_h: int) -> Optional[float]:
     """Focal length in pixels of the stored (unrotated) image from EXIF sub-IFD tags, or ``None``."""
+
     def num(tag):
         v = sub.get(tag)
         try:
@@ -544,16 +575,16 @@ def _exif_focal_pixels(sub: dict, raw_w: int, raw_h: int) -> Optional[float]:
             return None
         return v if math.isfinite(v) and v > 0 else None
 
-    f35 = num(0xA405)           # FocalLengthIn35mmFilm
+    f35 = num(0xA405)  # FocalLengthIn35mmFilm
     if f35 is not None:
         return f35 / _FILM_35MM_DIAGONAL * math.hypot(raw_w, raw_h)
-    f_mm = num(0x920A)          # FocalLength
-    xres = num(0xA20E)          # FocalPlaneXResolution
+    f_mm = num(0x920A)  # FocalLength
+    xres = num(0xA20E)  # FocalPlaneXResolution
     if f_mm is not None and xres is not None:
-        unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(sub.get(0xA210, 2) or 2))   # FocalPlaneResolutionUnit
+        unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(sub.get(0xA210, 2) or 2))  # FocalPlaneResolutionUnit
         if unit is not None:
             # the resolution refers to the sensor's pixels: rescale to this image's width
-            sensor_w = num(0xA002)   # PixelXDimension, the width the camera wrote
+            sensor_w = num(0xA002)  # PixelXDimension, the width the camera wrote
             rescale = raw_w / sensor_w if sensor_w else 1.0
             return f_mm * xres / unit * rescale
     return None

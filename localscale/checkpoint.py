@@ -17,6 +17,7 @@ code when it is loaded. A file holding any other object is refused with a
 The model a checkpoint names is built, and its weights loaded, by the models package's
 ``load_model``; this module knows the file, not the architectures.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,8 +41,13 @@ def checkpoint_dict(model: nn.Module, meta: dict | None = None, half: bool = Fal
     sd = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if half:
         sd = {k: v.half() if v.is_floating_point() else v for k, v in sd.items()}
-    ckpt = {"localscale_format": FORMAT_VERSION, "arch": model.arch,
-            "config": dataclasses.asdict(model.config), "state_dict": sd, "meta": meta or {}}
+    ckpt = {
+        "localscale_format": FORMAT_VERSION,
+        "arch": model.arch,
+        "config": dataclasses.asdict(model.config),
+        "state_dict": sd,
+        "meta": meta or {},
+    }
     record = backbone_record(model)
     if record is not None:
         ckpt["backbone"] = record
@@ -63,8 +69,9 @@ def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, hal
     ckpt = checkpoint_dict(model, meta, half)
     bad = non_finite_tensors(ckpt["state_dict"])
     if bad:
-        raise CheckpointError(f"{path}: not saved, the weights contain NaN or inf ({len(bad)} tensor(s), "
-                              f"e.g. {bad[0][:80]})")
+        raise CheckpointError(
+            f"{path}: not saved, the weights contain NaN or inf ({len(bad)} tensor(s), e.g. {bad[0][:80]})"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     save_atomic(ckpt, path)
 
@@ -86,28 +93,34 @@ def safe_load(path: str | Path) -> Any:
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     try:
-        with warnings.catch_warnings():   # torch warns about the pickle protocol of foreign files
+        with warnings.catch_warnings():  # torch warns about the pickle protocol of foreign files
             warnings.simplefilter("ignore")
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
         found = re.search(r"GLOBAL ([\w.]+)", str(e))
         if found:
-            raise CheckpointError(f"{path}: checkpoint contains non-tensor objects ({found.group(1)}); refused, "
-                                  f"only tensors and plain data (dict, list, str, numbers) are loaded") from None
-        raise CheckpointError(f"{path}: cannot read checkpoint, not a torch file of tensors and plain data, "
-                              f"or truncated or corrupt") from None
+            raise CheckpointError(
+                f"{path}: checkpoint contains non-tensor objects ({found.group(1)}); refused, "
+                f"only tensors and plain data (dict, list, str, numbers) are loaded"
+            ) from None
+        raise CheckpointError(
+            f"{path}: cannot read checkpoint, not a torch file of tensors and plain data, or truncated or corrupt"
+        ) from None
     except Exception as e:
         msg = str(e).strip().splitlines()
-        raise CheckpointError(f"{path}: cannot read checkpoint, truncated or corrupt "
-                              f"({type(e).__name__}: {msg[0][:120] if msg else ''})") from None
+        raise CheckpointError(
+            f"{path}: cannot read checkpoint, truncated or corrupt ({type(e).__name__}: {msg[0][:120] if msg else ''})"
+        ) from None
 
 
 def check_format(ckpt: dict, path: str | Path) -> None:
     """Refuse a ``localscale_format`` other than :data:`FORMAT_VERSION`."""
     version = ckpt.get("localscale_format")
     if type(version) is not int or version != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: unsupported checkpoint format version {version!r} "
-                              f"(this localscale reads version {FORMAT_VERSION})")
+        raise CheckpointError(
+            f"{path}: unsupported checkpoint format version {version!r} "
+            f"(this localscale reads version {FORMAT_VERSION})"
+        )
 
 
 def check_state_dict(sd: Any, path: str | Path) -> None:
@@ -117,18 +130,21 @@ def check_state_dict(sd: Any, path: str | Path) -> None:
         raise CheckpointError(f"{path}: 'state_dict' is a {type(sd).__name__}, not a dict of tensors")
     for k, v in sd.items():
         if not isinstance(k, str) or not isinstance(v, torch.Tensor):
-            raise CheckpointError(f"{path}: 'state_dict' entry {str(k)[:80]!r} is a {type(v).__name__}, "
-                                  f"not a tensor")
+            raise CheckpointError(f"{path}: 'state_dict' entry {str(k)[:80]!r} is a {type(v).__name__}, not a tensor")
     bad = non_finite_tensors(sd)
     if bad:
-        raise CheckpointError(f"{path}: weights contain NaN or inf ({len(bad)} tensor(s), e.g. {bad[0][:80]}); "
-                              f"refused")
+        raise CheckpointError(f"{path}: weights contain NaN or inf ({len(bad)} tensor(s), e.g. {bad[0][:80]}); refused")
 
 
 def non_finite_tensors(sd: dict) -> list[str]:
     """Names of the floating-point tensors of a state dict that hold NaN or inf."""
-    return [k for k, v in sd.items() if isinstance(v, torch.Tensor) and (v.is_floating_point() or v.is_complex())
-            and not bool(torch.isfinite(v).all())]
+    return [
+        k
+        for k, v in sd.items()
+        if isinstance(v, torch.Tensor)
+        and (v.is_floating_point() or v.is_complex())
+        and not bool(torch.isfinite(v).all())
+    ]
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

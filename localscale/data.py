@@ -14,6 +14,7 @@ on either side (lighting, gamma, colour, gray on one side, blur, noise, JPEG), a
 with the roles of A and B swapped. Items are a pure function of ``(seed, index)``, so runs are reproducible and resume
 exactly, with any number of DataLoader workers.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -69,14 +70,14 @@ def split_images(files: Sequence[Path], holdout_every: int = 10) -> tuple[list[P
 
 @dataclass
 class PairConfig:
-    image_size: int = 192                    #: processing frame P
-    stride: int = 8                          #: ground-truth grid stride (the model's output stride)
+    image_size: int = 192  #: processing frame P
+    stride: int = 8  #: ground-truth grid stride (the model's output stride)
     homography: HomographyConfig = field(default_factory=HomographyConfig)
-    crop_fraction: tuple[float, float] = (0.6, 1.0)   #: crop side of A, as a fraction of the photo side
-    aspect_range: tuple[float, float] = (0.6, 1.7)    #: width/height of A
-    photometric: float = 0.25                #: strength of brightness/contrast/gamma jitter on B
-    gray_probability: float = 0.1            #: both images turned gray
-    fill: bool = True                        #: fill B's empty region from another photo (else zeros)
+    crop_fraction: tuple[float, float] = (0.6, 1.0)  #: crop side of A, as a fraction of the photo side
+    aspect_range: tuple[float, float] = (0.6, 1.7)  #: width/height of A
+    photometric: float = 0.25  #: strength of brightness/contrast/gamma jitter on B
+    gray_probability: float = 0.1  #: both images turned gray
+    fill: bool = True  #: fill B's empty region from another photo (else zeros)
     #: render B from the *whole* photo, so that around A's crop B shows the photo's real
     #: surroundings (as a second real view would); the fill photo covers only what lies beyond
     #: the photo. Off: B shows A's crop only, with a sharp edge to the fill (the paper's recipe).
@@ -112,9 +113,15 @@ class SyntheticPairs(Dataset):
     (False when nothing of A is visible in B) and ``kind`` (index into :data:`PAIR_KINDS`).
     """
 
-    def __init__(self, images: Sequence[str | Path] | str | Path, length: int = 10**9, seed: int = 0,
-                 config: PairConfig | None = None, cache: bool = True,
-                 cache_bytes: int | None = 2**30):
+    def __init__(
+        self,
+        images: Sequence[str | Path] | str | Path,
+        length: int = 10**9,
+        seed: int = 0,
+        config: PairConfig | None = None,
+        cache: bool = True,
+        cache_bytes: int | None = 2**30,
+    ):
         if isinstance(images, (str, Path)):
             images = list_images(images)
         self.files = [Path(p) for p in images]
@@ -140,11 +147,13 @@ class SyntheticPairs(Dataset):
             raise _UnreadablePhoto(i)
         try:
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")   # 16-bit / alpha notes, once per photo, are not news here
+                warnings.simplefilter("ignore")  # 16-bit / alpha notes, once per photo, are not news here
                 img = load_image(self.files[i], name=str(self.files[i].name))
             if min(img.shape[:2]) < MIN_PHOTO_SIDE:
-                raise ImageError(f"{self.files[i].name}: photo is {img.shape[1]}x{img.shape[0]}, smaller than "
-                                 f"the smallest crop ({MIN_PHOTO_SIDE} px)")
+                raise ImageError(
+                    f"{self.files[i].name}: photo is {img.shape[1]}x{img.shape[0]}, smaller than "
+                    f"the smallest crop ({MIN_PHOTO_SIDE} px)"
+                )
         except ImageError as e:
             self.unreadable.add(i)
             warnings.warn(f"training photo skipped: {' '.join(str(e).split())}", stacklevel=2)
@@ -153,7 +162,7 @@ class SyntheticPairs(Dataset):
             self._cache[i] = img
             self._cache_bytes += img.nbytes
             while self.cache_bytes is not None and self._cache_bytes > self.cache_bytes and len(self._cache) > 1:
-                self._cache_bytes -= self._cache.pop(next(iter(self._cache))).nbytes   # oldest first
+                self._cache_bytes -= self._cache.pop(next(iter(self._cache))).nbytes  # oldest first
         return img
 
     def _crop(self, rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
@@ -167,7 +176,7 @@ class SyntheticPairs(Dataset):
         cw = ch * aspect
         ch, cw = int(max(32, min(h, ch))), int(max(32, min(w, cw)))
         y, x = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
-        return img[y:y + ch, x:x + cw], (int(x), int(y))
+        return img[y : y + ch, x : x + cw], (int(x), int(y))
 
     def _sample_homography(self, rng: np.random.Generator, shape: tuple[int, int]) -> tuple[np.ndarray, str]:
         """A->B homography for a crop of ``shape`` and the kind of pair it makes."""
@@ -176,8 +185,9 @@ class SyntheticPairs(Dataset):
         if rng.random() < cfg.identity_probability:
             if rng.random() < 0.5:
                 return np.eye(3), "identity"
-            hcfg = dataclasses.replace(hcfg, scale_range=(0.95, 1.05), rotation_deg=3.0, skew=0.01,
-                                       perspective=0.03, translation=0.02)
+            hcfg = dataclasses.replace(
+                hcfg, scale_range=(0.95, 1.05), rotation_deg=3.0, skew=0.01, perspective=0.03, translation=0.02
+            )
             return sample_homography(rng, shape, shape, hcfg), "near-identity"
         kind = "homography"
         if rng.random() < cfg.full_rotation_probability:
@@ -197,8 +207,10 @@ class SyntheticPairs(Dataset):
                 continue
             item["redrawn"] = attempt
             return item
-        raise ImageError(f"item {index}: {MAX_REDRAWS} draws hit unreadable photos "
-                         f"({len(self.unreadable)} of {len(self.files)} photos are unreadable)")
+        raise ImageError(
+            f"item {index}: {MAX_REDRAWS} draws hit unreadable photos "
+            f"({len(self.unreadable)} of {len(self.files)} photos are unreadable)"
+        )
 
     def _item(self, rng: np.random.Generator) -> dict:
         cfg = self.cfg
@@ -209,19 +221,20 @@ class SyntheticPairs(Dataset):
         unrelated = rng.random() < cfg.unrelated_probability
         H, kind = self._sample_homography(rng, (ha, wa))
 
-        lb = make_letterbox(ha, wa, cfg.image_size)   # B has A's size, so one letterbox for both
+        lb = make_letterbox(ha, wa, cfg.image_size)  # B has A's size, so one letterbox for both
         L = lb.matrix()
         H_proc = L @ H @ np.linalg.inv(L)
         a_proc, _ = letterbox(a_orig, cfg.image_size)
-        if unrelated:   # B: another photo, in A's frame; no pixel of A is visible
+        if unrelated:  # B: another photo, in A's frame; no pixel of A is visible
             kind = "unrelated"
             f = cv2.resize(self._crop(rng, self._image(int(other))), (wa, ha), interpolation=cv2.INTER_AREA)
             b_proc, _ = letterbox(f, cfg.image_size)
-        elif kind == "identity":   # the very same pixels, as in predict(A, A)
+        elif kind == "identity":  # the very same pixels, as in predict(A, A)
             b_proc = a_proc.copy()
-        elif cfg.context:   # the whole photo, placed so that A's crop lands where H puts it
-            b_proc = self._render_target(rng, photo, L @ H @ translation(-x0, -y0), lb, int(other),
-                                         centre=(x0, y0, wa, ha))
+        elif cfg.context:  # the whole photo, placed so that A's crop lands where H puts it
+            b_proc = self._render_target(
+                rng, photo, L @ H @ translation(-x0, -y0), lb, int(other), centre=(x0, y0, wa, ha)
+            )
         else:
             b_proc = self._render_target(rng, a_orig, L @ H, lb, int(other))
 
@@ -246,23 +259,37 @@ class SyntheticPairs(Dataset):
         s = homography_scale_map(H_proc, P, P, st)
         q = project(H_proc, grid_points(P, P, st))
         w = grid_points(P, P, st) @ H_proc[2, :2] + H_proc[2, 2]
-        inside_b = ((q[..., 0] >= lb.left - 0.5) & (q[..., 0] <= lb.left + lb.new_width - 0.5)
-                    & (q[..., 1] >= lb.top - 0.5) & (q[..., 1] <= lb.top + lb.new_height - 0.5))
+        inside_b = (
+            (q[..., 0] >= lb.left - 0.5)
+            & (q[..., 0] <= lb.left + lb.new_width - 0.5)
+            & (q[..., 1] >= lb.top - 0.5)
+            & (q[..., 1] <= lb.top + lb.new_height - 0.5)
+        )
         mask = inside_b & (w > 0) & valid & np.isfinite(s) & (not unrelated)
         s = np.where(mask, s, 1.0)
         ls = np.log(s[mask])
         return {
-            "a": to_tensor(a_proc), "b": to_tensor(b_proc),
-            "scale": torch.from_numpy(s.astype(np.float32)), "mask": torch.from_numpy(mask),
+            "a": to_tensor(a_proc),
+            "b": to_tensor(b_proc),
+            "scale": torch.from_numpy(s.astype(np.float32)),
+            "mask": torch.from_numpy(mask),
             "valid": torch.from_numpy(valid),
-            "H": torch.from_numpy(H_proc), "global_scale": float(np.exp(ls.mean())) if mask.any() else 1.0,
+            "H": torch.from_numpy(H_proc),
+            "global_scale": float(np.exp(ls.mean())) if mask.any() else 1.0,
             "perspective": float(np.log2(s[mask]).std()) if mask.sum() > 1 else 0.0,
             "related": not unrelated and bool(mask.any()),
             "kind": PAIR_KINDS.index(kind),
         }
 
-    def _render_target(self, rng, a_orig: np.ndarray, H_to_proc: np.ndarray, lb, other: int,
-                       centre: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    def _render_target(
+        self,
+        rng,
+        a_orig: np.ndarray,
+        H_to_proc: np.ndarray,
+        lb,
+        other: int,
+        centre: tuple[int, int, int, int] | None = None,
+    ) -> np.ndarray:
         """Warp A (or the whole photo) straight into B's processing frame; fill B's empty image
         region from another photo. ``centre``: ``(x0, y0, w, h)`` of A's crop in ``a_orig``
         (default: all of it); the anti-alias blur is set by the zoom at A's centre."""
@@ -275,15 +302,17 @@ class SyntheticPairs(Dataset):
         if minify < 1:
             src = cv2.GaussianBlur(a_orig, (0, 0), 0.5 * math.sqrt(1 / minify**2 - 1))
         warped = cv2.warpPerspective(src, H_to_proc, (P, P), flags=cv2.INTER_LINEAR, borderValue=0)
-        cover = cv2.warpPerspective(np.ones(src.shape[:2], np.float32), H_to_proc, (P, P),
-                                    flags=cv2.INTER_LINEAR, borderValue=0)[..., None]
+        cover = cv2.warpPerspective(
+            np.ones(src.shape[:2], np.float32), H_to_proc, (P, P), flags=cv2.INTER_LINEAR, borderValue=0
+        )[..., None]
         region = np.zeros((P, P, 1), np.float32)
-        region[lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width] = 1
+        region[lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width] = 1
         fill = np.zeros_like(warped)
         if self.cfg.fill:
             f = self._crop(rng, self._image(other))
-            fill[lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width] = cv2.resize(
-                f, (lb.new_width, lb.new_height), interpolation=cv2.INTER_AREA)
+            fill[lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width] = cv2.resize(
+                f, (lb.new_width, lb.new_height), interpolation=cv2.INTER_AREA
+            )
         out = (warped * cover + fill * (1 - cover)) * region
         return out.round().clip(0, 255).astype(np.uint8)
 
@@ -332,7 +361,7 @@ def _degrade(rng, img: np.ndarray, probability: float, lb) -> np.ndarray:
 
 def _keep_padding(img: np.ndarray, lb) -> np.ndarray:
     pad = np.ones(img.shape[:2], bool)
-    pad[lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width] = False
+    pad[lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width] = False
     img[pad] = 0
     return img
 

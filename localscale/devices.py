@@ -1,4 +1,5 @@
 """Checking a torch device name before anything is placed on it."""
+
 from __future__ import annotations
 
 import torch
@@ -21,8 +22,10 @@ def resolve_device(device: str | torch.device) -> str:
         return str(d)
     if d.type == "cuda":
         if not torch.cuda.is_available():
-            raise LocalScaleError(f"device {str(device)!r}: no CUDA device available to this torch "
-                                  f"({torch.__version__}); use the cpu device")
+            raise LocalScaleError(
+                f"device {str(device)!r}: no CUDA device available to this torch "
+                f"({torch.__version__}); use the cpu device"
+            )
         if d.index is not None and d.index >= torch.cuda.device_count():
             raise LocalScaleError(f"device {str(device)!r}: only {torch.cuda.device_count()} CUDA device(s)")
         return str(d)

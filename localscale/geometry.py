@@ -8,6 +8,7 @@ The local scale of a homography at ``x`` is ``sqrt(|det J_H(x)|)``; for a homogr
 this is ``sqrt(|det H| / |w(x)|^3)`` with ``w(x) = h31 x + h32 y + h33`` (invariant to
 the overall scale of ``H``).
 """
+
 from __future__ import annotations
 
 import math
@@ -120,11 +121,15 @@ def central_crop(image: np.ndarray, fraction: float) -> tuple[np.ndarray, tuple[
         raise ValueError(f"crop fraction must be in (0, 1], got {fraction}")
     ch, cw = round(image.shape[0] * fraction), round(image.shape[1] * fraction)
     y0, x0 = (image.shape[0] - ch) // 2, (image.shape[1] - cw) // 2
-    return np.ascontiguousarray(image[y0:y0 + ch, x0:x0 + cw]), (x0, y0)
+    return np.ascontiguousarray(image[y0 : y0 + ch, x0 : x0 + cw]), (x0, y0)
 
 
-def sample_homography(rng: np.random.Generator, shape_a: tuple[int, int], shape_b: tuple[int, int],
-                      cfg: HomographyConfig = HomographyConfig()) -> np.ndarray:
+def sample_homography(
+    rng: np.random.Generator,
+    shape_a: tuple[int, int],
+    shape_b: tuple[int, int],
+    cfg: HomographyConfig = HomographyConfig(),
+) -> np.ndarray:
     """Random homography A->B: log-uniform scale, rotation, skew, perspective, shift.
 
     Built as ``T(c_B + t) · s R K · P · T(-c_A)`` where ``P`` has last row
@@ -159,9 +164,14 @@ def perspective_spread(H: np.ndarray, shape_a: tuple[int, int], shape_b: tuple[i
     return float(np.log2(s[m]).std())
 
 
-def warp_image(image: np.ndarray, H: np.ndarray, shape_out: tuple[int, int],
-               fill: np.ndarray | None = None, interpolation: int = cv2.INTER_LINEAR,
-               antialias: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def warp_image(
+    image: np.ndarray,
+    H: np.ndarray,
+    shape_out: tuple[int, int],
+    fill: np.ndarray | None = None,
+    interpolation: int = cv2.INTER_LINEAR,
+    antialias: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
     """Warp ``image`` by ``H`` into an ``shape_out`` canvas; empty regions are taken from ``fill``.
 
     Args:
@@ -193,8 +203,10 @@ def warp_image(image: np.ndarray, H: np.ndarray, shape_out: tuple[int, int],
         elif f.ndim == 3 and warped.ndim == 2:
             f = f.mean(2).astype(f.dtype)
         v = valid[..., None] if warped.ndim == 3 else valid
-        warped = (warped.astype(np.float32) * v + f.astype(np.float32) * (1 - v))
-        warped = warped.round().clip(0, 255).astype(image.dtype) if image.dtype == np.uint8 else warped.astype(image.dtype)
+        warped = warped.astype(np.float32) * v + f.astype(np.float32) * (1 - v)
+        warped = (
+            warped.round().clip(0, 255).astype(image.dtype) if image.dtype == np.uint8 else warped.astype(image.dtype)
+        )
     return warped, valid
 
 
@@ -211,5 +223,5 @@ def homography_rotation_at(H: np.ndarray, point) -> float:
     c = np.array([[float(point[0]), float(point[1])]])
     e = 1.0
     p0, px, py = project(H, c)[0], project(H, c + [[e, 0]])[0], project(H, c + [[0, e]])[0]
-    J = np.stack([(px - p0) / e, (py - p0) / e], axis=1)    # columns: d/dx, d/dy
+    J = np.stack([(px - p0) / e, (py - p0) / e], axis=1)  # columns: d/dx, d/dy
     return float(np.degrees(np.arctan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1])))

@@ -1,6 +1,7 @@
 """Image files read without decoding them: sizes and orientation from the headers (PIL, TIFF tags,
 the text headers of PFM / PAM / Radiance HDR), and the samples of float TIFFs (16, 32 or 64 bit),
 which OpenCV does not read in every case."""
+
 from __future__ import annotations
 
 import re
@@ -14,18 +15,18 @@ import numpy as np
 from .errors import ImageError
 
 _HEAD_BYTES = 65536
-_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")   # classic and BigTIFF, both byte orders
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
 
 
 def _text_header_size(head: bytes) -> tuple[int, int] | None:
     """``(width, height)`` of the formats OpenCV decodes and PIL cannot identify: PFM, PAM and
     Radiance HDR, parsed from their text headers (None if the header is not one of them or is bad)."""
-    if head[:2] in (b"PF", b"Pf"):                    # PFM: "PF" / "Pf", width, height, scale
+    if head[:2] in (b"PF", b"Pf"):  # PFM: "PF" / "Pf", width, height, scale
         tokens = head[2:256].split()
         if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit():
             return int(tokens[0]), int(tokens[1])
         return None
-    if head[:3] in (b"P7\n", b"P7\r", b"P7 "):        # PAM: "WIDTH w", "HEIGHT h" lines up to ENDHDR
+    if head[:3] in (b"P7\n", b"P7\r", b"P7 "):  # PAM: "WIDTH w", "HEIGHT h" lines up to ENDHDR
         fields = {}
         for line in head[3:].splitlines():
             line = line.split(b"#")[0].strip()
@@ -39,7 +40,7 @@ def _text_header_size(head: bytes) -> tuple[int, int] | None:
         if b"WIDTH" not in fields or b"HEIGHT" not in fields:
             return None
         return fields[b"WIDTH"], fields[b"HEIGHT"]
-    if head.startswith((b"#?RADIANCE", b"#?RGBE")):   # Radiance: header lines, blank line, "-Y h +X w"
+    if head.startswith((b"#?RADIANCE", b"#?RGBE")):  # Radiance: header lines, blank line, "-Y h +X w"
         _, sep, rest = head.partition(b"\n\n")
         m = re.match(rb"\s*([-+][XY])\s+(\d+)\s+([-+][XY])\s+(\d+)\s*\n", rest) if sep else None
         if m is None or m.group(1)[1:] == m.group(3)[1:]:
@@ -50,8 +51,17 @@ def _text_header_size(head: bytes) -> tuple[int, int] | None:
 
 
 #: TIFF field types of integers: type -> (struct code, bytes)
-_TIFF_INTS = {1: ("B", 1), 3: ("H", 2), 4: ("I", 4), 6: ("b", 1), 8: ("h", 2), 9: ("i", 4), 16: ("Q", 8), 17: ("q", 8),
-              18: ("Q", 8)}
+_TIFF_INTS = {
+    1: ("B", 1),
+    3: ("H", 2),
+    4: ("I", 4),
+    6: ("b", 1),
+    8: ("h", 2),
+    9: ("i", 4),
+    16: ("Q", 8),
+    17: ("q", 8),
+    18: ("Q", 8),
+}
 #: the tags read: size, bits and format of the samples, compression, strips, orientation, layout
 _TIFF_TAGS = {256, 257, 258, 259, 273, 274, 277, 278, 279, 284, 317, 322, 339}
 
@@ -75,7 +85,7 @@ def _tiff_tags(path: Path) -> tuple[str, dict[int, tuple]] | None:
         entries = f.read(min(count, 4096) * size)
         tags = {}
         for k in range(len(entries) // size):
-            e = entries[k * size:(k + 1) * size]
+            e = entries[k * size : (k + 1) * size]
             tag, typ = struct.unpack(bo + "HH", e[:4])
             if tag not in _TIFF_TAGS or typ not in _TIFF_INTS:
                 continue
@@ -88,7 +98,7 @@ def _tiff_tags(path: Path) -> tuple[str, dict[int, tuple]] | None:
                 f.seek(struct.unpack(bo + ("Q" if big else "I"), inline)[0])
                 data = f.read(n * width)
             else:
-                data = inline[:n * width]
+                data = inline[: n * width]
             if len(data) < n * width or n == 0:
                 return None
             tags[tag] = struct.unpack(f"{bo}{n}{code}", data)
@@ -106,15 +116,15 @@ def _pil_header(path: Path) -> tuple[tuple[int, int], int] | None:
         return None
     limit = Image.MAX_IMAGE_PIXELS
     try:
-        Image.MAX_IMAGE_PIXELS = None   # the size is checked against MAX_PIXELS by the caller
+        Image.MAX_IMAGE_PIXELS = None  # the size is checked against MAX_PIXELS by the caller
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             with Image.open(path) as im:
                 size = im.size
                 if im.format == "TIFF" and 256 in im.tag_v2 and 257 in im.tag_v2:
-                    size = (int(im.tag_v2[256]), int(im.tag_v2[257]))   # as stored (PIL: upright)
+                    size = (int(im.tag_v2[256]), int(im.tag_v2[257]))  # as stored (PIL: upright)
                 orientation = 1
-                try:   # PNG keeps EXIF after the pixels at times: reading it there would decode them
+                try:  # PNG keeps EXIF after the pixels at times: reading it there would decode them
                     if im.format != "PNG" or "exif" in im.info:
                         orientation = int(im.getexif().get(0x0112, 1))
                 except Exception:
@@ -134,7 +144,7 @@ def _header(path: Path) -> tuple[tuple[int, int], int] | None:
     if size is not None:
         return size, 1
     header = _pil_header(path)
-    if header is None and head[:4] in _TIFF_MAGIC:   # float TIFFs: PIL does not read their samples
+    if header is None and head[:4] in _TIFF_MAGIC:  # float TIFFs: PIL does not read their samples
         found = _tiff_tags(path)
         if found is not None:
             tags = found[1]
@@ -150,17 +160,26 @@ def _read_float_tiff(path: Path, name: str) -> np.ndarray | None:
         found = _tiff_tags(path)
     except OSError as e:
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
-    if found is None or found[1].get(339, (1,))[0] != 3:   # SampleFormat 3: IEEE float
+    if found is None or found[1].get(339, (1,))[0] != 3:  # SampleFormat 3: IEEE float
         return None
     bo, tags = found
     width, height = tags[256][0], tags[257][0]
     channels, bits = tags.get(277, (1,))[0], tags.get(258, (32,))[0]
     compression, predictor, planar = tags.get(259, (1,))[0], tags.get(317, (1,))[0], tags.get(284, (1,))[0]
-    if 322 in tags or 273 not in tags or 279 not in tags or compression not in (1, 8, 32946) \
-            or predictor != 1 or bits not in (16, 32, 64) or len(tags[273]) != len(tags[279]):
-        raise ImageError(f"{name}: float TIFF stored in a layout not read here ({bits}-bit samples, compression "
-                         f"{compression}, predictor {predictor}{', tiles' if 322 in tags else ''}; uncompressed or "
-                         f"deflated strips without predictor are read): {path}")
+    if (
+        322 in tags
+        or 273 not in tags
+        or 279 not in tags
+        or compression not in (1, 8, 32946)
+        or predictor != 1
+        or bits not in (16, 32, 64)
+        or len(tags[273]) != len(tags[279])
+    ):
+        raise ImageError(
+            f"{name}: float TIFF stored in a layout not read here ({bits}-bit samples, compression "
+            f"{compression}, predictor {predictor}{', tiles' if 322 in tags else ''}; uncompressed or "
+            f"deflated strips without predictor are read): {path}"
+        )
     dtype = np.dtype(f"{bo}f{bits // 8}")
     need = width * height * channels * dtype.itemsize
     parts, got = [], 0
@@ -203,6 +222,9 @@ def _float_file_to_unit(arr: np.ndarray, label: str) -> np.ndarray:
     if lo < -_FLOAT_SLACK * top or hi > top * (1 + _FLOAT_SLACK):
         raise ImageError(f"{label}: float image values are in [{lo:.4g}, {hi:.4g}]; expected [0, 1] or [0, 255]")
     if top == 255 and hi < 2:
-        warnings.warn(f"{label}: float image values in [{lo:.3g}, {hi:.3g}] read as a [0, 255] image "
-                      f"(its largest value is above 1), so it is nearly black", stacklevel=4)
+        warnings.warn(
+            f"{label}: float image values in [{lo:.3g}, {hi:.3g}] read as a [0, 255] image "
+            f"(its largest value is above 1), so it is nearly black",
+            stacklevel=4,
+        )
     return np.clip(arr / top if top != 1 else arr, 0, 1)

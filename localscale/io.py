@@ -32,6 +32,7 @@ Decoder messages (OpenCV's log, libjpeg/libpng warnings on stderr) are kept off 
 terminal while a file is decoded; a decoder warning on a file that still decodes is
 reported as one Python warning.
 """
+
 from __future__ import annotations
 
 import contextvars
@@ -123,8 +124,9 @@ def _quiet_decoder() -> Iterator[list]:
             if sink is not None:
                 try:
                     sink.seek(0)
-                    captured.extend(line for line in sink.read().decode("utf-8", "replace").splitlines()
-                                    if line.strip())
+                    captured.extend(
+                        line for line in sink.read().decode("utf-8", "replace").splitlines() if line.strip()
+                    )
                 except (OSError, ValueError):  # pragma: no cover
                     pass
                 if _quiet_depth == 0:
@@ -148,8 +150,6 @@ def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
     if orientation == 8:
         return np.rot90(arr, 1)
     return arr
-
-
 
 
 @functools.lru_cache(maxsize=None)
@@ -182,8 +182,9 @@ def _stat_file(path: Path, name: str) -> os.stat_result:
         raise ImageError(f"{name}: cannot access {shown} ({e.strerror})") from None
 
 
-def load_image(image: ImageLike, name: str = "image", *, precise: bool = False,
-               accept_damaged: bool | None = None) -> np.ndarray:
+def load_image(
+    image: ImageLike, name: str = "image", *, precise: bool = False, accept_damaged: bool | None = None
+) -> np.ndarray:
     """Load an image file or validate an array; returns ``H x W x 3`` uint8 RGB (with ``precise``,
     an image of more than 8 bits as float32 RGB in ``[0, 1]``).
 
@@ -205,9 +206,14 @@ def reduction_factor(height: int, width: int, min_long_side: int | None) -> int:
     return k
 
 
-def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int | None = None, *,
-                       precise: bool = False, accept_damaged: bool | None = None
-                       ) -> tuple[np.ndarray, tuple[int, int]]:
+def load_image_reduced(
+    image: ImageLike,
+    name: str = "image",
+    min_long_side: int | None = None,
+    *,
+    precise: bool = False,
+    accept_damaged: bool | None = None,
+) -> tuple[np.ndarray, tuple[int, int]]:
     """Like :func:`load_image`, but a file much larger than needed is decoded at a reduced size.
 
     A file whose longer side is at least twice ``min_long_side`` is reduced by the largest
@@ -227,8 +233,9 @@ def load_image_reduced(image: ImageLike, name: str = "image", min_long_side: int
     return rgb, rgb.shape[:2]
 
 
-def load_working_image(image: ImageLike, max_side: int | None, name: str = "image", *,
-                       accept_damaged: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_working_image(
+    image: ImageLike, max_side: int | None, name: str = "image", *, accept_damaged: bool | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """An image at a working resolution: its longer side at most ``max_side`` (None: full size).
 
     Returns ``(rgb, S)``: the uint8 image, and the ``3 x 3`` matrix from pixel coordinates of the
@@ -252,8 +259,12 @@ def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
     return load_image_array(image, name).shape[:2]
 
 
-_FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a character device"),
-               (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+_FILE_KINDS = (
+    (stat.S_ISFIFO, "a named pipe"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
 def check_image_file(path: str | os.PathLike, name: str = "image") -> None:
@@ -277,17 +288,20 @@ def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
     except OSError as e:
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     if header is None:
-        raise ImageError(f"{name}: cannot decode image, its size cannot be read from the header "
-                         f"(corrupt, truncated or unsupported format): {path}")
+        raise ImageError(
+            f"{name}: cannot decode image, its size cannot be read from the header "
+            f"(corrupt, truncated or unsupported format): {path}"
+        )
     (width, height), _ = header
     _check_size(height, width, f"{name} ({path})")
     return header
 
 
-def _load_file(path: Path, name: str, min_long_side: int | None, precise: bool = False,
-               accept_damaged: bool = False) -> tuple[np.ndarray, tuple[int, int]]:
+def _load_file(
+    path: Path, name: str, min_long_side: int | None, precise: bool = False, accept_damaged: bool = False
+) -> tuple[np.ndarray, tuple[int, int]]:
     label = f"{name} ({path})"
-    (width, height), orientation = _checked_header(path, name)   # the size limits, on the file's own size
+    (width, height), orientation = _checked_header(path, name)  # the size limits, on the file's own size
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as e:
@@ -301,25 +315,32 @@ def _load_file(path: Path, name: str, min_long_side: int | None, precise: bool =
     with _quiet_decoder() as messages:
         arr = cv2.imdecode(data, flags)
     del data
-    bgr, oriented = True, tiff and _tiff_decoder_orients()   # as OpenCV's decoders return them
+    bgr, oriented = True, tiff and _tiff_decoder_orients()  # as OpenCV's decoders return them
     if arr is None and tiff:
-        arr = _read_float_tiff(path, name)   # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
+        arr = _read_float_tiff(path, name)  # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
         bgr, oriented = False, False
     if arr is None:
         raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
     expected = (-(-height // k), -(-width // k)) if jpeg_reduced else (height, width)
     if sorted(arr.shape[:2]) != sorted(expected):
-        raise ImageError(f"{name}: decoded image is {arr.shape[1] * (k if jpeg_reduced else 1)}x"
-                         f"{arr.shape[0] * (k if jpeg_reduced else 1)}, but its header says "
-                         f"{width}x{height} (corrupt file): {path}")
+        raise ImageError(
+            f"{name}: decoded image is {arr.shape[1] * (k if jpeg_reduced else 1)}x"
+            f"{arr.shape[0] * (k if jpeg_reduced else 1)}, but its header says "
+            f"{width}x{height} (corrupt file): {path}"
+        )
     damaged = next((m for m in messages if any(w in m.lower() for w in _DAMAGED_MESSAGES)), None)
     if damaged is not None and not accept_damaged:
-        raise ImageError(f"{name}: damaged file: the decoder reports '{damaged.strip()[:200]}', the image "
-                         f"data ends before the {width}x{height} image its header declares (the rest would "
-                         f"be filler; --accept-damaged / accept_damaged=True decodes it anyway): {path}")
+        raise ImageError(
+            f"{name}: damaged file: the decoder reports '{damaged.strip()[:200]}', the image "
+            f"data ends before the {width}x{height} image its header declares (the rest would "
+            f"be filler; --accept-damaged / accept_damaged=True decodes it anyway): {path}"
+        )
     if messages:
-        warnings.warn(f"{label}: the decoder reported a problem: {(damaged or messages[0]).strip()[:200]}"
-                      + (" (decoded anyway, part of the image is filler)" if damaged else ""), stacklevel=3)
+        warnings.warn(
+            f"{label}: the decoder reported a problem: {(damaged or messages[0]).strip()[:200]}"
+            + (" (decoded anyway, part of the image is filler)" if damaged else ""),
+            stacklevel=3,
+        )
     if np.issubdtype(arr.dtype, np.floating):
         arr = _float_file_to_unit(arr, label)
     if k > 1 and not jpeg_reduced:
@@ -329,7 +350,7 @@ def _load_file(path: Path, name: str, min_long_side: int | None, precise: bool =
         if arr.shape[2] in (3, 4):
             arr = cv2.cvtColor(arr, code)
     full = (width, height) if orientation in (5, 6, 7, 8) else (height, width)
-    if not oriented:   # a TIFF comes out of OpenCV's decoder upright
+    if not oriented:  # a TIFF comes out of OpenCV's decoder upright
         arr = _apply_orientation(arr, orientation)
     return to_rgb(arr, label, precise=precise, full_shape=full), full
 
@@ -337,8 +358,9 @@ def _load_file(path: Path, name: str, min_long_side: int | None, precise: bool =
 _REDUCED_COLOR = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
-def load_image_array(image, name: str = "image", *, precise: bool = False,
-                     full_shape: tuple[int, int] | None = None) -> np.ndarray:
+def load_image_array(
+    image, name: str = "image", *, precise: bool = False, full_shape: tuple[int, int] | None = None
+) -> np.ndarray:
     """Validate an array (or a ``C x H x W`` / ``H x W x C`` torch tensor) as :func:`load_image` does.
 
     ``full_shape``: ``(H, W)`` of the full image when ``image`` is a reduced copy of it; the size
@@ -365,23 +387,29 @@ def to_rgb_uint8(arr: np.ndarray, name: str = "image", check_size: bool = True) 
     return to_rgb(arr, name, check_size=check_size)
 
 
-def to_rgb(arr: np.ndarray, name: str = "image", check_size: bool = True, precise: bool = False,
-           full_shape: tuple[int, int] | None = None) -> np.ndarray:
+def to_rgb(
+    arr: np.ndarray,
+    name: str = "image",
+    check_size: bool = True,
+    precise: bool = False,
+    full_shape: tuple[int, int] | None = None,
+) -> np.ndarray:
     """Validate and convert an ``H x W [x C]`` array to ``H x W x 3`` RGB: uint8, or with ``precise``
     float32 in ``[0, 1]`` for uint16 and float input (no 8-bit rounding). ``full_shape``: the size
     checked instead of the array's (the full image of a reduced copy)."""
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (2, 3, 4)):
-        raise ImageError(f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, "
-                         f"got shape {arr.shape}")
+        raise ImageError(
+            f"{name}: expected H x W, H x W x 2 (gray + alpha), H x W x 3 or H x W x 4, got shape {arr.shape}"
+        )
     if check_size:
         _check_size(*(full_shape or arr.shape[:2]), name)
     if arr.ndim == 3 and arr.shape[2] in (2, 4):
         if not _is_opaque(arr[..., -1]):
             warnings.warn(f"{name}: alpha channel dropped", stacklevel=3)
         arr = arr[..., :-1]
-        if arr.shape[2] == 1:   # gray + alpha -> gray
+        if arr.shape[2] == 1:  # gray + alpha -> gray
             arr = arr[..., 0]
     if arr.dtype == np.uint8:
         out = arr
@@ -418,8 +446,10 @@ def _check_size(height: int, width: int, name: str) -> None:
     if height < MIN_SIDE or width < MIN_SIDE:
         raise ImageError(f"{name}: image is {width}x{height}, smaller than the minimum {MIN_SIDE}x{MIN_SIDE}")
     if height * width > MAX_PIXELS:
-        raise ImageError(f"{name}: image is {width}x{height} ({height * width / 1e6:.0f} MP), "
-                         f"larger than the limit of {MAX_PIXELS / 1e6:.0f} MP")
+        raise ImageError(
+            f"{name}: image is {width}x{height} ({height * width / 1e6:.0f} MP), "
+            f"larger than the limit of {MAX_PIXELS / 1e6:.0f} MP"
+        )
 
 
 def read_homography(path: Union[str, os.PathLike, np.ndarray, list]) -> np.ndarray:
@@ -439,8 +469,11 @@ def read_homography(path: Union[str, os.PathLike, np.ndarray, list]) -> np.ndarr
         try:
             st = p.stat()
         except OSError as e:
-            what = {errno.ELOOP: "is a symbolic link loop", errno.ENAMETOOLONG: "name is too long",
-                    errno.EACCES: "is not accessible (permission denied)"}.get(e.errno, "not found")
+            what = {
+                errno.ELOOP: "is a symbolic link loop",
+                errno.ENAMETOOLONG: "name is too long",
+                errno.EACCES: "is not accessible (permission denied)",
+            }.get(e.errno, "not found")
             if e.errno == errno.ENOENT and p.is_symlink():
                 what = "is a broken symbolic link"
             raise HomographyError(f"homography file {what}: {p}") from None
@@ -463,6 +496,7 @@ def read_homography(path: Union[str, os.PathLike, np.ndarray, list]) -> np.ndarr
     # invariant to the overall scale of H, so large translations and strong zooms pass.
     sv = np.linalg.svd(H, compute_uv=False)
     if not sv[0] > 0 or sv[-1] <= sv[0] * 3 * np.finfo(np.float64).eps:
-        raise HomographyError(f"{src}: singular homography (rank < 3: smallest singular value "
-                              f"{sv[-1]:.3g}, largest {sv[0]:.3g})")
+        raise HomographyError(
+            f"{src}: singular homography (rank < 3: smallest singular value {sv[-1]:.3g}, largest {sv[0]:.3g})"
+        )
     return H

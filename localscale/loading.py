@@ -1,8 +1,9 @@
 """The scale models by kind: one place that loads Local-ScaleNet or ScaleNet for a command.
 
-    local = load_scale_model("local")           # Local-ScaleNet, bundled weights, on the CPU
-    glob = load_scale_model("global", "ckpt.pt", device)
+local = load_scale_model("local")           # Local-ScaleNet, bundled weights, on the CPU
+glob = load_scale_model("global", "ckpt.pt", device)
 """
+
 from __future__ import annotations
 
 from .errors import LocalScaleError

@@ -1,8 +1,9 @@
 """Scale maps and refined maps as files: ``.npy`` (float32), float TIFF, colour PNG, ``geometry.json``.
 
-    write_scale_map(pred, "out/", "a_b")                 # out/a_b_scale.{npy,tif,png}, a_b_confidence.npy
-    write_refinement("out/", "a_b_", res.refined_a)      # out/a_b_refined_scale.npy, ..., a_b_geometry.json
+write_scale_map(pred, "out/", "a_b")                 # out/a_b_scale.{npy,tif,png}, a_b_confidence.npy
+write_refinement("out/", "a_b_", res.refined_a)      # out/a_b_refined_scale.npy, ..., a_b_geometry.json
 """
+
 from __future__ import annotations
 
 import json
@@ -26,7 +27,7 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
     paths = scale_map_paths(out_dir, stem, has_visible)
     for p in paths:
         ensure_not_input(p, inputs)
-    banded = hasattr(pred, "bands")   # read out band by band: only the scale map is ever whole
+    banded = hasattr(pred, "bands")  # read out band by band: only the scale map is ever whole
     finite = pred.finite() if banded else bool(np.isfinite(pred.scale).all() and np.isfinite(pred.confidence).all())
     if not finite:
         raise LocalScaleError(f"the predicted scale map of {stem} is not finite (NaN or inf); nothing written")
@@ -34,7 +35,7 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
     write_npy(paths[0], scale)
     write_image(paths[1], scale)
     colour = colorize_log2_scale(scale)
-    write_image(paths[2], cv2.cvtColor(colour, cv2.COLOR_RGB2BGR, dst=colour))   # in place: no second copy
+    write_image(paths[2], cv2.cvtColor(colour, cv2.COLOR_RGB2BGR, dst=colour))  # in place: no second copy
     del colour
     for path, name in zip(paths[3:], ("confidence", "visible")):
         if banded:
@@ -47,8 +48,12 @@ def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:
 def scale_map_paths(out_dir: Path, stem: str, visible: bool) -> list[Path]:
     """The files :func:`write_scale_map` writes for ``stem`` (``visible``: with ``_visible.npy``)."""
     out_dir = Path(out_dir)
-    return [out_dir / f"{stem}_scale.npy", out_dir / f"{stem}_scale.tif", out_dir / f"{stem}_scale.png",
-            out_dir / f"{stem}_confidence.npy"] + ([out_dir / f"{stem}_visible.npy"] if visible else [])
+    return [
+        out_dir / f"{stem}_scale.npy",
+        out_dir / f"{stem}_scale.tif",
+        out_dir / f"{stem}_scale.png",
+        out_dir / f"{stem}_confidence.npy",
+    ] + ([out_dir / f"{stem}_visible.npy"] if visible else [])
 
 
 def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None, inputs=()) -> list[Path]:
@@ -63,8 +68,11 @@ def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None,
     items = [("", refined_a)] + ([("_b", refined_b)] if refined_b is not None else [])
     paths = []
     for suffix, r in items:
-        names = [out / f"{stem}refined_scale{suffix}.npy", out / f"{stem}refined_source{suffix}.npy",
-                 out / f"{stem}refined_scale{suffix}.png"]
+        names = [
+            out / f"{stem}refined_scale{suffix}.npy",
+            out / f"{stem}refined_source{suffix}.npy",
+            out / f"{stem}refined_scale{suffix}.png",
+        ]
         for q in names:
             ensure_not_input(q, inputs)
         write_npy(names[0], r.scale.astype(np.float32))

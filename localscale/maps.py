@@ -15,6 +15,7 @@ Example::
         ...
     preview = maps.sampled(0, step=4)       # == maps.full(0)[::4, ::4]
 """
+
 from __future__ import annotations
 
 from typing import Callable, Iterator, Optional, Sequence
@@ -50,14 +51,19 @@ class GridMaps:
             for a log-scale channel, a clip for probabilities) or None.
     """
 
-    def __init__(self, grid: torch.Tensor, letterbox: Letterbox,
-                 transforms: Sequence[Optional[Callable[[np.ndarray], np.ndarray]]] = ()):
+    def __init__(
+        self,
+        grid: torch.Tensor,
+        letterbox: Letterbox,
+        transforms: Sequence[Optional[Callable[[np.ndarray], np.ndarray]]] = (),
+    ):
         if grid.dim() != 3:
             raise ValueError(f"GridMaps: expected a C x h x w grid, got shape {tuple(grid.shape)}")
         lb = letterbox
-        x = F.interpolate(grid.detach().float().cpu()[None], size=(lb.size, lb.size), mode="bilinear",
-                          align_corners=False)[0]
-        self.source = x[:, lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width].numpy()
+        x = F.interpolate(
+            grid.detach().float().cpu()[None], size=(lb.size, lb.size), mode="bilinear", align_corners=False
+        )[0]
+        self.source = x[:, lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width].numpy()
         self.letterbox = lb
         self.transforms = list(transforms) + [None] * (grid.shape[0] - len(transforms))
         self._cols = _axis_weights(lb.width, self.source.shape[2], np.arange(lb.width))
@@ -98,7 +104,7 @@ class GridMaps:
         """The whole channel at full resolution, ``H x W`` float32, filled band by band."""
         out = np.empty(self.shape, np.float32)
         for y0, band in self.bands(channel):
-            out[y0:y0 + len(band)] = band
+            out[y0 : y0 + len(band)] = band
         return out
 
     def sampled(self, channel: int, step: int) -> np.ndarray:

@@ -6,6 +6,7 @@ encoders pick the same format) and renamed over the final name only when it is c
 An interrupted or failed write leaves no partial file under the final name, and the
 temporary file is removed.
 """
+
 from __future__ import annotations
 
 import os
@@ -86,8 +87,9 @@ def check_writable_dir(out: Path, names=()) -> Path:
     out = Path(out)
     for part in out.parts:
         if len(os.fsencode(part)) > NAME_MAX:
-            raise LocalScaleError(f"output folder name too long ({len(os.fsencode(part))} bytes, "
-                                  f"the limit is {NAME_MAX}): {part[:40]}...")
+            raise LocalScaleError(
+                f"output folder name too long ({len(os.fsencode(part))} bytes, the limit is {NAME_MAX}): {part[:40]}..."
+            )
     if out.exists():
         if not out.is_dir():
             raise LocalScaleError(f"output {out} exists and is not a folder (-o names a folder)")
@@ -103,13 +105,14 @@ def check_writable_dir(out: Path, names=()) -> Path:
     limit = _name_max(existing)
     for n in names:
         if len(os.fsencode(n)) > limit:
-            raise LocalScaleError(f"output file name too long ({len(os.fsencode(n))} bytes, the limit is "
-                                  f"{limit}): {n[:40]}...")
+            raise LocalScaleError(
+                f"output file name too long ({len(os.fsencode(n))} bytes, the limit is {limit}): {n[:40]}..."
+            )
     return out
 
 
-
 # ---------------------------------------------------------------- writers of arrays, images, maps
+
 
 def ensure_not_input(path, inputs) -> Path:
     """Refuse to write ``path`` when it is one of the command's ``inputs``."""
@@ -134,7 +137,8 @@ def write_image(path, image_bgr: np.ndarray) -> Path:
     import cv2
 
     from .io import _quiet_decoder
-    with atomic_path(path) as tmp, _quiet_decoder():   # OpenCV's own warnings stay off the terminal
+
+    with atomic_path(path) as tmp, _quiet_decoder():  # OpenCV's own warnings stay off the terminal
         try:
             ok = cv2.imwrite(str(tmp), image_bgr)
         except cv2.error as e:
@@ -162,8 +166,13 @@ def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.lib.format.write_array_header_1_0(
-                f, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
-                    "shape": tuple(int(n) for n in shape)})
+                f,
+                {
+                    "descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)),
+                    "fortran_order": False,
+                    "shape": tuple(int(n) for n in shape),
+                },
+            )
             for _, rows in bands:
                 # f.write, not ndarray.tofile: a SIGTERM raised inside tofile surfaces as a TypeError
                 f.write(np.ascontiguousarray(rows, np.float32).data)
@@ -173,5 +182,3 @@ def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
 def resolved_path(p) -> Path:
     """Absolute path with symbolic links resolved as far as they go (never raises on a link loop)."""
     return Path(os.path.realpath(os.path.abspath(p)))
-
-

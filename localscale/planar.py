@@ -7,13 +7,20 @@ data, facades, documents, aerial views) fitting it to the network's noisy per-ce
 prediction, weighted by confidence and robust to outliers (IRLS, Cauchy weights), removes most of
 the noise. It is wrong for non-planar scenes, so it is an option, never the default.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 
-def fit_planar_log_scale(log_scale: np.ndarray, weights: np.ndarray, points: np.ndarray,
-                         iterations: int = 20, cauchy_scale: float = 0.3, ridge: float = 0.0) -> np.ndarray:
+def fit_planar_log_scale(
+    log_scale: np.ndarray,
+    weights: np.ndarray,
+    points: np.ndarray,
+    iterations: int = 20,
+    cauchy_scale: float = 0.3,
+    ridge: float = 0.0,
+) -> np.ndarray:
     """Fit ``ln S = c - 1.5 ln(1 + p . x)`` to samples; returns ``(c, p1, p2)``.
 
     Args:
@@ -31,7 +38,7 @@ def fit_planar_log_scale(log_scale: np.ndarray, weights: np.ndarray, points: np.
         d = np.clip(d, 1e-3, None)
         model = theta[0] - 1.5 * np.log(d)
         r = log_scale - model
-        robust = 1.0 / (1.0 + (r / cauchy_scale) ** 2)   # Cauchy: gross errors get ~no weight
+        robust = 1.0 / (1.0 + (r / cauchy_scale) ** 2)  # Cauchy: gross errors get ~no weight
         w = w0 * robust
         J = np.column_stack([np.ones_like(d), -1.5 * points[:, 0] / d, -1.5 * points[:, 1] / d])
         reg = np.diag([1e-6, 1e-6 + ridge * w.sum(), 1e-6 + ridge * w.sum()])

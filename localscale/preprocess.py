@@ -5,6 +5,7 @@ with zeros, centred. :class:`Letterbox` records the mapping so that scales predi
 the processing frame can be corrected back to the original images:
 ``S_orig = S_proc * f_A / f_B`` where ``f`` is each image's resize factor.
 """
+
 from __future__ import annotations
 
 import math
@@ -42,9 +43,10 @@ class Letterbox:
 
     def matrix(self) -> np.ndarray:
         """3x3 map from original pixel coordinates to processing-frame coordinates."""
-        return np.array([[self.fx, 0, self.left + 0.5 * self.fx - 0.5],
-                         [0, self.fy, self.top + 0.5 * self.fy - 0.5],
-                         [0, 0, 1]], dtype=np.float64)
+        return np.array(
+            [[self.fx, 0, self.left + 0.5 * self.fx - 0.5], [0, self.fy, self.top + 0.5 * self.fy - 0.5], [0, 0, 1]],
+            dtype=np.float64,
+        )
 
     def valid_mask(self, stride: int = 1) -> np.ndarray:
         """Grid cells (at ``stride``) whose centre lies on the image, not the padding."""
@@ -61,8 +63,9 @@ def make_letterbox(height: int, width: int, size: int) -> Letterbox:
     return Letterbox(height, width, size, nh, nw, (size - nh) // 2, (size - nw) // 2)
 
 
-def letterbox(image: np.ndarray, size: int, original_shape: tuple[int, int] | None = None
-              ) -> tuple[np.ndarray, Letterbox]:
+def letterbox(
+    image: np.ndarray, size: int, original_shape: tuple[int, int] | None = None
+) -> tuple[np.ndarray, Letterbox]:
     """Resize + pad an ``H x W x C`` image (uint8, or float32 in [0, 1]) into ``size x size``
     (zeros outside), keeping its dtype.
 
@@ -73,7 +76,7 @@ def letterbox(image: np.ndarray, size: int, original_shape: tuple[int, int] | No
     interp = cv2.INTER_AREA if lb.new_width < image.shape[1] else cv2.INTER_LINEAR
     resized = cv2.resize(image, (lb.new_width, lb.new_height), interpolation=interp)
     out = np.zeros((size, size) + image.shape[2:], dtype=image.dtype)
-    out[lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width] = resized
+    out[lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width] = resized
     return out, lb
 
 

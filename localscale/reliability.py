@@ -22,6 +22,7 @@ Example::
     if not check.reliable:
         print("do not trust this map:", "; ".join(check.reasons))
 """
+
 from __future__ import annotations
 
 import math
@@ -38,10 +39,10 @@ from .io import ImageLike
 class PairCheckConfig:
     """Thresholds of the pair-level flag (chosen on held-out synthetic pairs)."""
 
-    max_inconsistency_log2: float = 1.0   #: |median log2 S_AB + median log2 S_BA| above this fires (x2)
-    min_visible_fraction: float = 0.05    #: less of A predicted visible in B fires
-    min_reliability: float = 0.2          #: lower mean reliability over A's visible part fires
-    visible_threshold: float = 0.5        #: a pixel counts as visible above this probability
+    max_inconsistency_log2: float = 1.0  #: |median log2 S_AB + median log2 S_BA| above this fires (x2)
+    min_visible_fraction: float = 0.05  #: less of A predicted visible in B fires
+    min_reliability: float = 0.2  #: lower mean reliability over A's visible part fires
+    visible_threshold: float = 0.5  #: a pixel counts as visible above this probability
 
 
 @dataclass
@@ -111,8 +112,14 @@ def flag_reasons(stats: dict, cfg: PairCheckConfig = PairCheckConfig()) -> list[
     return reasons
 
 
-def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConfig = PairCheckConfig(),
-               bf16: bool = False, **readout) -> PairCheck:
+def check_pair(
+    model,
+    image_a: ImageLike,
+    image_b: ImageLike,
+    cfg: PairCheckConfig = PairCheckConfig(),
+    bf16: bool = False,
+    **readout,
+) -> PairCheck:
     """Predict ``A->B`` and ``B->A`` with a Local-ScaleNet and decide whether to trust the pair.
 
     ``readout``: options of :meth:`LocalScaleNet.predict_from_features` for the forward map
@@ -123,8 +130,9 @@ def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConf
     from .models.local import LocalScaleNet
 
     if not isinstance(model, LocalScaleNet):
-        raise LocalScaleError(f"check_pair needs a LocalScaleNet (a per-pixel scale map model), "
-                              f"got {type(model).__name__}")
+        raise LocalScaleError(
+            f"check_pair needs a LocalScaleNet (a per-pixel scale map model), got {type(model).__name__}"
+        )
     ea, eb = model.encode_pair(image_a, image_b, bf16)
     fwd = model.predict_from_features(ea, eb, bf16=bf16, **readout)
     bwd = model.predict_from_features(eb, ea, bf16=bf16)
@@ -133,8 +141,7 @@ def check_pair(model, image_a: ImageLike, image_b: ImageLike, cfg: PairCheckConf
     return PairCheck(fwd, bwd, reliable=not reasons, reasons=reasons, **stats)
 
 
-def fit_calibration(features: np.ndarray, labels: np.ndarray, iters: int = 200,
-                    l2: float = 1e-4) -> tuple[float, ...]:
+def fit_calibration(features: np.ndarray, labels: np.ndarray, iters: int = 200, l2: float = 1e-4) -> tuple[float, ...]:
     """Logistic regression ``P(label) = sigmoid(b + w . f)``; ``features``: ``N x K``, ``labels``: ``N`` in {0, 1}.
 
     Returns ``(b, w_1, ..., w_K)``, the format of ``LocalScaleNetConfig.calibration``.
@@ -142,7 +149,9 @@ def fit_calibration(features: np.ndarray, labels: np.ndarray, iters: int = 200,
     x = torch.as_tensor(np.asarray(features), dtype=torch.float64)
     y = torch.as_tensor(np.asarray(labels), dtype=torch.float64)
     if x.ndim != 2 or len(x) != len(y) or len(x) == 0:
-        raise ValueError(f"fit_calibration: need N x K features and N labels, got {tuple(x.shape)} and {tuple(y.shape)}")
+        raise ValueError(
+            f"fit_calibration: need N x K features and N labels, got {tuple(x.shape)} and {tuple(y.shape)}"
+        )
     w = torch.zeros(x.shape[1] + 1, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.LBFGS([w], max_iter=iters, line_search_fn="strong_wolfe")
 
@@ -165,5 +174,5 @@ def auroc(scores: np.ndarray, positives: np.ndarray) -> float:
     if not n_pos or not n_neg:
         return float("nan")
     _, inverse, counts = np.unique(scores, return_inverse=True, return_counts=True)
-    ranks = (np.cumsum(counts) - (counts - 1) / 2.0)[inverse]   # average rank of ties, from 1
+    ranks = (np.cumsum(counts) - (counts - 1) / 2.0)[inverse]  # average rank of ties, from 1
     return float((ranks[positives].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))

@@ -8,6 +8,7 @@ distribution over the two neighbouring bins whose log-space expectation equals `
 exactly (clamped at the ends of the range), and the estimate is the soft expectation
 ``ln S = sum_i p_i ln s_i``. The hard read-out (D-ScaleNet) takes the arg-max bin.
 """
+
 from __future__ import annotations
 
 import math
@@ -94,8 +95,7 @@ def confidence(probs: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return 1.0 - entropy(probs, dim) / math.log(NUM_BINS)
 
 
-def kl_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
-            dim: int = 1) -> torch.Tensor:
+def kl_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, dim: int = 1) -> torch.Tensor:
     """Mean ``KL(target || softmax(logits))`` over the positions where ``mask`` is true.
 
     Args:

@@ -31,6 +31,7 @@ Example::
     g, _ = search_global_scale(local_model, ScaleNet.from_pretrained(), "wide.jpg", "zoomed.jpg")
     g.scale                           # ScaleNet's S_{A->B} on the kept windows
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -79,8 +80,10 @@ class WindowSearchConfig:
         if self.checked < 0:
             raise ValueError(f"checked must be >= 0, got {self.checked}")
         if self.min_cover < 0 or self.max_inconsistency_log2 <= 0:
-            raise ValueError(f"min_cover must be >= 0 and max_inconsistency_log2 > 0, "
-                             f"got {self.min_cover}, {self.max_inconsistency_log2}")
+            raise ValueError(
+                f"min_cover must be >= 0 and max_inconsistency_log2 > 0, "
+                f"got {self.min_cover}, {self.max_inconsistency_log2}"
+            )
         if not self.sides or set(self.sides) - {"a", "b"}:
             raise ValueError(f"sides must be a non-empty subset of ('a', 'b'), got {self.sides}")
 
@@ -155,9 +158,9 @@ def mutual_similarity(fa: torch.Tensor, fb: torch.Tensor, cells_a: torch.Tensor,
     (the image's, not the padding's). Returns ``B`` sums."""
     a = F.normalize(fa.flatten(2)[:, :, cells_a].float(), dim=1)
     b = F.normalize(fb.flatten(2)[:, :, cells_b].float(), dim=1)
-    sim = a.transpose(1, 2) @ b                                    # B x Na x Nb
+    sim = a.transpose(1, 2) @ b  # B x Na x Nb
     best_sim, best_b = sim.max(2)
-    best_a = sim.argmax(1)                                         # B x Nb
+    best_a = sim.argmax(1)  # B x Nb
     mutual = torch.gather(best_a, 1, best_b) == torch.arange(sim.shape[1], device=sim.device)
     return (best_sim.clamp_min(0) * mutual).sum(1)
 
@@ -166,7 +169,7 @@ def _scores(model: LocalScaleNet, fa: torch.Tensor, fb: torch.Tensor, lb_a, lb_b
     """Scores of ``B`` pairs of encodings (``fa`` or ``fb`` may have batch 1 and is expanded)."""
     n = max(fa.shape[0], fb.shape[0])
     with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
-        terms = model.self_terms(fa)    # once for a single A against many B
+        terms = model.self_terms(fa)  # once for a single A against many B
         terms = tuple(None if t is None else t.expand(n, -1, -1, -1) for t in terms)
         fa, fb = fa.expand(n, -1, -1, -1), fb.expand(n, -1, -1, -1)
         logits, vis = model.forward_features_all(fa, fb, terms)
@@ -181,24 +184,33 @@ def _scores(model: LocalScaleNet, fa: torch.Tensor, fb: torch.Tensor, lb_a, lb_b
 def _crop(rgb: np.ndarray, win: Window, factor: float) -> np.ndarray:
     """Crop of a (possibly reduced) image by a window in original pixels."""
     x0, y0, x1, y1 = (int(round(v / factor)) for v in win)
-    return np.ascontiguousarray(rgb[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)])
+    return np.ascontiguousarray(rgb[y0 : max(y1, y0 + 1), x0 : max(x1, x0 + 1)])
 
 
-def _encode(model, rgb: np.ndarray, factor: float, full_shape: tuple[int, int], win: Window | None, name: str,
-            bf16: bool, turns: int = 0):
+def _encode(
+    model,
+    rgb: np.ndarray,
+    factor: float,
+    full_shape: tuple[int, int],
+    win: Window | None,
+    name: str,
+    bf16: bool,
+    turns: int = 0,
+):
     """Encoding of a (possibly reduced, by ``factor``) image or of one window of it, turned by
     ``turns`` quarter turns; scales stay in the pixels of the full image (``full_shape``)."""
     crop, size = (rgb, full_shape) if win is None else (_crop(rgb, win, factor), (win[3] - win[1], win[2] - win[0]))
     return model.encode_image(crop, name, bf16, size, turns)
 
 
-def _encode_windows(model: LocalScaleNet, rgb: np.ndarray, factor: float, windows: list[Window],
-                    bf16: bool, batch: int) -> tuple[torch.Tensor, Letterbox]:
+def _encode_windows(
+    model: LocalScaleNet, rgb: np.ndarray, factor: float, windows: list[Window], bf16: bool, batch: int
+) -> tuple[torch.Tensor, Letterbox]:
     """Encodings ``N x D x h x w`` of the windows of one image (all of one size, so one placement)."""
     feats, lb = [], None
     for i in range(0, len(windows), batch):
         xs = []
-        for win in windows[i:i + batch]:
+        for win in windows[i : i + batch]:
             boxed, lb = letterbox(_crop(rgb, win, factor), model.config.image_size, (win[3] - win[1], win[2] - win[0]))
             xs.append(to_tensor(boxed))
         with torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -235,8 +247,13 @@ def _compose(base: LocalScalePrediction, inner: LocalScalePrediction, win: Windo
 
 
 @torch.inference_mode()
-def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLike,
-                     cfg: WindowSearchConfig = WindowSearchConfig(), bf16: bool = False) -> WindowSearchResult:
+def search_scale_map(
+    model: LocalScaleNet,
+    image_a: ImageLike,
+    image_b: ImageLike,
+    cfg: WindowSearchConfig = WindowSearchConfig(),
+    bf16: bool = False,
+) -> WindowSearchResult:
     """Per-pixel ``S_{A->B}`` from the best-scoring window pair (see the module docstring).
 
     Needs a calibrated Local-ScaleNet (``pred.reliability``). A window pair replaces the whole
@@ -244,7 +261,9 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
     the first pass.
     """
     if not model.config.calibration:
-        raise LocalScaleError("the window search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)")
+        raise LocalScaleError(
+            "the window search needs a calibrated Local-ScaleNet (this checkpoint has no calibration)"
+        )
     (a, shape_a), (b, shape_b) = model.load_pair(image_a, image_b)
     fa, fb = shape_a[0] / a.shape[0], shape_b[0] / b.shape[0]
 
@@ -275,15 +294,18 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
                 continue
             fw, lb = _encode_windows(model, rgb, factor, windows, bf16, cfg.batch_size)
             for i in range(0, len(windows), cfg.batch_size):
-                part = fw[i:i + cfg.batch_size]
-                sc = (_scores(model, part, eb.features, lb, eb.letterbox, bf16) if side == "a" else
-                      _scores(model, ea.features, part, ea.letterbox, lb, bf16))
-                for win, v in zip(windows[i:i + cfg.batch_size], sc.tolist()):
+                part = fw[i : i + cfg.batch_size]
+                sc = (
+                    _scores(model, part, eb.features, lb, eb.letterbox, bf16)
+                    if side == "a"
+                    else _scores(model, ea.features, part, ea.letterbox, lb, bf16)
+                )
+                for win, v in zip(windows[i : i + cfg.batch_size], sc.tolist()):
                     scores.append((side, win, v))
                     if v > turn_score:
                         candidates.append((v, side, win))
     best = (turn_score, None, None)
-    for v, side, win in sorted(candidates, key=lambda c: -c[0])[:cfg.checked]:
+    for v, side, win in sorted(candidates, key=lambda c: -c[0])[: cfg.checked]:
         ew = encode_a(win) if side == "a" else ea
         eo = encode_b(win) if side == "b" else eb
         fwd, bwd = model.predict_from_features(ew, eo, bf16=bf16), model.predict_from_features(eo, ew, bf16=bf16)
@@ -308,8 +330,14 @@ def search_scale_map(model: LocalScaleNet, image_a: ImageLike, image_b: ImageLik
 
 
 @torch.inference_mode()
-def search_global_scale(local_model: LocalScaleNet, global_model, image_a: ImageLike, image_b: ImageLike,
-                        cfg: WindowSearchConfig = WindowSearchConfig(), bf16: bool = False):
+def search_global_scale(
+    local_model: LocalScaleNet,
+    global_model,
+    image_a: ImageLike,
+    image_b: ImageLike,
+    cfg: WindowSearchConfig = WindowSearchConfig(),
+    bf16: bool = False,
+):
     """ScaleNet's global ``S_{A->B}`` on the window pair :func:`search_scale_map` keeps.
 
     Returns ``(GlobalScalePrediction, WindowSearchResult)``. With no window kept, this is the
@@ -319,6 +347,5 @@ def search_global_scale(local_model: LocalScaleNet, global_model, image_a: Image
     res = search_scale_map(local_model, image_a, image_b, cfg, bf16)
     (a, shape_a), (b, shape_b) = global_model.load_pair(image_a, image_b)
     ea = _encode(global_model, a, shape_a[0] / a.shape[0], shape_a, res.window_a, "image A", bf16)
-    eb = _encode(global_model, b, shape_b[0] / b.shape[0], shape_b, res.window_b, "image B", bf16,
-                 res.quarter_turns_b)
+    eb = _encode(global_model, b, shape_b[0] / b.shape[0], shape_b, res.window_b, "image B", bf16, res.quarter_turns_b)
     return global_model.predict_from_features(ea, eb, bf16), res

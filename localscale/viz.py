@@ -4,13 +4,14 @@ Scale maps are shown as ``log2 S`` with a diverging colormap centred on 0 (no sc
 change): red = content bigger in B, blue = smaller in B. Figures fit the colour range to the map
 and label the colourbar in factors (x0.5, x1, x2).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-LOG2_RANGE = 3.0   #: colour range of log2-scale plots: [-3, 3] = scales 1/8 .. 8
+LOG2_RANGE = 3.0  #: colour range of log2-scale plots: [-3, 3] = scales 1/8 .. 8
 CMAP = "RdBu_r"
 
 
@@ -22,18 +23,21 @@ def colorize_log2_scale(scale: np.ndarray, vmax: float = LOG2_RANGE) -> np.ndarr
     scale = np.asarray(scale)
     out = np.empty(scale.shape + (3,), np.uint8)
     step = max(1, (1 << 18) // max(1, scale.shape[-1])) if scale.ndim == 2 else len(scale)
-    for y0 in range(0, len(scale), step):   # in row bands: the colormap's float RGBA is 32 bytes a pixel
-        x = (np.log2(np.clip(scale[y0:y0 + step], 1e-6, None)) / vmax + 1) / 2
+    for y0 in range(0, len(scale), step):  # in row bands: the colormap's float RGBA is 32 bytes a pixel
+        x = (np.log2(np.clip(scale[y0 : y0 + step], 1e-6, None)) / vmax + 1) / 2
         rgb = cmap(np.nan_to_num(np.clip(x, 0, 1), nan=0.5))[..., :3]
-        out[y0:y0 + step] = (rgb * 255).round()
+        out[y0 : y0 + step] = (rgb * 255).round()
     return out
 
 
 def fitted_log2_range(*maps, percentile: float = 99.0, cap: float = LOG2_RANGE) -> float:
     """Symmetric colour range (in ``log2 S``) that fits the maps: the ``percentile`` of
     ``|log2 S|`` over the finite values, rounded up to 0.5, at least 0.5 and at most ``cap``."""
-    vals = [np.abs(np.log2(np.asarray(m, np.float64)))[np.isfinite(np.log2(np.asarray(m, np.float64)))]
-            for m in maps if m is not None]
+    vals = [
+        np.abs(np.log2(np.asarray(m, np.float64)))[np.isfinite(np.log2(np.asarray(m, np.float64)))]
+        for m in maps
+        if m is not None
+    ]
     vals = np.concatenate([v.ravel() for v in vals]) if vals else np.zeros(0)
     if not vals.size:
         return 1.0
@@ -47,7 +51,7 @@ def factor_ticks(vmax: float) -> tuple[list[float], list[str]]:
     step = 1.0 if vmax >= 1.5 else 0.5
     n = int(np.floor(vmax / step + 1e-9))
     ticks = [k * step for k in range(-n, n + 1)]
-    return ticks, [f"x{2.0 ** t:.3g}" for t in ticks]
+    return ticks, [f"x{2.0**t:.3g}" for t in ticks]
 
 
 def _factor_colorbar(fig, im, ax, vmax: float):
@@ -58,10 +62,17 @@ def _factor_colorbar(fig, im, ax, vmax: float):
     return cb
 
 
-def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.ndarray,
-                          confidence: np.ndarray | None = None, gt_scale: np.ndarray | None = None,
-                          gt_mask: np.ndarray | None = None, path: str | Path | None = None,
-                          title: str | None = None, visible: np.ndarray | None = None):
+def plot_scale_prediction(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    scale: np.ndarray,
+    confidence: np.ndarray | None = None,
+    gt_scale: np.ndarray | None = None,
+    gt_mask: np.ndarray | None = None,
+    path: str | Path | None = None,
+    title: str | None = None,
+    visible: np.ndarray | None = None,
+):
     """Figure: A, B, predicted scale map (+ colourbar in factors), confidence, co-visibility
     (when ``visible`` is given), and GT + error if given.
 
@@ -117,15 +128,22 @@ def plot_scale_prediction(image_a: np.ndarray, image_b: np.ndarray, scale: np.nd
 
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         try:
-            with atomic_path(path) as tmp:   # complete file or none
+            with atomic_path(path) as tmp:  # complete file or none
                 fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or None)
         finally:
             plt.close(fig)
     return fig
 
 
-def plot_refined_map(image_a: np.ndarray, network: np.ndarray, refined: np.ndarray, source: np.ndarray | None = None,
-                     gt_scale: np.ndarray | None = None, path: str | Path | None = None, title: str | None = None):
+def plot_refined_map(
+    image_a: np.ndarray,
+    network: np.ndarray,
+    refined: np.ndarray,
+    source: np.ndarray | None = None,
+    gt_scale: np.ndarray | None = None,
+    path: str | Path | None = None,
+    title: str | None = None,
+):
     """Figure: A, the network's map, the refined map (:func:`localscale.matching.refine_scale_map`),
     the ground-truth map when given (nan outside its mask) and the geometry's weight (``source``).
 
@@ -138,8 +156,9 @@ def plot_refined_map(image_a: np.ndarray, network: np.ndarray, refined: np.ndarr
     import matplotlib.pyplot as plt
 
     vmax = fitted_log2_range(network, refined, gt_scale)
-    maps = [("network map", network), ("refined map", refined)] + \
-        ([("ground truth", gt_scale)] if gt_scale is not None else [])
+    maps = [("network map", network), ("refined map", refined)] + (
+        [("ground truth", gt_scale)] if gt_scale is not None else []
+    )
     panels = 1 + len(maps) + (source is not None)
     fig, axes = plt.subplots(1, panels, figsize=(3.0 * panels, 2.6), constrained_layout=True)
     axes = list(np.atleast_1d(axes))

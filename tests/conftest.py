@@ -10,8 +10,14 @@ torch.set_num_threads(1)
 def _photos():
     from skimage import data
 
-    return {"astronaut": data.astronaut(), "coffee": data.coffee(), "chelsea": data.chelsea(),
-            "rocket": data.rocket(), "camera": data.camera(), "immunohistochemistry": data.immunohistochemistry()}
+    return {
+        "astronaut": data.astronaut(),
+        "coffee": data.coffee(),
+        "chelsea": data.chelsea(),
+        "rocket": data.rocket(),
+        "camera": data.camera(),
+        "immunohistochemistry": data.immunohistochemistry(),
+    }
 
 
 @pytest.fixture(scope="session")

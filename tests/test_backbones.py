@@ -1,4 +1,5 @@
 """Frozen pre-trained backbones (XFeat, ALIKED through kornia) under the scale models."""
+
 import hashlib
 import importlib.util
 from pathlib import Path
@@ -29,8 +30,9 @@ def xfeat_file() -> Path:
 @pytest.fixture(scope="module")
 def xfeat_model(xfeat_file):
     torch.manual_seed(0)
-    return LocalScaleNet(feature_dim=16, image_size=64, backbone="xfeat", topk=8, warp_features=True,
-                         visibility=True).eval()
+    return LocalScaleNet(
+        feature_dim=16, image_size=64, backbone="xfeat", topk=8, warp_features=True, visibility=True
+    ).eval()
 
 
 def test_xfeat_backbone_loads_the_packaged_weights(xfeat_file):
@@ -39,7 +41,7 @@ def test_xfeat_backbone_loads_the_packaged_weights(xfeat_file):
     own = bb.net.state_dict()
     assert own.keys() == sd.keys()
     assert all(torch.equal(own[k], sd[k]) for k in sd)
-    assert bb(torch.rand(2, 3, 192, 160)).shape == (2, 64, 24, 20)     # dense map at 1/8, before the heads
+    assert bb(torch.rand(2, 3, 192, 160)).shape == (2, 64, 24, 20)  # dense map at 1/8, before the heads
     assert bb.record()["sha256"] == hashlib.sha256(xfeat_file.read_bytes()).hexdigest()
     assert bb.record()["licence"] == "Apache-2.0"
 
@@ -63,13 +65,30 @@ def test_a_weight_file_missing_a_learned_key_is_refused(xfeat_file, tmp_path, mo
 
 
 def test_frozen_backbone_gets_no_gradient_and_keeps_its_statistics(xfeat_file, image_dir, tmp_path):
-    cfg = TrainConfig(data=str(image_dir), out=str(tmp_path / "run"), backbone="xfeat", feature_dim=16,
-                      image_size=64, steps=2, batch_size=4, lr=1e-2, holdout_every=3, val_pairs=4, val_every=2,
-                      ckpt_every=2, workers=0, threads=1, amp="off", topk=8, warp_features=True, visibility=True)
+    cfg = TrainConfig(
+        data=str(image_dir),
+        out=str(tmp_path / "run"),
+        backbone="xfeat",
+        feature_dim=16,
+        image_size=64,
+        steps=2,
+        batch_size=4,
+        lr=1e-2,
+        holdout_every=3,
+        val_pairs=4,
+        val_every=2,
+        ckpt_every=2,
+        workers=0,
+        threads=1,
+        amp="off",
+        topk=8,
+        warp_features=True,
+        visibility=True,
+    )
     model = cfg.build_model()
     before = {k: v.clone() for k, v in model.extractor.backbone.net.state_dict().items()}
     model.train()
-    assert not model.extractor.backbone.net.training          # eval mode even in train()
+    assert not model.extractor.backbone.net.training  # eval mode even in train()
     assert all(not m.training for m in model.extractor.backbone.net.modules())
     assert not any(p.requires_grad for p in model.extractor.backbone.parameters())
     a, b = torch.rand(4, 3, 64, 64), torch.rand(4, 3, 64, 64)
@@ -77,9 +96,9 @@ def test_frozen_backbone_gets_no_gradient_and_keeps_its_statistics(xfeat_file, i
     assert all(p.grad is None for p in model.extractor.backbone.parameters())
     assert all(p.grad is not None for p in model.extractor.aspp.parameters())
     after = model.extractor.backbone.net.state_dict()
-    assert all(torch.equal(before[k], after[k]) for k in before)     # BatchNorm running stats untouched
+    assert all(torch.equal(before[k], after[k]) for k in before)  # BatchNorm running stats untouched
 
-    train(cfg)                                                        # the trainer's own steps
+    train(cfg)  # the trainer's own steps
     trained = load_model(tmp_path / "run" / "model.pt", arch="LocalScaleNet")
     ref = FrozenBackbone("xfeat").net.state_dict()
     assert all(torch.equal(trained.extractor.backbone.net.state_dict()[k], ref[k]) for k in ref)
@@ -95,10 +114,10 @@ def test_checkpoint_round_trips_and_records_the_backbone(xfeat_model, xfeat_file
     assert ckpt["backbone"]["name"] == "xfeat"
     assert ckpt["backbone"]["sha256"] == hashlib.sha256(xfeat_file.read_bytes()).hexdigest()
     assert ckpt["backbone"]["licence"] == "Apache-2.0"
-    assert not any(k.startswith("extractor.backbone.") for k in ckpt["state_dict"])   # weights stay in their file
+    assert not any(k.startswith("extractor.backbone.") for k in ckpt["state_dict"])  # weights stay in their file
     loaded = load_model(tmp_path / "m.pt", arch="LocalScaleNet")
     a, b = photos["astronaut"], photos["coffee"]
-    assert np.allclose(loaded.predict(a, b).scale, xfeat_model.predict(a, b).scale, rtol=1e-5)   # layouts may differ
+    assert np.allclose(loaded.predict(a, b).scale, xfeat_model.predict(a, b).scale, rtol=1e-5)  # layouts may differ
 
 
 def test_missing_backbone_weights_are_one_clear_error(xfeat_model, tmp_path, monkeypatch, capsys):
@@ -136,7 +155,8 @@ def test_other_backbone_weights_than_recorded_are_refused(xfeat_model, tmp_path)
 def test_vgg_checkpoints_load_unchanged(tmp_path):
     net = LocalScaleNet.from_pretrained()
     assert net.config.backbone == "vgg" and "backbone" not in read_checkpoint(
-        Path(__import__("localscale").models.base.WEIGHTS_DIR) / "local_scalenet.pt")
+        Path(__import__("localscale").models.base.WEIGHTS_DIR) / "local_scalenet.pt"
+    )
     g = ScaleNet(width=0.125, feature_dim=16, image_size=64)
     save_model(g, tmp_path / "g.pt")
     assert "backbone" not in read_checkpoint(tmp_path / "g.pt")
@@ -157,27 +177,48 @@ def test_xfeat_predictions_keep_the_shapes_and_invariants(xfeat_model, photos):
     pred = xfeat_model.predict(a, b)
     assert pred.scale.shape == (300, 200) and pred.visible.shape == (300, 200)
     assert np.isfinite(pred.scale).all() and (pred.scale > 0).all()
-    big = np.repeat(np.repeat(b, 2, 0), 2, 1)                   # B twice as large: the map doubles
+    big = np.repeat(np.repeat(b, 2, 0), 2, 1)  # B twice as large: the map doubles
     ratio = xfeat_model.predict(a, big).scale / pred.scale
     assert np.allclose(np.median(ratio), 2.0, rtol=0.1)
     gray = np.repeat(photos["camera"][..., None], 3, 2)
-    assert xfeat_model.predict(gray, b).scale.shape == gray.shape[:2]   # a gray side makes the pair gray
+    assert xfeat_model.predict(gray, b).scale.shape == gray.shape[:2]  # a gray side makes the pair gray
     batch = xfeat_model.predict_batch(a[None].transpose(0, 3, 1, 2), b[None].transpose(0, 3, 1, 2))
     assert np.allclose(batch.scale[0], pred.scale, rtol=1e-4)
     g = ScaleNet(feature_dim=16, image_size=64, backbone="xfeat").eval()
     s_ab, s_ba = g.predict(a, b).scale, g.predict(b, a).scale
-    assert s_ab == pytest.approx(1 / s_ba, rel=1e-4)             # swapping A and B inverts
+    assert s_ab == pytest.approx(1 / s_ba, rel=1e-4)  # swapping A and B inverts
 
 
 def test_init_head_copies_the_layers_after_the_extractor_across_backbones(xfeat_file, image_dir, tmp_path):
-    base = dict(data=str(image_dir), feature_dim=16, image_size=64, batch_size=2, holdout_every=3, val_pairs=2,
-                val_every=100, ckpt_every=100, workers=0, threads=1, amp="off", topk=8, warp_features=True)
+    base = dict(
+        data=str(image_dir),
+        feature_dim=16,
+        image_size=64,
+        batch_size=2,
+        holdout_every=3,
+        val_pairs=2,
+        val_every=100,
+        ckpt_every=100,
+        workers=0,
+        threads=1,
+        amp="off",
+        topk=8,
+        warp_features=True,
+    )
     train(TrainConfig(out=str(tmp_path / "vgg"), width=0.125, steps=1, **base))
-    train(TrainConfig(out=str(tmp_path / "x"), backbone="xfeat", steps=1, lr=0.0,
-                      init_head=str(tmp_path / "vgg" / "model.pt"), **base))
+    train(
+        TrainConfig(
+            out=str(tmp_path / "x"),
+            backbone="xfeat",
+            steps=1,
+            lr=0.0,
+            init_head=str(tmp_path / "vgg" / "model.pt"),
+            **base,
+        )
+    )
     a = read_checkpoint(tmp_path / "vgg" / "last.pt")["state_dict"]
     b = read_checkpoint(tmp_path / "x" / "last.pt")["state_dict"]
     conv = [k for k in a if k.endswith("weight") and a[k].dim() == 4 and not k.startswith("extractor.")]
-    assert conv and all(torch.allclose(a[k].float(), b[k].float(), atol=1e-3) for k in conv)   # fp16 export
-    assert b["extractor.aspp.branches.0.0.weight"].shape[1] == 64            # a fresh ASPP on XFeat's 64 channels
+    assert conv and all(torch.allclose(a[k].float(), b[k].float(), atol=1e-3) for k in conv)  # fp16 export
+    assert b["extractor.aspp.branches.0.0.weight"].shape[1] == 64  # a fresh ASPP on XFeat's 64 channels
     assert not any(k.startswith("extractor.backbone.") for k in b)

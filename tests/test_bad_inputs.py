@@ -8,6 +8,7 @@ file unchanged (hashed before and after). The API cases assert one-line
 writes, NaN gradients and weights, code in checkpoints, decompression bombs and DataLoader
 workers orphaned by ``kill -9``.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -30,9 +31,9 @@ import torch
 
 import localscale.io as lio
 from localscale import LocalScaleNet, ScaleNet, training
-from localscale.cli import train as train_cli
 from localscale.checkpoint import checkpoint_dict, save_model
 from localscale.cli import main
+from localscale.cli import train as train_cli
 from localscale.cli.signals import Terminated
 from localscale.errors import CheckpointError, LocalScaleError
 from localscale.models import load_model
@@ -53,6 +54,7 @@ class _WritesMarker:
 
 # ---------------------------------------------------------------- generated inputs
 
+
 def _smooth_image(seed: int, h: int = 64, w: int = 80) -> np.ndarray:
     rng = np.random.default_rng(seed)
     img = cv2.resize(rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
@@ -63,16 +65,16 @@ def _png_claiming(width: int, height: int) -> bytes:
     ok, buf = cv2.imencode(".png", np.zeros((16, 16, 3), np.uint8))
     data = bytearray(buf.tobytes())
     i = data.index(b"IHDR")
-    data[i + 4:i + 12] = struct.pack(">II", width, height)
-    data[i + 17:i + 21] = struct.pack(">I", zlib.crc32(bytes(data[i:i + 17])) & 0xFFFFFFFF)
+    data[i + 4 : i + 12] = struct.pack(">II", width, height)
+    data[i + 17 : i + 21] = struct.pack(">I", zlib.crc32(bytes(data[i : i + 17])) & 0xFFFFFFFF)
     return bytes(data)
 
 
 def _jpeg_claiming(width: int, height: int) -> bytes:
     ok, buf = cv2.imencode(".jpg", np.zeros((16, 16, 3), np.uint8))
     data = bytearray(buf.tobytes())
-    i = data.index(b"\xff\xc0")                       # baseline SOF: FFC0 len(2) precision(1) height(2) width(2)
-    data[i + 5:i + 9] = struct.pack(">HH", height, width)
+    i = data.index(b"\xff\xc0")  # baseline SOF: FFC0 len(2) precision(1) height(2) width(2)
+    data[i + 5 : i + 9] = struct.pack(">HH", height, width)
     return bytes(data)
 
 
@@ -81,11 +83,11 @@ def _damaged_jpeg() -> bytes:
     ok, buf = cv2.imencode(".jpg", _smooth_image(6, 214, 320))
     data = bytearray(buf.tobytes())
     i = data.index(b"\xff\xc0")
-    data[i + 5:i + 9] = struct.pack(">HH", 9999, 9999)
+    data[i + 5 : i + 9] = struct.pack(">HH", 9999, 9999)
     return bytes(data)
 
 
-BOMBS = {   # headers claiming far more than MAX_PIXELS, a few KB of data
+BOMBS = {  # headers claiming far more than MAX_PIXELS, a few KB of data
     "bomb.png": lambda: _png_claiming(100_000, 100_000),
     "bomb.jpg": lambda: _jpeg_claiming(60_000, 60_000),
     "bomb.ppm": lambda: b"P6\n30000 30000\n255\n" + bytes(4096),
@@ -122,7 +124,7 @@ def _make_checkpoints(d: Path) -> dict:
     def variant(name, edit):
         ck = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
         replaced = edit(ck)
-        ck = replaced if isinstance(replaced, list) else ck   # an edit may return a whole new object
+        ck = replaced if isinstance(replaced, list) else ck  # an edit may return a whole new object
         torch.save(ck, d / name)
         return d / name
 
@@ -148,8 +150,10 @@ def _make_checkpoints(d: Path) -> dict:
         "empty": (d / "empty.pt", "cannot read checkpoint"),
         "text": (d / "text.pt", "cannot read checkpoint"),
         "truncated": (d / "truncated.pt", "cannot read checkpoint"),
-        "code_in_meta": (variant("evil.pt", lambda ck: ck.update(meta={"x": _WritesMarker(d / "RAN")})),
-                         "non-tensor objects"),
+        "code_in_meta": (
+            variant("evil.pt", lambda ck: ck.update(meta={"x": _WritesMarker(d / "RAN")})),
+            "non-tensor objects",
+        ),
         "nan_weights": (variant("nan.pt", nan), "NaN or inf"),
         "inf_weights": (variant("inf.pt", inf), "NaN or inf"),
         "format_99": (variant("f99.pt", lambda ck: ck.update(localscale_format=99)), "format version 99"),
@@ -157,13 +161,20 @@ def _make_checkpoints(d: Path) -> dict:
         "no_format": (variant("nofmt.pt", lambda ck: ck.pop("localscale_format")), "not a localscale checkpoint"),
         "no_state_dict": (variant("nosd.pt", lambda ck: ck.pop("state_dict")), "no 'state_dict'"),
         "non_tensor": (variant("nt.pt", lambda ck: ck["state_dict"].update({"head.x": [1, 2]})), "not a tensor"),
-        "bad_config": (variant("cfg.pt", lambda ck: ck.update(config={"width": "wide", "bogus": 1})),
-                       "config does not fit"),
+        "bad_config": (
+            variant("cfg.pt", lambda ck: ck.update(config={"width": "wide", "bogus": 1})),
+            "config does not fit",
+        ),
         "no_config": (variant("nocfg.pt", lambda ck: ck.update(config=[1])), "no valid 'config'"),
         "wrong_arch": (d / "global.pt", "expected a LocalScaleNet"),
         "unknown_arch": (variant("arch.pt", lambda ck: ck.update(arch="Banana")), "Banana"),
-        "missing_keys": (variant("keys.pt", lambda ck: ck.update(state_dict={
-            k: v for i, (k, v) in enumerate(good["state_dict"].items()) if i % 2})), "do not match"),
+        "missing_keys": (
+            variant(
+                "keys.pt",
+                lambda ck: ck.update(state_dict={k: v for i, (k, v) in enumerate(good["state_dict"].items()) if i % 2}),
+            ),
+            "do not match",
+        ),
         "list": (variant("list.pt", lambda ck: [1, 2, 3]), "not a localscale checkpoint"),
     }
 
@@ -254,14 +265,23 @@ def env(tmp_path_factory):
     corrupt.mkdir()
     for i in range(4):
         (corrupt / f"c{i}.png").write_bytes(good_png[:120])
-    return {"root": root, "in": d, "ck": checkpoints, "hp": hp, "hp_bad": bad, "hp_empty": root / "hp_empty",
-            "photos": photos, "one_photo": one, "corrupt_photos": corrupt}
+    return {
+        "root": root,
+        "in": d,
+        "ck": checkpoints,
+        "hp": hp,
+        "hp_bad": bad,
+        "hp_empty": root / "hp_empty",
+        "photos": photos,
+        "one_photo": one,
+        "corrupt_photos": corrupt,
+    }
 
 
 def _run(fn, argv, capsys):
     try:
         rc = fn(argv)
-    except SystemExit as e:   # argument errors
+    except SystemExit as e:  # argument errors
         rc = e.code
     cap = capsys.readouterr()
     return rc, cap.out, cap.err
@@ -280,60 +300,166 @@ def assert_clean_error(rc, err, words, out_dir: Path | None = None):
 
 # ---------------------------------------------------------------- the CLI table
 
+
 def _image_cases():
     """Every bad image file, as image A or B of each command that reads images."""
     cases = []
     for name, words in BAD_IMAGES.items():
         short = name if len(name) < 40 else "long_name.png"
         cases += [
-            (f"predict-A-{short}", ["predict", "{in}/" + name, "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
-             words),
-            (f"predict-B-{short}", ["predict", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--local-weights", "{in}/local.pt"],
-             words),
+            (
+                f"predict-A-{short}",
+                ["predict", "{in}/" + name, "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
+                words,
+            ),
+            (
+                f"predict-B-{short}",
+                ["predict", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--local-weights", "{in}/local.pt"],
+                words,
+            ),
             (f"scale-A-{short}", ["scale", "{in}/" + name, "{in}/b.png", "--global-weights", "{in}/global.pt"], words),
-            (f"rectify-B-{short}", ["rectify", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--global-weights",
-                                    "{in}/global.pt"], words),
-            (f"show-A-{short}", ["show", "{in}/" + name, "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
-             words),
-            (f"match-B-{short}", ["match", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--correction", "none",
-                                  "--descriptor", "sift"], words),
+            (
+                f"rectify-B-{short}",
+                ["rectify", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--global-weights", "{in}/global.pt"],
+                words,
+            ),
+            (
+                f"show-A-{short}",
+                ["show", "{in}/" + name, "{in}/b.png", "-o", "{out}", "--local-weights", "{in}/local.pt"],
+                words,
+            ),
+            (
+                f"match-B-{short}",
+                ["match", "{in}/a.png", "{in}/" + name, "-o", "{out}", "--correction", "none", "--descriptor", "sift"],
+                words,
+            ),
         ]
     return cases
 
 
-CHECKPOINT_CASES = ["missing", "empty", "text", "truncated", "code_in_meta", "nan_weights", "inf_weights", "format_99",
-                    "format_str", "no_format", "no_state_dict", "non_tensor", "bad_config", "no_config", "wrong_arch",
-                    "unknown_arch", "missing_keys", "list"]
+CHECKPOINT_CASES = [
+    "missing",
+    "empty",
+    "text",
+    "truncated",
+    "code_in_meta",
+    "nan_weights",
+    "inf_weights",
+    "format_99",
+    "format_str",
+    "no_format",
+    "no_state_dict",
+    "non_tensor",
+    "bad_config",
+    "no_config",
+    "wrong_arch",
+    "unknown_arch",
+    "missing_keys",
+    "list",
+]
 
 
 def _checkpoint_cases():
     cases = []
     for name in CHECKPOINT_CASES:
         w = "{ck:" + name + "}"
-        cases.append((f"predict-ckpt-{name}", ["predict", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--local-weights", w],
-                      "{ckw:" + name + "}"))
+        cases.append(
+            (
+                f"predict-ckpt-{name}",
+                ["predict", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--local-weights", w],
+                "{ckw:" + name + "}",
+            )
+        )
     for name in ("missing", "code_in_meta", "nan_weights", "format_99", "no_state_dict", "truncated"):
         w = "{ck:" + name + "}"
         cases += [
-            (f"show-ckpt-{name}", ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--local-weights", w],
-             "{ckw:" + name + "}"),
+            (
+                f"show-ckpt-{name}",
+                ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--local-weights", w],
+                "{ckw:" + name + "}",
+            ),
             (f"demo-ckpt-{name}", ["demo", "-o", "{out}", "--local-weights", w], "{ckw:" + name + "}"),
-            (f"match-ckpt-{name}", ["match", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--correction", "local",
-                                    "--descriptor", "sift", "--local-weights", w], "{ckw:" + name + "}"),
-            (f"eval-ckpt-{name}", ["eval-hpatches", "{hp}", "-o", "{out}", "--methods", "none", "local",
-                                   "--descriptor", "sift", "--local-weights", w], "{ckw:" + name + "}"),
+            (
+                f"match-ckpt-{name}",
+                [
+                    "match",
+                    "{in}/a.png",
+                    "{in}/b.png",
+                    "-o",
+                    "{out}",
+                    "--correction",
+                    "local",
+                    "--descriptor",
+                    "sift",
+                    "--local-weights",
+                    w,
+                ],
+                "{ckw:" + name + "}",
+            ),
+            (
+                f"eval-ckpt-{name}",
+                [
+                    "eval-hpatches",
+                    "{hp}",
+                    "-o",
+                    "{out}",
+                    "--methods",
+                    "none",
+                    "local",
+                    "--descriptor",
+                    "sift",
+                    "--local-weights",
+                    w,
+                ],
+                "{ckw:" + name + "}",
+            ),
         ]
     cases += [
-        ("scale-ckpt-nan_weights", ["scale", "{in}/a.png", "{in}/b.png", "--json", "--global-weights", "{ck:nan_weights}"],
-         "NaN or inf"),
-        ("scale-ckpt-local-for-global", ["scale", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/local.pt"],
-         "expected a ScaleNet"),
-        ("rectify-ckpt-code", ["rectify", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--global-weights",
-                               "{ck:code_in_meta}"], "non-tensor objects"),
-        ("match-descriptor-code", ["match", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--correction", "none",
-                                   "--descriptor", "{ck:code_in_meta}"], "non-tensor objects"),
-        ("match-descriptor-missing", ["match", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--correction", "none",
-                                      "--descriptor", "{in}/nope.pt"], "not found"),
+        (
+            "scale-ckpt-nan_weights",
+            ["scale", "{in}/a.png", "{in}/b.png", "--json", "--global-weights", "{ck:nan_weights}"],
+            "NaN or inf",
+        ),
+        (
+            "scale-ckpt-local-for-global",
+            ["scale", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/local.pt"],
+            "expected a ScaleNet",
+        ),
+        (
+            "rectify-ckpt-code",
+            ["rectify", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--global-weights", "{ck:code_in_meta}"],
+            "non-tensor objects",
+        ),
+        (
+            "match-descriptor-code",
+            [
+                "match",
+                "{in}/a.png",
+                "{in}/b.png",
+                "-o",
+                "{out}",
+                "--correction",
+                "none",
+                "--descriptor",
+                "{ck:code_in_meta}",
+            ],
+            "non-tensor objects",
+        ),
+        (
+            "match-descriptor-missing",
+            [
+                "match",
+                "{in}/a.png",
+                "{in}/b.png",
+                "-o",
+                "{out}",
+                "--correction",
+                "none",
+                "--descriptor",
+                "{in}/nope.pt",
+            ],
+            "not found",
+        ),
     ]
     return cases
 
@@ -351,8 +477,11 @@ def _option_cases():
         ("predict-cache-mb-0", P + ["--cache-mb", "0"], "--cache-mb"),
         ("predict-cache-mb--5", P + ["--cache-mb", "-5"], "--cache-mb"),
         ("predict-unknown-option", P + ["--frobnicate"], "unrecognized arguments"),
-        ("predict-both-modes", ["predict", "{in}/a.png", "{in}/b.png", "--pairs", "{in}/pairs_ok.txt", "-o", "{out}"],
-         "not both"),
+        (
+            "predict-both-modes",
+            ["predict", "{in}/a.png", "{in}/b.png", "--pairs", "{in}/pairs_ok.txt", "-o", "{out}"],
+            "not both",
+        ),
         ("predict-nothing", ["predict", "-o", "{out}"], "give two images"),
         ("match-num-features-0", M + ["--correction", "none", "--num-features", "0"], "--num-features"),
         ("match-num-features--3", M + ["--correction", "none", "--num-features", "-3"], "--num-features"),
@@ -371,10 +500,36 @@ def _option_cases():
         ("match-H-broken-link", M + ["--correction", "gt", "--H", "{in}/broken.png"], "broken symbolic link"),
         ("match-H-folder", M + ["--correction", "gt", "--H", "{in}/folder.png"], "not a regular file"),
         ("match-H-binary", M + ["--correction", "gt", "--H", "{in}/garbage.png"], "not a text matrix"),
-        ("show-H-nan", ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--H", "{in}/H_nan", "--local-weights",
-                        "{in}/local.pt"], "NaN"),
-        ("show-H-singular", ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--H", "{in}/H_singular",
-                             "--local-weights", "{in}/local.pt"], "singular"),
+        (
+            "show-H-nan",
+            [
+                "show",
+                "{in}/a.png",
+                "{in}/b.png",
+                "-o",
+                "{out}",
+                "--H",
+                "{in}/H_nan",
+                "--local-weights",
+                "{in}/local.pt",
+            ],
+            "NaN",
+        ),
+        (
+            "show-H-singular",
+            [
+                "show",
+                "{in}/a.png",
+                "{in}/b.png",
+                "-o",
+                "{out}",
+                "--H",
+                "{in}/H_singular",
+                "--local-weights",
+                "{in}/local.pt",
+            ],
+            "singular",
+        ),
         ("eval-max-side--5", E + ["--max-side", "-5"], "--max-side"),
         ("eval-num-features-0", E + ["--num-features", "0"], "--num-features"),
         ("eval-base-radius-nan", E + ["--base-radius", "nan"], "--base-radius"),
@@ -382,17 +537,23 @@ def _option_cases():
         ("eval-root-missing", ["eval-hpatches", "{in}/no_root", "-o", "{out}", "--methods", "none"], "not found"),
         ("eval-root-file", ["eval-hpatches", "{in}/afile", "-o", "{out}", "--methods", "none"], "not found"),
         ("eval-root-empty", ["eval-hpatches", "{hp_empty}", "-o", "{out}", "--methods", "none"], "no sequences"),
-        ("eval-all-pairs-bad", ["eval-hpatches", "{hp_bad}", "-o", "{out}", "--methods", "none", "--descriptor", "sift"],
-         ["can be evaluated", "NaN"]),
+        (
+            "eval-all-pairs-bad",
+            ["eval-hpatches", "{hp_bad}", "-o", "{out}", "--methods", "none", "--descriptor", "sift"],
+            ["can be evaluated", "NaN"],
+        ),
         ("no-command", [], "required"),
         ("unknown-command", ["frobnicate"], "invalid choice"),
     ]
-    for cmd, argv in {"predict": ["predict", "{in}/a.png", "{in}/b.png", "-o", "{out}"],
-                      "show": ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}"], "demo": ["demo", "-o", "{out}"],
-                      "scale": ["scale", "{in}/a.png", "{in}/b.png"],
-                      "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "-o", "{out}"],
-                      "match": ["match", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--correction", "fused"],
-                      "eval-hpatches": ["eval-hpatches", "{hp}", "-o", "{out}", "--methods", "local"]}.items():
+    for cmd, argv in {
+        "predict": ["predict", "{in}/a.png", "{in}/b.png", "-o", "{out}"],
+        "show": ["show", "{in}/a.png", "{in}/b.png", "-o", "{out}"],
+        "demo": ["demo", "-o", "{out}"],
+        "scale": ["scale", "{in}/a.png", "{in}/b.png"],
+        "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "-o", "{out}"],
+        "match": ["match", "{in}/a.png", "{in}/b.png", "-o", "{out}", "--correction", "fused"],
+        "eval-hpatches": ["eval-hpatches", "{hp}", "-o", "{out}", "--methods", "local"],
+    }.items():
         cases.append((f"{cmd}-device-banana", argv + ["--device", "banana"], "unknown device 'banana'"))
     return cases
 
@@ -416,13 +577,15 @@ def _pairs_cases():
 
 def _output_cases():
     cases = []
-    argv = {"predict": ["predict", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
-            "predict-pairs": ["predict", "--pairs", "{in}/pairs_ok.txt", "--local-weights", "{in}/local.pt"],
-            "show": ["show", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
-            "demo": ["demo", "--local-weights", "{in}/local.pt"],
-            "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/global.pt"],
-            "match": ["match", "{in}/a.png", "{in}/b.png", "--correction", "none", "--descriptor", "sift"],
-            "eval-hpatches": ["eval-hpatches", "{hp}", "--methods", "none", "--descriptor", "sift"]}
+    argv = {
+        "predict": ["predict", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+        "predict-pairs": ["predict", "--pairs", "{in}/pairs_ok.txt", "--local-weights", "{in}/local.pt"],
+        "show": ["show", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+        "demo": ["demo", "--local-weights", "{in}/local.pt"],
+        "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/global.pt"],
+        "match": ["match", "{in}/a.png", "{in}/b.png", "--correction", "none", "--descriptor", "sift"],
+        "eval-hpatches": ["eval-hpatches", "{hp}", "--methods", "none", "--descriptor", "sift"],
+    }
     for cmd, a in argv.items():
         cases += [
             (f"{cmd}-out-is-a-file", a + ["-o", "{in}/afile"], "is not a folder"),
@@ -430,8 +593,13 @@ def _output_cases():
             (f"{cmd}-out-name-too-long", a + ["-o", "{out}/" + "o" * 300], "name too long"),
             (f"{cmd}-out-read-only", a + ["-o", "{out}", "@readonly"], "not writable"),
         ]
-    cases.append(("predict-pairs-index-is-input", ["predict", "--pairs", "{out_in}/index.tsv", "-o", "{out_in}",
-                                                   "--local-weights", "{in}/local.pt"], "refusing to overwrite"))
+    cases.append(
+        (
+            "predict-pairs-index-is-input",
+            ["predict", "--pairs", "{out_in}/index.tsv", "-o", "{out_in}", "--local-weights", "{in}/local.pt"],
+            "refusing to overwrite",
+        )
+    )
     return cases
 
 
@@ -451,10 +619,10 @@ def _fill(arg: str, env, out: Path) -> str:
 def test_cli_bad_input_is_one_clean_error(case, env, tmp_path, capsys, monkeypatch):
     name, argv, words = case
     out = tmp_path / "out"
-    if name == "predict-pairs-index-is-input":   # the pairs file is the index the command would write
+    if name == "predict-pairs-index-is-input":  # the pairs file is the index the command would write
         (env["in"] / "out_in").mkdir(exist_ok=True)
         (env["in"] / "out_in" / "index.tsv").write_text(f"{env['in']}/a.png\t{env['in']}/b.png\n")
-    if "@readonly" in argv:   # root ignores permission bits: make the folder check see a read-only folder
+    if "@readonly" in argv:  # root ignores permission bits: make the folder check see a read-only folder
         argv = [a for a in argv if a != "@readonly"]
         out.mkdir()
         real = os.access
@@ -465,8 +633,8 @@ def test_cli_bad_input_is_one_clean_error(case, env, tmp_path, capsys, monkeypat
     before = _hash_tree(env["root"])
     rc, stdout, err = _run(main, argv, capsys)
     assert_clean_error(rc, err, words, out)
-    assert _hash_tree(env["root"]) == before                    # no input modified, nothing written beside them
-    assert not (env["in"] / "ckpt" / "RAN").exists()            # no code from a checkpoint ran
+    assert _hash_tree(env["root"]) == before  # no input modified, nothing written beside them
+    assert not (env["in"] / "ckpt" / "RAN").exists()  # no code from a checkpoint ran
     assert "NaN" not in stdout
 
 
@@ -477,8 +645,28 @@ def test_the_table_is_large():
 
 # ---------------------------------------------------------------- training CLI
 
-TRAIN_BASE = ["--width", "0.125", "--feature-dim", "16", "--image-size", "64", "--steps", "2", "--batch-size", "2",
-              "--holdout-every", "3", "--val-pairs", "2", "--workers", "0", "--threads", "1", "--amp", "off"]
+TRAIN_BASE = [
+    "--width",
+    "0.125",
+    "--feature-dim",
+    "16",
+    "--image-size",
+    "64",
+    "--steps",
+    "2",
+    "--batch-size",
+    "2",
+    "--holdout-every",
+    "3",
+    "--val-pairs",
+    "2",
+    "--workers",
+    "0",
+    "--threads",
+    "1",
+    "--amp",
+    "off",
+]
 
 TRAIN_CASES = [
     ("data-missing", ["--data", "{root}/no_photos"], "image folder not found"),
@@ -515,11 +703,15 @@ TRAIN_CASES = [
 def test_training_cli_bad_input_is_one_clean_error(case, env, tmp_path, capsys):
     name, argv, words = case
     out = tmp_path / "out"
-    argv = [a.replace("{root}", str(env["root"])).replace("{hp_empty}", str(env["hp_empty"]))
-            .replace("{one_photo}", str(env["one_photo"])).replace("{corrupt_photos}", str(env["corrupt_photos"]))
-            for a in argv]
+    argv = [
+        a.replace("{root}", str(env["root"]))
+        .replace("{hp_empty}", str(env["hp_empty"]))
+        .replace("{one_photo}", str(env["one_photo"]))
+        .replace("{corrupt_photos}", str(env["corrupt_photos"]))
+        for a in argv
+    ]
     argv = [_fill(a, env, out) for a in argv]
-    full = TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(out)] + argv   # later options win
+    full = TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(out)] + argv  # later options win
     before = _hash_tree(env["root"])
     with pytest.warns(None) if False else _no_op():
         rc, stdout, err = _run(lambda a: train_cli.main(a, model="local"), full, capsys)
@@ -531,9 +723,10 @@ def test_training_cli_bad_input_is_one_clean_error(case, env, tmp_path, capsys):
 class _no_op:
     def __enter__(self):
         import warnings
+
         self._w = warnings.catch_warnings()
         self._w.__enter__()
-        warnings.simplefilter("ignore")   # the skipped-photo warnings of data-all-corrupt
+        warnings.simplefilter("ignore")  # the skipped-photo warnings of data-all-corrupt
 
     def __exit__(self, *exc):
         return self._w.__exit__(*exc)
@@ -552,31 +745,59 @@ def test_resuming_a_checkpoint_of_another_configuration_is_one_clean_error(env, 
 
 # ---------------------------------------------------------------- Python API
 
+
 def _api_model():
     torch.manual_seed(0)
     return LocalScaleNet(**TINY).eval()
 
 
 API_CASES = [
-    ("array-5-channels", lambda m, e: m.predict(np.zeros((64, 64, 5), np.uint8), np.zeros((64, 64, 3), np.uint8)),
-     "got shape (64, 64, 5)"),
+    (
+        "array-5-channels",
+        lambda m, e: m.predict(np.zeros((64, 64, 5), np.uint8), np.zeros((64, 64, 3), np.uint8)),
+        "got shape (64, 64, 5)",
+    ),
     ("array-1d", lambda m, e: m.predict(np.zeros(64, np.uint8), np.zeros((64, 64), np.uint8)), "got shape (64,)"),
-    ("array-4d", lambda m, e: m.predict(np.zeros((1, 64, 64, 3), np.uint8), np.zeros((64, 64), np.uint8)),
-     "got shape (1, 64, 64, 3)"),
-    ("array-int64", lambda m, e: m.predict(np.zeros((64, 64), np.int64), np.zeros((64, 64), np.uint8)),
-     "unsupported dtype int64"),
-    ("array-complex", lambda m, e: m.predict(np.zeros((64, 64), np.complex64), np.zeros((64, 64), np.uint8)),
-     "unsupported dtype complex64"),
-    ("array-object", lambda m, e: m.predict(np.zeros((64, 64), object), np.zeros((64, 64), np.uint8)),
-     "unsupported dtype object"),
-    ("array-nan", lambda m, e: m.predict(np.full((64, 64), np.nan, np.float32), np.zeros((64, 64), np.uint8)),
-     "NaN or inf"),
-    ("array-out-of-range", lambda m, e: m.predict(np.full((64, 64), 2.0, np.float32), np.zeros((64, 64), np.uint8)),
-     "must be in [0, 1]"),
-    ("array-empty", lambda m, e: m.predict(np.zeros((64, 0, 3), np.uint8), np.zeros((64, 64), np.uint8)),
-     "smaller than the minimum"),
-    ("array-tiny", lambda m, e: m.predict(np.zeros((8, 8, 3), np.uint8), np.zeros((64, 64), np.uint8)),
-     "smaller than the minimum"),
+    (
+        "array-4d",
+        lambda m, e: m.predict(np.zeros((1, 64, 64, 3), np.uint8), np.zeros((64, 64), np.uint8)),
+        "got shape (1, 64, 64, 3)",
+    ),
+    (
+        "array-int64",
+        lambda m, e: m.predict(np.zeros((64, 64), np.int64), np.zeros((64, 64), np.uint8)),
+        "unsupported dtype int64",
+    ),
+    (
+        "array-complex",
+        lambda m, e: m.predict(np.zeros((64, 64), np.complex64), np.zeros((64, 64), np.uint8)),
+        "unsupported dtype complex64",
+    ),
+    (
+        "array-object",
+        lambda m, e: m.predict(np.zeros((64, 64), object), np.zeros((64, 64), np.uint8)),
+        "unsupported dtype object",
+    ),
+    (
+        "array-nan",
+        lambda m, e: m.predict(np.full((64, 64), np.nan, np.float32), np.zeros((64, 64), np.uint8)),
+        "NaN or inf",
+    ),
+    (
+        "array-out-of-range",
+        lambda m, e: m.predict(np.full((64, 64), 2.0, np.float32), np.zeros((64, 64), np.uint8)),
+        "must be in [0, 1]",
+    ),
+    (
+        "array-empty",
+        lambda m, e: m.predict(np.zeros((64, 0, 3), np.uint8), np.zeros((64, 64), np.uint8)),
+        "smaller than the minimum",
+    ),
+    (
+        "array-tiny",
+        lambda m, e: m.predict(np.zeros((8, 8, 3), np.uint8), np.zeros((64, 64), np.uint8)),
+        "smaller than the minimum",
+    ),
     ("list", lambda m, e: m.predict([[1, 2], [3, 4]], np.zeros((64, 64), np.uint8)), "got list"),
     ("none", lambda m, e: m.predict(None, np.zeros((64, 64), np.uint8)), "got NoneType"),
     ("file-missing", lambda m, e: m.predict(e["in"] / "missing.png", e["in"] / "b.png"), "file not found"),
@@ -590,25 +811,44 @@ API_CASES = [
     ("load-nan", lambda m, e: load_model(e["ck"]["nan_weights"][0]), "NaN or inf"),
     ("load-code", lambda m, e: load_model(e["ck"]["code_in_meta"][0]), "non-tensor objects"),
     ("from-pretrained-wrong-arch", lambda m, e: ScaleNet.from_pretrained(e["in"] / "local.pt"), "expected a ScaleNet"),
-    ("from-pretrained-format", lambda m, e: LocalScaleNet.from_pretrained(e["ck"]["format_99"][0]), "format version 99"),
+    (
+        "from-pretrained-format",
+        lambda m, e: LocalScaleNet.from_pretrained(e["ck"]["format_99"][0]),
+        "format version 99",
+    ),
     ("save-nan", lambda m, e: save_model(_nan_model(), e["root"] / "saved_nan.pt"), "not saved"),
     ("predict-pairs-bad-pair", lambda m, e: _first_pair_error(m, e), "file not found"),
     ("from-pretrained-cuda-99", lambda m, e: LocalScaleNet.from_pretrained(device="cuda:99"), "'cuda:99'"),
     ("from-pretrained-bogus", lambda m, e: LocalScaleNet.from_pretrained(device="bogus"), "unknown device 'bogus'"),
     ("from-pretrained-meta", lambda m, e: ScaleNet.from_pretrained(device="meta"), "'meta' is not supported"),
-    ("load-model-device-object", lambda m, e: load_model(e["in"] / "local.pt", device=torch.device("meta")),
-     "'meta' is not supported"),
-    ("predict-meta-tensor", lambda m, e: m.predict(torch.zeros(3, 64, 64, device="meta"), e["in"] / "b.png"),
-     "image A: tensor on the meta device"),
-    ("predict-batch-meta-tensor", lambda m, e: m.predict_batch(torch.zeros(2, 3, 64, 64),
-                                                               torch.zeros(2, 3, 64, 64, device="meta")),
-     "images B: tensor on the meta device"),
-    ("check-pair-scalenet", lambda m, e: check_pair(ScaleNet(**TINY), e["in"] / "a.png", e["in"] / "b.png"),
-     "check_pair needs a LocalScaleNet"),
+    (
+        "load-model-device-object",
+        lambda m, e: load_model(e["in"] / "local.pt", device=torch.device("meta")),
+        "'meta' is not supported",
+    ),
+    (
+        "predict-meta-tensor",
+        lambda m, e: m.predict(torch.zeros(3, 64, 64, device="meta"), e["in"] / "b.png"),
+        "image A: tensor on the meta device",
+    ),
+    (
+        "predict-batch-meta-tensor",
+        lambda m, e: m.predict_batch(torch.zeros(2, 3, 64, 64), torch.zeros(2, 3, 64, 64, device="meta")),
+        "images B: tensor on the meta device",
+    ),
+    (
+        "check-pair-scalenet",
+        lambda m, e: check_pair(ScaleNet(**TINY), e["in"] / "a.png", e["in"] / "b.png"),
+        "check_pair needs a LocalScaleNet",
+    ),
     ("check-pair-none", lambda m, e: check_pair(None, e["in"] / "a.png", e["in"] / "b.png"), "got NoneType"),
-] + ([] if torch.cuda.is_available() else [
-    ("from-pretrained-cuda", lambda m, e: LocalScaleNet.from_pretrained(device="cuda"), "no CUDA device available"),
-])
+] + (
+    []
+    if torch.cuda.is_available()
+    else [
+        ("from-pretrained-cuda", lambda m, e: LocalScaleNet.from_pretrained(device="cuda"), "no CUDA device available"),
+    ]
+)
 
 
 def _nan_model():
@@ -621,7 +861,7 @@ def _nan_model():
 def _first_pair_error(m, e):
     from localscale.cache import predict_pairs
 
-    (_, res), = list(predict_pairs(m, [(e["in"] / "missing.png", e["in"] / "b.png")]))
+    ((_, res),) = list(predict_pairs(m, [(e["in"] / "missing.png", e["in"] / "b.png")]))
     raise res
 
 
@@ -646,6 +886,7 @@ def test_gray_alpha_array_is_gray(env):
 
 # ---------------------------------------------------------------- faults: interrupted writes
 
+
 def test_interrupted_write_leaves_no_partial_file(env, tmp_path, monkeypatch, capsys):
     """A write that dies midway (here: after half the bytes) leaves neither the final name nor a
     temporary file; the command fails with one error line."""
@@ -657,8 +898,19 @@ def test_interrupted_write_leaves_no_partial_file(env, tmp_path, monkeypatch, ca
 
     monkeypatch.setattr(np, "save", half_then_fail)
     out = tmp_path / "out"
-    rc, _, err = _run(main, ["predict", str(env["in"] / "a.png"), str(env["in"] / "b.png"), "-o", str(out),
-                             "--local-weights", str(env["in"] / "local.pt")], capsys)
+    rc, _, err = _run(
+        main,
+        [
+            "predict",
+            str(env["in"] / "a.png"),
+            str(env["in"] / "b.png"),
+            "-o",
+            str(out),
+            "--local-weights",
+            str(env["in"] / "local.pt"),
+        ],
+        capsys,
+    )
     assert_clean_error(rc, err, ["No space left on device", "_scale.npy"])
     assert not list(out.glob("*.npy")) and not list(out.glob(".*"))
     monkeypatch.setattr(np, "save", real_save)
@@ -681,7 +933,7 @@ def _pairs_setup(env, tmp_path, n=4):
     d = tmp_path / "imgs"
     d.mkdir()
     for i in range(n + 1):
-        cv2.imwrite(str(d / f"im {i}.png"), _smooth_image(40 + i))   # names with spaces: quoted in the file
+        cv2.imwrite(str(d / f"im {i}.png"), _smooth_image(40 + i))  # names with spaces: quoted in the file
     lines = [f'"im {i}.png"\t"x"' for i in range(0)] + [f'"im {i}.png" "im {i + 1}.png"' for i in range(n)]
     (d / "pairs.txt").write_text("# pairs\n" + "\n".join(lines) + "\n")
     return d / "pairs.txt"
@@ -692,30 +944,39 @@ def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeyp
 
     pairs = _pairs_setup(env, tmp_path)
     out = tmp_path / "out"
-    argv = ["predict", "--pairs", str(pairs), "-o", str(out), "--local-weights", str(env["in"] / "local.pt"),
-            "--batch-size", "1"]
+    argv = [
+        "predict",
+        "--pairs",
+        str(pairs),
+        "-o",
+        str(out),
+        "--local-weights",
+        str(env["in"] / "local.pt"),
+        "--batch-size",
+        "1",
+    ]
     real = outputs.write_image
     calls = {"n": 0}
 
     def terminated_on_the_6th_image(path, img):
         calls["n"] += 1
-        if calls["n"] == 6:   # pair 2's colour PNG (two images per pair): SIGTERM arrives during the write
+        if calls["n"] == 6:  # pair 2's colour PNG (two images per pair): SIGTERM arrives during the write
             raise Terminated()
         return real(path, img)
 
     monkeypatch.setattr(outputs, "write_image", terminated_on_the_6th_image)
     rc, _, err = _run(main, argv, capsys)
     assert rc == 143 and "terminated" in err and "Traceback" not in err
-    for f in out.iterdir():   # every file left is complete; no temporary file is left
+    for f in out.iterdir():  # every file left is complete; no temporary file is left
         assert not f.name.startswith("."), f
         if f.suffix == ".npy":
             np.load(f)
     monkeypatch.setattr(outputs, "write_image", real)
     rc, stdout, _ = _run(main, argv, capsys)
-    assert rc == 0 and "4 pairs: 2 written, 2 skipped" in stdout   # pairs 0 and 1 were complete
+    assert rc == 0 and "4 pairs: 2 written, 2 skipped" in stdout  # pairs 0 and 1 were complete
     rc, stdout, _ = _run(main, argv, capsys)
     assert rc == 0 and "0 written, 4 skipped" in stdout
-    (out / "00003_im 3_im 4_confidence.npy").unlink()          # an incomplete pair is redone
+    (out / "00003_im 3_im 4_confidence.npy").unlink()  # an incomplete pair is redone
     rc, stdout, _ = _run(main, argv, capsys)
     assert "1 written, 3 skipped" in stdout
     rc, stdout, _ = _run(main, argv + ["--overwrite"], capsys)
@@ -728,7 +989,7 @@ def test_pairs_file_carries_any_path(tmp_path):
     from localscale.cli import read_pairs_file
 
     d = tmp_path
-    (d / "p.txt").write_text('a b.png\tc #1.png\n"q r.png" \'s #2.png\'\n# comment\n  \n/abs/x.png y.png\n')
+    (d / "p.txt").write_text("a b.png\tc #1.png\n\"q r.png\" 's #2.png'\n# comment\n  \n/abs/x.png y.png\n")
     got = [(a.name, b.name) for a, b in read_pairs_file(d / "p.txt")]
     assert got == [("a b.png", "c #1.png"), ("q r.png", "s #2.png"), ("x.png", "y.png")]
 
@@ -737,12 +998,24 @@ def test_sigterm_during_a_pairs_run_leaves_only_complete_files(env, tmp_path):
     """A real SIGTERM to ``localscale predict --pairs``: exit 143, every file complete, a rerun resumes."""
     pairs = _pairs_setup(env, tmp_path, n=40)
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "localscale", "predict", "--pairs", str(pairs), "-o", str(out),
-           "--local-weights", str(env["in"] / "local.pt"), "--batch-size", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "localscale",
+        "predict",
+        "--pairs",
+        str(pairs),
+        "-o",
+        str(out),
+        "--local-weights",
+        str(env["in"] / "local.pt"),
+        "--batch-size",
+        "1",
+    ]
     envv = dict(os.environ, OMP_NUM_THREADS="1")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=envv)
     t0 = time.time()
-    while time.time() - t0 < 120 and p.poll() is None and not list(out.glob("*_scale.json")):   # first pair done
+    while time.time() - t0 < 120 and p.poll() is None and not list(out.glob("*_scale.json")):  # first pair done
         time.sleep(0.01)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=60)
@@ -757,8 +1030,10 @@ def test_sigterm_during_a_pairs_run_leaves_only_complete_files(env, tmp_path):
         if f.suffix == ".npy":
             np.load(f)
     index = (out / "index.tsv").read_text().splitlines()[1:]
-    assert sum("\tok\t" in r for r in index) == done and sum("not run (stopped: terminated by SIGTERM)" in r
-                                                           for r in index) == 40 - done
+    assert (
+        sum("\tok\t" in r for r in index) == done
+        and sum("not run (stopped: terminated by SIGTERM)" in r for r in index) == 40 - done
+    )
     rerun = subprocess.run(cmd, capture_output=True, text=True, env=envv, timeout=300)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert f"{40 - done} written, {done} skipped" in rerun.stdout, rerun.stdout
@@ -766,6 +1041,7 @@ def test_sigterm_during_a_pairs_run_leaves_only_complete_files(env, tmp_path):
 
 
 # ---------------------------------------------------------------- faults: NaN gradients and weights
+
 
 def test_nan_weights_are_never_saved(env, tmp_path, monkeypatch):
     """Weights that become NaN (here: an optimiser step that writes NaN) stop the run before the
@@ -779,9 +1055,21 @@ def test_nan_weights_are_never_saved(env, tmp_path, monkeypatch):
         return r
 
     monkeypatch.setattr(torch.optim.Adam, "step", nan_step)
-    cfg = training.TrainConfig(data=str(env["photos"]), out=str(tmp_path / "run"), width=0.125, feature_dim=16,
-                               image_size=64, steps=2, batch_size=2, holdout_every=3, val_pairs=2, workers=0,
-                               threads=1, amp="off", ckpt_every=1)
+    cfg = training.TrainConfig(
+        data=str(env["photos"]),
+        out=str(tmp_path / "run"),
+        width=0.125,
+        feature_dim=16,
+        image_size=64,
+        steps=2,
+        batch_size=2,
+        holdout_every=3,
+        val_pairs=2,
+        workers=0,
+        threads=1,
+        amp="off",
+        ckpt_every=1,
+    )
     with pytest.raises(training.TrainingDiverged, match="no checkpoint had been written yet"):
         training.train(cfg)
     assert not (tmp_path / "run" / "last.pt").exists() and not (tmp_path / "run" / "model.pt").exists()
@@ -806,12 +1094,24 @@ def test_nan_gradients_with_finite_loss_do_not_reach_the_checkpoint(env, tmp_pat
 
     monkeypatch.setattr(training.TrainConfig, "build_model", build)
     monkeypatch.setattr(torch.Tensor, "backward", nan_backward)
-    cfg = training.TrainConfig(data=str(env["photos"]), out=str(tmp_path / "run"), width=0.125, feature_dim=16,
-                               image_size=64, steps=2, batch_size=2, holdout_every=3, val_pairs=2, workers=0,
-                               threads=1, amp="off", ckpt_every=1)
-    training.train(cfg)   # the updates are skipped; what is saved is finite
+    cfg = training.TrainConfig(
+        data=str(env["photos"]),
+        out=str(tmp_path / "run"),
+        width=0.125,
+        feature_dim=16,
+        image_size=64,
+        steps=2,
+        batch_size=2,
+        holdout_every=3,
+        val_pairs=2,
+        workers=0,
+        threads=1,
+        amp="off",
+        ckpt_every=1,
+    )
+    training.train(cfg)  # the updates are skipped; what is saved is finite
     for name in ("last.pt", "model.pt"):
-        load_model(tmp_path / "run" / name)   # refuses NaN/inf weights
+        load_model(tmp_path / "run" / name)  # refuses NaN/inf weights
 
 
 @pytest.mark.parametrize("workers", [0, 1])
@@ -820,20 +1120,21 @@ def test_unusable_training_photos_are_skipped_and_counted(env, tmp_path, capfd, 
     d.mkdir()
     for p in env["photos"].iterdir():
         (d / p.name).write_bytes(p.read_bytes())
-    (d / "p1.png").write_bytes((env["photos"] / "p1.png").read_bytes()[:150])        # truncated
-    cv2.imwrite(str(d / "p4.png"), _smooth_image(50, 24, 24))                          # smaller than a crop
+    (d / "p1.png").write_bytes((env["photos"] / "p1.png").read_bytes()[:150])  # truncated
+    cv2.imwrite(str(d / "p4.png"), _smooth_image(50, 24, 24))  # smaller than a crop
     argv = TRAIN_BASE + ["--data", str(d), "--out", str(tmp_path / "run"), "--steps", "4", "--workers", str(workers)]
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda m, c, f, ln, file=None, line=None: print(f"{c.__name__}: {m}", file=sys.stderr)
         assert train_cli.main(argv, model="local") == 0
-    err = capfd.readouterr().err   # the worker process warns on the same stderr
+    err = capfd.readouterr().err  # the worker process warns on the same stderr
     assert "training photo skipped" in err and "p1.png" in err
     assert "training sample(s) were drawn again" in err and "Traceback" not in err
     load_model(tmp_path / "run" / "model.pt")
 
 
 # ---------------------------------------------------------------- faults: code in checkpoints
+
 
 @pytest.mark.parametrize("loader", ["load_model", "from_pretrained", "cli", "init_weights", "resume"])
 def test_checkpoint_with_code_is_refused_unrun(env, tmp_path, loader, capsys):
@@ -848,18 +1149,33 @@ def test_checkpoint_with_code_is_refused_unrun(env, tmp_path, loader, capsys):
         with pytest.raises(CheckpointError, match="non-tensor objects"):
             LocalScaleNet.from_pretrained(path)
     elif loader == "cli":
-        rc, _, err = _run(main, ["predict", str(env["in"] / "a.png"), str(env["in"] / "b.png"), "-o",
-                                 str(tmp_path / "o"), "--local-weights", str(path)], capsys)
+        rc, _, err = _run(
+            main,
+            [
+                "predict",
+                str(env["in"] / "a.png"),
+                str(env["in"] / "b.png"),
+                "-o",
+                str(tmp_path / "o"),
+                "--local-weights",
+                str(path),
+            ],
+            capsys,
+        )
         assert_clean_error(rc, err, "non-tensor objects", tmp_path / "o")
     else:
         extra = ["--init-weights", str(path)] if loader == "init_weights" else []
-        rc, _, err = _run(lambda a: train_cli.main(a, model="local"),
-                          TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(tmp_path)] + extra, capsys)
+        rc, _, err = _run(
+            lambda a: train_cli.main(a, model="local"),
+            TRAIN_BASE + ["--data", str(env["photos"]), "--out", str(tmp_path)] + extra,
+            capsys,
+        )
         assert_clean_error(rc, err, "non-tensor objects")
     assert not marker.exists()
 
 
 # ---------------------------------------------------------------- faults: decompression bombs
+
 
 @pytest.mark.parametrize("name", sorted(BOMBS))
 def test_decompression_bomb_is_refused_before_decoding(env, name, monkeypatch):
@@ -873,7 +1189,7 @@ def test_decompression_bomb_is_refused_before_decoding(env, name, monkeypatch):
     with pytest.raises(LocalScaleError, match="larger than the limit") as e:
         lio.load_image(env["in"] / name)
     assert "\n" not in str(e.value) and not decoded
-    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 100 * 1024   # KiB
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 100 * 1024  # KiB
 
 
 # ---------------------------------------------------------------- faults: orphaned workers
@@ -917,15 +1233,19 @@ def test_dataloader_workers_die_with_a_killed_parent(tmp_path):
     script.write_text(WORKER_SCRIPT)
     flags = tmp_path / "pids"
     flags.mkdir()
-    p = subprocess.Popen([sys.executable, str(script), str(flags)], env=dict(os.environ, OMP_NUM_THREADS="1"),
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = subprocess.Popen(
+        [sys.executable, str(script), str(flags)],
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         t0 = time.time()
         while time.time() - t0 < 120 and len(list(flags.iterdir())) < 2:
             time.sleep(0.1)
         pids = [int(f.name.split("-")[1]) for f in flags.iterdir()]
         assert len(pids) >= 2, "workers did not start"
-        p.kill()   # kill -9 the parent
+        p.kill()  # kill -9 the parent
         p.wait()
         t0 = time.time()
         while time.time() - t0 < 5 and any(_alive(pid) for pid in pids):
@@ -943,11 +1263,19 @@ def test_dataloader_workers_die_with_a_killed_parent(tmp_path):
 
 # ---------------------------------------------------------------- eval-hpatches: bad pairs are skipped
 
+
 def test_eval_hpatches_skips_bad_pairs_and_writes_the_rest(env, tmp_path, capsys):
     root = tmp_path / "seqs"
     good = _smooth_image(60, 96, 128)
-    variants = {"v_good": None, "v_trunc": "trunc", "v_tiny": "tiny", "v_nan": "nanH", "v_garbage": "garbage",
-                "v_outside": "outside", "v_size": "size"}
+    variants = {
+        "v_good": None,
+        "v_trunc": "trunc",
+        "v_tiny": "tiny",
+        "v_nan": "nanH",
+        "v_garbage": "garbage",
+        "v_outside": "outside",
+        "v_size": "size",
+    }
     for name, kind in variants.items():
         s = root / name
         s.mkdir(parents=True)
@@ -964,23 +1292,38 @@ def test_eval_hpatches_skips_bad_pairs_and_writes_the_rest(env, tmp_path, capsys
             (s / "H_1_2").write_text("hello\n")
         elif kind == "outside":
             (s / "H_1_2").write_text("1 0 10000\n0 1 0\n0 0 1\n")
-        elif kind == "size":   # image 2 at half the size H_1_2 was measured on
+        elif kind == "size":  # image 2 at half the size H_1_2 was measured on
             cv2.imwrite(str(s / "2.png"), cv2.resize(good, (64, 48), interpolation=cv2.INTER_AREA))
     out = tmp_path / "out"
-    rc, stdout, err = _run(main, ["eval-hpatches", str(root), "-o", str(out), "--methods", "none", "--descriptor",
-                                  "sift", "--num-features", "100"], capsys)
+    rc, stdout, err = _run(
+        main,
+        [
+            "eval-hpatches",
+            str(root),
+            "-o",
+            str(out),
+            "--methods",
+            "none",
+            "--descriptor",
+            "sift",
+            "--num-features",
+            "100",
+        ],
+        capsys,
+    )
     assert rc == 0 and "Traceback" not in err
     doc = json.loads((out / "results_hardnet-sift.json").read_text())
     skipped = {s["pair"] for s in doc["skipped"]}
     assert skipped == {"v_trunc/1-2", "v_tiny/1-2", "v_nan/1-2", "v_garbage/1-2", "v_outside/1-2"}
     assert {r["pair"] for r in doc["records"]} == {"v_good/1-2", "v_size/1-2"}
-    assert "v_size/1-2" in doc["suspicious"]                       # warned, not silently scored
+    assert "v_size/1-2" in doc["suspicious"]  # warned, not silently scored
     warned = [ln for ln in err.splitlines() if ln.startswith("warning:")]
     assert any("v_size/1-2" in ln and "does not look like" in ln for ln in warned)
     assert sum("skipped:" in ln for ln in warned) == 5
 
 
 # ---------------------------------------------------------------- no silent wrong output from a broken model
+
 
 def _nan_global_prediction(monkeypatch):
     from localscale.models.scalenet import ScaleNet as _S
@@ -999,8 +1342,11 @@ def _nan_global_prediction(monkeypatch):
 def test_non_finite_global_scale_is_an_error_not_output(env, tmp_path, monkeypatch, capsys, cmd):
     _nan_global_prediction(monkeypatch)
     out = tmp_path / "out"
-    argv = cmd.split() + [str(env["in"] / "a.png"), str(env["in"] / "b.png"), "--global-weights",
-                          str(env["in"] / "global.pt")] + (["-o", str(out)] if cmd == "rectify" else [])
+    argv = (
+        cmd.split()
+        + [str(env["in"] / "a.png"), str(env["in"] / "b.png"), "--global-weights", str(env["in"] / "global.pt")]
+        + (["-o", str(out)] if cmd == "rectify" else [])
+    )
     rc, stdout, err = _run(main, argv, capsys)
     assert_clean_error(rc, err, "non-finite scale", out)
     assert "NaN" not in stdout and "nan" not in stdout
@@ -1018,8 +1364,19 @@ def test_non_finite_scale_map_is_not_written(env, tmp_path, capsys, monkeypatch)
 
     monkeypatch.setattr(_L, "_readout", nan_readout)
     out = tmp_path / "out"
-    rc, _, err = _run(main, ["predict", str(env["in"] / "a.png"), str(env["in"] / "b.png"), "-o", str(out),
-                             "--local-weights", str(env["in"] / "local.pt")], capsys)
+    rc, _, err = _run(
+        main,
+        [
+            "predict",
+            str(env["in"] / "a.png"),
+            str(env["in"] / "b.png"),
+            "-o",
+            str(out),
+            "--local-weights",
+            str(env["in"] / "local.pt"),
+        ],
+        capsys,
+    )
     assert_clean_error(rc, err, "not finite", out)
 
 
@@ -1031,17 +1388,32 @@ def test_long_image_names_give_output_names_within_the_limit(env, tmp_path, caps
         cv2.imwrite(str(d / n), _smooth_image(70 + i))
     (d / "pairs.txt").write_text(f"{names[0]}\t{names[1]}\n")
     out = tmp_path / "out"
-    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
-                                  str(env["in"] / "local.pt")], capsys)
+    rc, stdout, err = _run(
+        main,
+        ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")],
+        capsys,
+    )
     assert rc == 0, err
     files = [f.name for f in out.iterdir()]
-    assert len(files) == 6 and all(len(f.encode()) <= 255 for f in files)   # 4 maps, _scale.json, index.tsv
-    rc, stdout, err = _run(main, ["predict", str(d / names[0]), str(d / names[1]), "-o", str(out),
-                                  "--local-weights", str(env["in"] / "local.pt")], capsys)
+    assert len(files) == 6 and all(len(f.encode()) <= 255 for f in files)  # 4 maps, _scale.json, index.tsv
+    rc, stdout, err = _run(
+        main,
+        [
+            "predict",
+            str(d / names[0]),
+            str(d / names[1]),
+            "-o",
+            str(out),
+            "--local-weights",
+            str(env["in"] / "local.pt"),
+        ],
+        capsys,
+    )
     assert rc == 0, err
 
 
 # ---------------------------------------------------------------- predict --pairs: bad pairs, stale outputs
+
 
 def _stderr_lines(err: str) -> list[str]:
     return [ln for ln in err.splitlines() if ln.strip()]
@@ -1054,16 +1426,25 @@ def test_bad_pairs_are_warnings_and_the_good_pairs_complete(env, tmp_path, capsy
         (d / n).write_bytes((env["in"] / n).read_bytes())
     (d / "truncated.png").write_bytes((env["in"] / "truncated.png").read_bytes())
     long_name = "x" * 100_000 + ".png"
-    lines = ["a.png b.png", "missing.png b.png", "truncated.png b.png", "..\tb.png", f"{long_name}\tb.png",
-             "b.png a.png"]
-    (d / "pairs.txt").write_bytes(b"\xef\xbb\xbf" + "\n".join(lines).encode() + b"\n")   # with a byte order mark
+    lines = [
+        "a.png b.png",
+        "missing.png b.png",
+        "truncated.png b.png",
+        "..\tb.png",
+        f"{long_name}\tb.png",
+        "b.png a.png",
+    ]
+    (d / "pairs.txt").write_bytes(b"\xef\xbb\xbf" + "\n".join(lines).encode() + b"\n")  # with a byte order mark
     out = tmp_path / "out"
-    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
-                                  str(env["in"] / "local.pt")], capsys)
+    rc, stdout, err = _run(
+        main,
+        ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")],
+        capsys,
+    )
     assert rc == 1 and "Traceback" not in err
     err_lines = _stderr_lines(err)
     assert not [ln for ln in err_lines if ln.startswith("error:")], err
-    assert all(len(ln) < 1000 for ln in err_lines)   # the 100,000-character name is cut in messages
+    assert all(len(ln) < 1000 for ln in err_lines)  # the 100,000-character name is cut in messages
     warnings_ = [ln for ln in err_lines if ln.startswith("warning: pair ")]
     expected = {1: "file not found", 2: "cannot decode", 3: "is a directory", 4: "File name too long"}
     assert len(warnings_) == len(expected)
@@ -1073,7 +1454,7 @@ def test_bad_pairs_are_warnings_and_the_good_pairs_complete(env, tmp_path, capsy
     assert err_lines[-1] == f"warning: 4 of 6 pairs failed, see {out / 'index.tsv'}"
     rows = [r.split("\t") for r in (out / "index.tsv").read_text().splitlines()[1:]]
     assert [r[4].split(":")[0] for r in rows] == ["ok", "error", "error", "error", "error", "ok"]
-    assert rows[0][2] == str(d / "a.png")   # the byte order mark is not part of the first name
+    assert rows[0][2] == str(d / "a.png")  # the byte order mark is not part of the first name
     for r in (rows[0], rows[5]):
         np.load(out / f"{r[5]}_scale.npy")
 
@@ -1084,8 +1465,19 @@ def test_pairs_file_with_no_usable_pair_is_one_error_before_the_model_loads(env,
     (d / "pairs.txt").write_text("".join(f"gone_{i}.jpg also_gone_{i}.jpg\n" for i in range(10_000)))
     out = tmp_path / "out"
     # the weights do not exist: a model loaded before the inputs are checked would say so instead
-    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
-                                  str(tmp_path / "no_such_weights.pt")], capsys)
+    rc, stdout, err = _run(
+        main,
+        [
+            "predict",
+            "--pairs",
+            str(d / "pairs.txt"),
+            "-o",
+            str(out),
+            "--local-weights",
+            str(tmp_path / "no_such_weights.pt"),
+        ],
+        capsys,
+    )
     assert_clean_error(rc, err, ["no pair can be run", "pair 0 (line 1)", "file not found", "9999 more"], out)
     assert "warning:" not in err
 
@@ -1097,13 +1489,24 @@ def test_special_files_are_refused_not_read(env, tmp_path):
     os.mkfifo(d / "pipe.txt")
     os.mkfifo(d / "pipe.png")
     (d / "pairs.txt").write_text(f"pipe.png {env['in'] / 'b.png'}\n")
-    base = [sys.executable, "-m", "localscale", "predict", "-o", str(tmp_path / "out"), "--local-weights",
-            str(env["in"] / "local.pt")]
-    for argv, words in [(["--pairs", str(d / "pipe.txt")], "pairs file is not a regular file (a named pipe)"),
-                        (["--pairs", str(d / "pairs.txt")], "not a regular file (a named pipe)"),
-                        ([str(d / "pipe.png"), str(env["in"] / "b.png")], "not a regular file (a named pipe)")]:
-        r = subprocess.run(base + argv, capture_output=True, text=True, timeout=120,
-                           env=dict(os.environ, OMP_NUM_THREADS="1"))
+    base = [
+        sys.executable,
+        "-m",
+        "localscale",
+        "predict",
+        "-o",
+        str(tmp_path / "out"),
+        "--local-weights",
+        str(env["in"] / "local.pt"),
+    ]
+    for argv, words in [
+        (["--pairs", str(d / "pipe.txt")], "pairs file is not a regular file (a named pipe)"),
+        (["--pairs", str(d / "pairs.txt")], "not a regular file (a named pipe)"),
+        ([str(d / "pipe.png"), str(env["in"] / "b.png")], "not a regular file (a named pipe)"),
+    ]:
+        r = subprocess.run(
+            base + argv, capture_output=True, text=True, timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1")
+        )
         assert_clean_error(r.returncode, r.stderr, words, tmp_path / "out")
 
 
@@ -1118,17 +1521,29 @@ def test_a_rerun_redoes_pairs_whose_image_or_options_changed(env, tmp_path, caps
     argv = ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")]
     assert _run(main, argv, capsys)[0] == 0
     old = np.load(out / "00000_a_b_scale.npy")
-    cv2.imwrite(str(d / "a.png"), _smooth_image(53, 72, 96))   # another image (another size) under the same name
+    cv2.imwrite(str(d / "a.png"), _smooth_image(53, 72, 96))  # another image (another size) under the same name
     st = (d / "a.png").stat()
     os.utime(d / "a.png", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     rc, stdout, _ = _run(main, argv, capsys)
     assert rc == 0 and "1 written, 1 skipped" in stdout
     new = np.load(out / "00000_a_b_scale.npy")
     assert old.shape == (64, 80) and new.shape == (72, 96)
-    assert main(["predict", str(d / "a.png"), str(d / "b.png"), "-o", str(tmp_path / "single"), "--local-weights",
-                 str(env["in"] / "local.pt")]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(d / "a.png"),
+                str(d / "b.png"),
+                "-o",
+                str(tmp_path / "single"),
+                "--local-weights",
+                str(env["in"] / "local.pt"),
+            ]
+        )
+        == 0
+    )
     assert np.allclose(new, np.load(tmp_path / "single" / "a_b_scale.npy"), rtol=1e-4, atol=1e-5)
-    rc, stdout, _ = _run(main, argv + ["--hard"], capsys)   # another read-out: both redone
+    rc, stdout, _ = _run(main, argv + ["--hard"], capsys)  # another read-out: both redone
     assert rc == 0 and "2 written, 0 skipped" in stdout
     rc, stdout, _ = _run(main, argv + ["--hard"], capsys)
     assert rc == 0 and "0 written, 2 skipped" in stdout
@@ -1137,14 +1552,23 @@ def test_a_rerun_redoes_pairs_whose_image_or_options_changed(env, tmp_path, caps
 def test_a_full_disk_stops_a_pairs_run_that_a_rerun_resumes(env, tmp_path, monkeypatch, capsys):
     pairs = _pairs_setup(env, tmp_path, n=3)
     out = tmp_path / "out"
-    argv = ["predict", "--pairs", str(pairs), "-o", str(out), "--local-weights", str(env["in"] / "local.pt"),
-            "--batch-size", "1"]
+    argv = [
+        "predict",
+        "--pairs",
+        str(pairs),
+        "-o",
+        str(out),
+        "--local-weights",
+        str(env["in"] / "local.pt"),
+        "--batch-size",
+        "1",
+    ]
     real_save = np.save
     calls = {"n": 0}
 
     def disk_full_after_the_first_pair(f, arr, *a, **k):
         calls["n"] += 1
-        if calls["n"] > 1:   # pair 0's scale map was saved; the disk is full from then on
+        if calls["n"] > 1:  # pair 0's scale map was saved; the disk is full from then on
             f.write(b"\x93NUMPY partial")
             raise OSError(28, "No space left on device")
         return real_save(f, arr, *a, **k)
@@ -1152,7 +1576,7 @@ def test_a_full_disk_stops_a_pairs_run_that_a_rerun_resumes(env, tmp_path, monke
     monkeypatch.setattr(np, "save", disk_full_after_the_first_pair)
     rc, stdout, err = _run(main, argv, capsys)
     assert_clean_error(rc, err, ["No space left on device", "a rerun resumes"])
-    assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ")]) == 1   # it stopped at once
+    assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ")]) == 1  # it stopped at once
     assert not [f for f in out.iterdir() if f.name.startswith(".")]
     rows = [r.split("\t") for r in (out / "index.tsv").read_text().splitlines()[1:]]
     assert [r[4].split(" ")[0] for r in rows] == ["ok", "error:", "not"]
@@ -1164,33 +1588,43 @@ def test_a_full_disk_stops_a_pairs_run_that_a_rerun_resumes(env, tmp_path, monke
 def test_pairs_that_all_fail_while_running_are_one_error_and_nothing_written(env, tmp_path, capsys):
     d = tmp_path / "imgs"
     d.mkdir()
-    for n in ("c1.png", "c2.png"):   # they pass the up-front check (regular, not empty) but do not decode
+    for n in ("c1.png", "c2.png"):  # they pass the up-front check (regular, not empty) but do not decode
         (d / n).write_bytes((env["in"] / "truncated.png").read_bytes())
     (d / "pairs.txt").write_text("c1.png c2.png\nc2.png c1.png\n")
     out = tmp_path / "out"
-    rc, stdout, err = _run(main, ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights",
-                                  str(env["in"] / "local.pt")], capsys)
+    rc, stdout, err = _run(
+        main,
+        ["predict", "--pairs", str(d / "pairs.txt"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")],
+        capsys,
+    )
     assert_clean_error(rc, err, ["all 2 pairs failed", "nothing written"], out)
     assert len([ln for ln in err.splitlines() if ln.startswith("warning: pair ") and "cannot decode" in ln]) == 2
 
 
 # ---------------------------------------------------------------- images that are valid and must give a map
 
-FLOAT_TIFFS = {"float32-rgb": (np.float32, False, 1.0), "float16-rgb": (np.float16, False, 1.0),
-               "float64-gray": (np.float64, True, 1.0), "float32-rgb-0-255": (np.float32, False, 255.0)}
+FLOAT_TIFFS = {
+    "float32-rgb": (np.float32, False, 1.0),
+    "float16-rgb": (np.float16, False, 1.0),
+    "float64-gray": (np.float64, True, 1.0),
+    "float32-rgb-0-255": (np.float32, False, 255.0),
+}
 
 
 @pytest.mark.parametrize("kind", sorted(FLOAT_TIFFS))
 def test_float_tiff_gives_a_map(env, tmp_path, capsys, kind):
     tifffile = pytest.importorskip("tifffile")
     dtype, gray, top = FLOAT_TIFFS[kind]
-    img = _smooth_image(7)[..., ::-1].astype(np.float64) / 255            # 64 x 80 RGB in [0, 1]
+    img = _smooth_image(7)[..., ::-1].astype(np.float64) / 255  # 64 x 80 RGB in [0, 1]
     img = img[..., 0] if gray else img
     a = tmp_path / "f.tif"
     tifffile.imwrite(a, (img * top).astype(dtype), photometric="minisblack" if gray else "rgb")
     out = tmp_path / "out"
-    rc, stdout, err = _run(main, ["predict", str(a), str(env["in"] / "a.png"), "-o", str(out),
-                                  "--local-weights", str(env["in"] / "local.pt")], capsys)
+    rc, stdout, err = _run(
+        main,
+        ["predict", str(a), str(env["in"] / "a.png"), "-o", str(out), "--local-weights", str(env["in"] / "local.pt")],
+        capsys,
+    )
     assert rc == 0 and "error:" not in err, err
     assert np.load(out / "f_a_scale.npy").shape == (64, 80)
 
@@ -1200,8 +1634,11 @@ def test_a_thin_strip_gives_a_map_of_its_size(tmp_path, capsys, shape):
     """A strip (a panorama slice) with the bundled model: its size is checked on the file, not on
     the reduced decode, and the map comes back at the image's size."""
     rng = np.random.default_rng(1)
-    big = cv2.resize(rng.integers(0, 256, (shape[0] // 4, shape[1] // 4, 3), dtype=np.uint8), shape[::-1],
-                     interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(
+        rng.integers(0, 256, (shape[0] // 4, shape[1] // 4, 3), dtype=np.uint8),
+        shape[::-1],
+        interpolation=cv2.INTER_CUBIC,
+    )
     a, b = tmp_path / "strip_a.png", tmp_path / "strip_b.png"
     cv2.imwrite(str(a), big)
     cv2.imwrite(str(b), np.roll(big, 3, axis=int(np.argmax(shape))))
@@ -1233,13 +1670,15 @@ def test_damaged_jpeg_is_read_with_accept_damaged(env, tmp_path, capsys, cmd):
     assert rc == 0 and "error:" not in err, err
 
 
-EMPTY_OUT = {"predict": ["predict", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
-             "predict-pairs": ["predict", "--pairs", "{in}/pairs_ok.txt", "--local-weights", "{in}/local.pt"],
-             "show": ["show", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
-             "demo": ["demo", "--local-weights", "{in}/local.pt"],
-             "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/global.pt"],
-             "match": ["match", "{in}/a.png", "{in}/b.png", "--correction", "none", "--descriptor", "sift"],
-             "eval-hpatches": ["eval-hpatches", "{hp}", "--methods", "none", "--descriptor", "sift"]}
+EMPTY_OUT = {
+    "predict": ["predict", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+    "predict-pairs": ["predict", "--pairs", "{in}/pairs_ok.txt", "--local-weights", "{in}/local.pt"],
+    "show": ["show", "{in}/a.png", "{in}/b.png", "--local-weights", "{in}/local.pt"],
+    "demo": ["demo", "--local-weights", "{in}/local.pt"],
+    "rectify": ["rectify", "{in}/a.png", "{in}/b.png", "--global-weights", "{in}/global.pt"],
+    "match": ["match", "{in}/a.png", "{in}/b.png", "--correction", "none", "--descriptor", "sift"],
+    "eval-hpatches": ["eval-hpatches", "{hp}", "--methods", "none", "--descriptor", "sift"],
+}
 
 
 @pytest.mark.parametrize("cmd", sorted(EMPTY_OUT))

@@ -1,4 +1,5 @@
 """Batched tensor API: ``predict_batch`` equals per-pair ``predict``, on every available device."""
+
 import cv2
 import numpy as np
 import pytest
@@ -7,14 +8,22 @@ import torch
 from localscale import ImageError, LocalScaleNet, ScaleNet
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
-DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
-                                                               reason="no CUDA device"))]
+DEVICES = [
+    "cpu",
+    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")),
+]
 
 
 def _batch(photos, names, size):
     """``B x 3 x H x W`` float tensor in [0, 1] (size = (W, H)) from scikit-image photos."""
-    imgs = [cv2.resize(photos[n] if photos[n].ndim == 3 else np.repeat(photos[n][..., None], 3, 2), size,
-                       interpolation=cv2.INTER_AREA) for n in names]
+    imgs = [
+        cv2.resize(
+            photos[n] if photos[n].ndim == 3 else np.repeat(photos[n][..., None], 3, 2),
+            size,
+            interpolation=cv2.INTER_AREA,
+        )
+        for n in names
+    ]
     return torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float() / 255
 
 
@@ -22,23 +31,21 @@ def _batch(photos, names, size):
 def local_full():
     """A tiny Local-ScaleNet with every output: cues, visibility and a reliability calibration."""
     torch.manual_seed(0)
-    return LocalScaleNet(**TINY, topk=4, warp_features=True, visibility=True,
-                         calibration=(0.1, 2.0, 1.5, -0.5)).eval()
+    return LocalScaleNet(**TINY, topk=4, warp_features=True, visibility=True, calibration=(0.1, 2.0, 1.5, -0.5)).eval()
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_local_predict_batch_equals_predict(local_full, photos, device):
     model = local_full.to(device)
-    a = _batch(photos, ["astronaut", "coffee", "chelsea"], (150, 100)).to(device)    # landscape A
-    b = _batch(photos, ["coffee", "rocket", "camera"], (90, 120)).to(device)         # portrait B
+    a = _batch(photos, ["astronaut", "coffee", "chelsea"], (150, 100)).to(device)  # landscape A
+    b = _batch(photos, ["coffee", "rocket", "camera"], (90, 120)).to(device)  # portrait B
     out = model.predict_batch(a, b)
     assert out.scale.shape == out.confidence.shape == out.visible.shape == out.reliability.shape == (3, 100, 150)
     assert out.scale.device.type == device and out.probs.shape == (3, 13, 8, 8)
     for i in range(3):
         ref = model.predict(a[i], b[i])
         for key in ("scale", "confidence", "visible", "reliability"):
-            np.testing.assert_allclose(getattr(out, key)[i].cpu().numpy(), getattr(ref, key), atol=1e-4,
-                                       err_msg=key)
+            np.testing.assert_allclose(getattr(out, key)[i].cpu().numpy(), getattr(ref, key), atol=1e-4, err_msg=key)
     model.to("cpu")
 
 

@@ -27,7 +27,7 @@ def model():
 
 def test_an_empty_cache_is_the_one_used(model, files):
     cache = FeatureCache(model, bf16=True)
-    assert len(cache) == 0 and not cache   # falsy while empty
+    assert len(cache) == 0 and not cache  # falsy while empty
     pairs = [(files / "coffee.png", files / "chelsea.png"), (files / "chelsea.png", files / "coffee.png")]
     assert len(list(predict_pairs(model, pairs, cache, batch_size=2))) == 2
     assert (cache.misses, cache.hits, len(cache)) == (2, 2, 2)
@@ -35,9 +35,9 @@ def test_an_empty_cache_is_the_one_used(model, files):
 
 def test_read_out_options_reach_the_batched_head(model, files):
     a, b = files / "coffee.png", files / "chelsea.png"
-    (_, soft), = predict_pairs(model, [(a, b)])
-    (_, hard), = predict_pairs(model, [(a, b)], hard=True)
-    (_, planar), = predict_pairs(model, [(a, b)], planar=True)
+    ((_, soft),) = predict_pairs(model, [(a, b)])
+    ((_, hard),) = predict_pairs(model, [(a, b)], hard=True)
+    ((_, planar),) = predict_pairs(model, [(a, b)], planar=True)
     assert np.allclose(soft.scale, model.predict(a, b).scale, rtol=1e-4)
     assert np.allclose(hard.scale, model.predict(a, b, hard=True).scale, rtol=1e-4)
     assert np.allclose(planar.scale, model.predict(a, b, planar=True).scale, rtol=1e-4)

@@ -7,8 +7,7 @@ import pytest
 import torch
 
 import localscale.cli as cli
-from localscale import loading
-from localscale import LocalScaleNet, ScaleNet
+from localscale import LocalScaleNet, ScaleNet, loading
 from localscale.checkpoint import save_model
 from localscale.cli import main
 from localscale.errors import LocalScaleError
@@ -64,9 +63,19 @@ def one_line_error(capsys, *words):
 
 # ---------------------------------------------------------------- predict
 
+
 def test_predict_writes_npy_tiff_png(models, pair, tmp_path):
-    rc = main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path),
-               "--local-weights", str(models / "local.pt")])
+    rc = main(
+        [
+            "predict",
+            str(pair / "a.png"),
+            str(pair / "b.jpg"),
+            "-o",
+            str(tmp_path),
+            "--local-weights",
+            str(models / "local.pt"),
+        ]
+    )
     assert rc == 0
     s = np.load(tmp_path / "a_b_scale.npy")
     assert s.shape == (400, 600) and s.dtype == np.float32
@@ -85,8 +94,13 @@ def test_predict_search_writes_the_searched_map_and_says_what_it_kept(pair, tmp_
     assert s.shape == (400, 600) and np.isfinite(s).all()
 
 
-@pytest.mark.parametrize("extra,words", [(["--hard"], "--search uses the soft read-out"),
-                                         (["--local-weights", "UNCAL"], "needs a calibrated Local-ScaleNet")])
+@pytest.mark.parametrize(
+    "extra,words",
+    [
+        (["--hard"], "--search uses the soft read-out"),
+        (["--local-weights", "UNCAL"], "needs a calibrated Local-ScaleNet"),
+    ],
+)
 def test_predict_search_refuses_what_it_cannot_do(models, pair, tmp_path, capsys, extra, words):
     extra = [str(models / "local.pt") if e == "UNCAL" else e for e in extra]
     assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--search", *extra]) == 2
@@ -101,8 +115,26 @@ def test_scale_search_runs_scalenet_on_the_kept_windows(pair, capsys):
 
 
 def test_match_with_the_searched_correction(pair, tmp_path):
-    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "searched",
-                 "--H", str(pair / "H"), "--num-features", "150", "--descriptor", "sift"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--correction",
+                "searched",
+                "--H",
+                str(pair / "H"),
+                "--num-features",
+                "150",
+                "--descriptor",
+                "sift",
+            ]
+        )
+        == 0
+    )
     assert len(np.load(tmp_path / "matches.npz")["matches"]) > 0
 
 
@@ -113,8 +145,20 @@ def test_predict_search_is_for_one_pair(models, seqs, tmp_path, capsys):
 
 
 def test_deprecated_model_option_still_names_the_checkpoint(models, pair, tmp_path, capsys):
-    assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path),
-                 "--model", str(models / "global.pt")]) == 2
+    assert (
+        main(
+            [
+                "predict",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--model",
+                str(models / "global.pt"),
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, "is a ScaleNet, expected a LocalScaleNet")
 
 
@@ -126,11 +170,15 @@ def test_predict_same_stems_get_the_folder_name(models, seqs, tmp_path):
 
 def test_pairs_file_indices_are_positions_and_index_tsv_maps_outputs(models, seqs, tmp_path, capsys):
     pairs = tmp_path / "pairs.txt"
-    pairs.write_text("# header\nv_coffee/1.png v_coffee/2.png\nv_coffee/1.png v_coffee/missing.png\n\n"
-                     "v_chelsea/1.png v_chelsea/2.png\n")
+    pairs.write_text(
+        "# header\nv_coffee/1.png v_coffee/2.png\nv_coffee/1.png v_coffee/missing.png\n\n"
+        "v_chelsea/1.png v_chelsea/2.png\n"
+    )
     (seqs / "pairs.txt").write_text(pairs.read_text())
     out = tmp_path / "out"
-    rc = main(["predict", "--pairs", str(seqs / "pairs.txt"), "-o", str(out), "--local-weights", str(models / "local.pt")])
+    rc = main(
+        ["predict", "--pairs", str(seqs / "pairs.txt"), "-o", str(out), "--local-weights", str(models / "local.pt")]
+    )
     assert rc == 1
     err = capsys.readouterr().err
     assert "missing.png" in err and "file not found" in err
@@ -152,8 +200,13 @@ def test_pairs_file_honours_hard_planar_and_counts_encodings(models, pair, tmp_p
     assert main(["predict", "--pairs", str(pairs), "-o", str(tmp_path / "soft")] + w) == 0
     assert "2 images encoded, 2 reused" in capsys.readouterr().out
     assert main(["predict", "--pairs", str(pairs), "-o", str(tmp_path / "hp"), "--hard", "--planar"] + w) == 0
-    assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path / "single"),
-                 "--hard", "--planar"] + w) == 0
+    assert (
+        main(
+            ["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path / "single"), "--hard", "--planar"]
+            + w
+        )
+        == 0
+    )
     soft = np.load(tmp_path / "soft" / "00000_a_b_scale.npy")
     hp = np.load(tmp_path / "hp" / "00000_a_b_scale.npy")
     single = np.load(tmp_path / "single" / "a_b_scale.npy")
@@ -174,17 +227,44 @@ def test_pairs_file_cache_size_and_bf16_reach_the_cache(models, pair, tmp_path, 
     monkeypatch.setattr(cache_mod, "FeatureCache", Spy)
     pairs = tmp_path / "pairs.txt"
     pairs.write_text(f"{pair}/a.png {pair}/b.jpg\n")
-    assert main(["predict", "--pairs", str(pairs), "-o", str(tmp_path / "o"), "--cache-mb", "3", "--bf16",
-                 "--local-weights", str(models / "local.pt")]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                "--pairs",
+                str(pairs),
+                "-o",
+                str(tmp_path / "o"),
+                "--cache-mb",
+                "3",
+                "--bf16",
+                "--local-weights",
+                str(models / "local.pt"),
+            ]
+        )
+        == 0
+    )
     assert len(made) == 1 and made[0].max_bytes == 3 * 2**20 and made[0].bf16 and made[0].misses == 2
 
 
 # ---------------------------------------------------------------- show, demo
 
+
 def test_show_writes_into_the_output_folder(models, pair, tmp_path, capsys):
-    out = tmp_path / "figs"   # does not exist yet
-    rc = main(["show", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(out) + "/", "--H", str(pair / "H"),
-               "--local-weights", str(models / "local.pt")])
+    out = tmp_path / "figs"  # does not exist yet
+    rc = main(
+        [
+            "show",
+            str(pair / "a.png"),
+            str(pair / "b.jpg"),
+            "-o",
+            str(out) + "/",
+            "--H",
+            str(pair / "H"),
+            "--local-weights",
+            str(models / "local.pt"),
+        ]
+    )
     assert rc == 0
     fig = out / "a_b_figure.png"
     assert cv2.imread(str(fig)) is not None and not (out / ".png").exists()
@@ -199,11 +279,16 @@ def test_output_must_not_be_an_input(pair, tmp_path):
 
 # ---------------------------------------------------------------- scale, rectify
 
+
 def test_scale(models, pair, capsys):
     assert main(["scale", str(pair / "a.png"), str(pair / "b.jpg"), "--global-weights", str(models / "global.pt")]) == 0
     assert "S(A->B)" in capsys.readouterr().out
-    assert main(["scale", str(pair / "a.png"), str(pair / "b.jpg"), "--json",
-                 "--global-weights", str(models / "global.pt")]) == 0
+    assert (
+        main(
+            ["scale", str(pair / "a.png"), str(pair / "b.jpg"), "--json", "--global-weights", str(models / "global.pt")]
+        )
+        == 0
+    )
     assert json.loads(capsys.readouterr().out)["scale"] > 0
 
 
@@ -213,7 +298,9 @@ def test_rectify_names_outputs_per_sequence_and_writes_a_record(models, seqs, tm
         assert main(["rectify", str(seqs / s / "1.png"), str(seqs / s / "2.png"), "-o", str(tmp_path)] + w) == 0
     images = sorted(tmp_path.glob("*_rectified_*.png"))
     assert len(images) == 2 and {p.name.split("_rectified")[0] for p in images} == {
-        "v_coffee-1_v_coffee-2", "v_chelsea-1_v_chelsea-2"}
+        "v_coffee-1_v_coffee-2",
+        "v_chelsea-1_v_chelsea-2",
+    }
     rec = json.loads((tmp_path / "v_coffee-1_v_coffee-2_rectified.json").read_text())
     assert rec["resized"] in ("A", "B") and rec["output"].endswith(f"_rectified_{rec['resized']}.png")
     img = cv2.imread(rec["output"])
@@ -225,44 +312,122 @@ def test_rectify_names_outputs_per_sequence_and_writes_a_record(models, seqs, tm
 
 
 def test_rectify_failed_write_is_an_error(models, seqs, tmp_path, capsys):
-    for w in "AB":   # a folder where the image should go: cv2.imwrite fails
+    for w in "AB":  # a folder where the image should go: cv2.imwrite fails
         (tmp_path / f"v_coffee-1_v_coffee-2_rectified_{w}.png").mkdir()
-    assert main(["rectify", str(seqs / "v_coffee" / "1.png"), str(seqs / "v_coffee" / "2.png"), "-o", str(tmp_path),
-                 "--global-weights", str(models / "global.pt")]) == 2
+    assert (
+        main(
+            [
+                "rectify",
+                str(seqs / "v_coffee" / "1.png"),
+                str(seqs / "v_coffee" / "2.png"),
+                "-o",
+                str(tmp_path),
+                "--global-weights",
+                str(models / "global.pt"),
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, "cannot write", "rectified")
 
 
 # ---------------------------------------------------------------- match
 
+
 def test_match_fused_loads_the_given_models(models, pair, tmp_path, monkeypatch):
     calls = []
     real = loading.load_scale_model
-    monkeypatch.setattr(loading, "load_scale_model", lambda kind, w=None, d="cpu": calls.append((kind, w, d)) or real(kind, w, d))
+    monkeypatch.setattr(
+        loading, "load_scale_model", lambda kind, w=None, d="cpu": calls.append((kind, w, d)) or real(kind, w, d)
+    )
     L, G = str(models / "local.pt"), str(models / "global.pt")
-    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "fused",
-                 "--descriptor", "sift", "--num-features", "64", "--local-weights", L, "--global-weights", G,
-                 "--device", "cpu:0"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--correction",
+                "fused",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "64",
+                "--local-weights",
+                L,
+                "--global-weights",
+                G,
+                "--device",
+                "cpu:0",
+            ]
+        )
+        == 0
+    )
     assert calls == [("local", L, "cpu:0"), ("global", G, "cpu:0")]
     assert (tmp_path / "matches.npz").is_file() and (tmp_path / "matches.png").is_file()
 
 
-@pytest.mark.parametrize("correction,flag", [("fused", "--local-weights"), ("fused", "--global-weights"),
-                                             ("global", "--global-weights"), ("local", "--local-weights")])
+@pytest.mark.parametrize(
+    "correction,flag",
+    [
+        ("fused", "--local-weights"),
+        ("fused", "--global-weights"),
+        ("global", "--global-weights"),
+        ("local", "--local-weights"),
+    ],
+)
 def test_match_missing_weights_is_an_error(correction, flag, pair, tmp_path, capsys):
-    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", correction,
-                 "--descriptor", "sift", "--num-features", "32", flag, str(tmp_path / "nope.pt")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--correction",
+                correction,
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "32",
+                flag,
+                str(tmp_path / "nope.pt"),
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, "checkpoint not found", "nope.pt")
     assert not (tmp_path / "matches.npz").exists()
 
 
 def test_match_failed_write_is_an_error(pair, tmp_path, capsys):
-    (tmp_path / "matches.png").mkdir()   # cv2.imwrite cannot write there
-    assert main(["match", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path), "--correction", "none",
-                 "--descriptor", "sift", "--num-features", "32"]) == 2
+    (tmp_path / "matches.png").mkdir()  # cv2.imwrite cannot write there
+    assert (
+        main(
+            [
+                "match",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--correction",
+                "none",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "32",
+            ]
+        )
+        == 2
+    )
     one_line_error(capsys, "cannot write", "matches.png")
 
 
 # ---------------------------------------------------------------- shared options
+
 
 def _spy_loader(monkeypatch, models):
     """Replace the CLI's model loader: record (kind, weights, device) and whether each encoder
@@ -296,13 +461,26 @@ def _commands(pair, seqs, tmp_path):
         "match local": ([a, b, "--correction", "local"] + m, ["local"], True),
         "match global": ([a, b, "--correction", "global"] + m, ["global"], True),
         "match fused": ([a, b, "--correction", "fused"] + m, ["local", "global"], True),
-        "eval-hpatches": ([str(seqs), "--methods", "none", "local", "global", "fused"] + m[2:],
-                          ["local", "global"], False),
+        "eval-hpatches": (
+            [str(seqs), "--methods", "none", "local", "global", "fused"] + m[2:],
+            ["local", "global"],
+            False,
+        ),
     }
 
 
-COMMANDS = ["predict", "predict --pairs", "show", "demo", "scale", "rectify", "match local", "match global",
-            "match fused", "eval-hpatches"]
+COMMANDS = [
+    "predict",
+    "predict --pairs",
+    "show",
+    "demo",
+    "scale",
+    "rectify",
+    "match local",
+    "match global",
+    "match fused",
+    "eval-hpatches",
+]
 
 
 @pytest.mark.parametrize("name", COMMANDS)
@@ -316,15 +494,16 @@ def test_weight_device_precision_flags_reach_the_models(name, models, pair, seqs
     assert main([name.split()[0]] + argv + out + flags) == 0
     assert sorted(calls) == sorted((k, weights[k], "cpu:0") for k in kinds)
     assert autocast and all(autocast) == has_bf16 and any(autocast) == has_bf16
-    if has_bf16:   # and without --bf16 nothing runs under autocast
+    if has_bf16:  # and without --bf16 nothing runs under autocast
         calls.clear(), autocast.clear()
-        redo = ["--overwrite"] if name == "predict --pairs" else []   # a rerun skips complete pairs
+        redo = ["--overwrite"] if name == "predict --pairs" else []  # a rerun skips complete pairs
         assert main([name.split()[0]] + argv + out + flags[:-1] + redo) == 0
         assert autocast and not any(autocast)
 
 
-@pytest.mark.parametrize("device,msg", [("banana", "unknown device 'banana'"), ("cuda", "no CUDA device"),
-                                        ("cuda:1", "no CUDA device")])
+@pytest.mark.parametrize(
+    "device,msg", [("banana", "unknown device 'banana'"), ("cuda", "no CUDA device"), ("cuda:1", "no CUDA device")]
+)
 @pytest.mark.parametrize("name", ["predict", "show", "scale", "rectify", "match fused", "eval-hpatches"])
 def test_bad_device_is_a_one_line_error(name, device, msg, pair, seqs, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -334,8 +513,9 @@ def test_bad_device_is_a_one_line_error(name, device, msg, pair, seqs, tmp_path,
     one_line_error(capsys, msg)
 
 
-@pytest.mark.parametrize("name", ["predict", "predict --pairs", "show", "demo", "rectify", "match fused",
-                                  "eval-hpatches"])
+@pytest.mark.parametrize(
+    "name", ["predict", "predict --pairs", "show", "demo", "rectify", "match fused", "eval-hpatches"]
+)
 def test_output_that_is_a_file_is_an_error_before_any_work(name, pair, seqs, tmp_path, monkeypatch, capsys):
     argv, _, _ = _commands(pair, seqs, tmp_path)[name]
     (tmp_path / "taken").write_text("keep me")
@@ -384,11 +564,15 @@ def test_weight_options_are_spelled_the_same_everywhere():
 
 # ---------------------------------------------------------------- bad input
 
-@pytest.mark.parametrize("args,msg", [
-    (["predict", "nope_a.png", "nope_b.png"], "file not found"),
-    (["show", "x.png", "y.png", "--local-weights", "missing.pt"], "checkpoint not found"),
-    (["predict", "--pairs", "no_pairs.txt"], "pairs file not found"),
-])
+
+@pytest.mark.parametrize(
+    "args,msg",
+    [
+        (["predict", "nope_a.png", "nope_b.png"], "file not found"),
+        (["show", "x.png", "y.png", "--local-weights", "missing.pt"], "checkpoint not found"),
+        (["predict", "--pairs", "no_pairs.txt"], "pairs file not found"),
+    ],
+)
 def test_errors_are_one_line(args, msg, capsys, models, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     extra = ["--local-weights", str(models / "local.pt")] if "--local-weights" not in args else []
@@ -397,8 +581,20 @@ def test_errors_are_one_line(args, msg, capsys, models, tmp_path, monkeypatch):
 
 
 def test_wrong_architecture_checkpoint(models, pair, tmp_path, capsys):
-    assert main(["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path),
-                 "--local-weights", str(models / "global.pt")]) == 2
+    assert (
+        main(
+            [
+                "predict",
+                str(pair / "a.png"),
+                str(pair / "b.jpg"),
+                "-o",
+                str(tmp_path),
+                "--local-weights",
+                str(models / "global.pt"),
+            ]
+        )
+        == 2
+    )
     assert "is a ScaleNet, expected a LocalScaleNet" in capsys.readouterr().err
 
 
@@ -419,11 +615,19 @@ def test_matching_names_still_work_from_features_with_a_deprecation_warning():
     import localscale.matching as matching
     import localscale.matching.correction as correction
 
-    for name in ("CorrectionGate", "NO_GATE", "CORRECTIONS", "fuse_local_global", "scale_maps_for_pair", "match_pair",
-                 "MatchConfig", "Matcher"):
+    for name in (
+        "CorrectionGate",
+        "NO_GATE",
+        "CORRECTIONS",
+        "fuse_local_global",
+        "scale_maps_for_pair",
+        "match_pair",
+        "MatchConfig",
+        "Matcher",
+    ):
         with pytest.warns(DeprecationWarning, match=f"localscale.matching.{name}"):
             old = getattr(features, name)
         assert old is getattr(matching, name)
     assert matching.CorrectionGate is correction.CorrectionGate
     with pytest.raises(AttributeError):
-        features.no_such_name
+        _ = features.no_such_name

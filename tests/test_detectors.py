@@ -1,5 +1,6 @@
 """The detector registry: every single-scale detector on the bundled example, and the evaluation
 and ``match`` with a swapped detector."""
+
 import json
 from pathlib import Path
 
@@ -75,25 +76,55 @@ def tiny_root(tmp_path_factory, photos):
 
 def test_eval_with_orb(tiny_root, tmp_path):
     pairs = make_pairs(load_hpatches(tiny_root))
-    res = evaluate(pairs, ["none", "gt"], "hardnet", descriptor="sift", num_features=100, detector="orb",
-                   progress=False)
+    res = evaluate(
+        pairs, ["none", "gt"], "hardnet", descriptor="sift", num_features=100, detector="orb", progress=False
+    )
     s = res["summary"]["all"]
     assert all(0 <= v <= 1 for m in ("none", "gt") for v in s[m]["mma"])
     assert 0 < s["none"]["num_features"] <= 100 and s["gt"]["mma"][4] >= s["none"]["mma"][4]
     with pytest.raises(LocalScaleError, match="unknown detector"):
         evaluate(pairs, ["none"], "hardnet", descriptor="sift", detector="nope", progress=False)
     out = tmp_path / "out"
-    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt", "--descriptor", "sift",
-                     "--num-features", "100", "--detector", "orb"]) == 0
+    assert (
+        cli_main(
+            [
+                "eval-hpatches",
+                str(tiny_root),
+                "-o",
+                str(out),
+                "--methods",
+                "none",
+                "gt",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "100",
+                "--detector",
+                "orb",
+            ]
+        )
+        == 0
+    )
     doc = json.loads((out / "results_hardnet-orb-sift.json").read_text())
     assert doc["matcher_config"]["detector"] == "orb" and doc["summary"]["all"]["none"]["num_features"] <= 100
 
 
 def test_cli_unknown_detector_is_a_one_line_error(tiny_root, tmp_path, capsys):
     seq = tiny_root / "s_000"
-    for argv in (["eval-hpatches", str(tiny_root), "-o", str(tmp_path / "e"), "--detector", "nope"],
-                 ["match", str(seq / "1.png"), str(seq / "2.png"), "-o", str(tmp_path / "m"), "--detector", "nope",
-                  "--correction", "none"]):
+    for argv in (
+        ["eval-hpatches", str(tiny_root), "-o", str(tmp_path / "e"), "--detector", "nope"],
+        [
+            "match",
+            str(seq / "1.png"),
+            str(seq / "2.png"),
+            "-o",
+            str(tmp_path / "m"),
+            "--detector",
+            "nope",
+            "--correction",
+            "none",
+        ],
+    ):
         assert cli_main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: unknown detector 'nope'"), err
@@ -101,11 +132,30 @@ def test_cli_unknown_detector_is_a_one_line_error(tiny_root, tmp_path, capsys):
 
 def test_match_with_another_detector(tiny_root, tmp_path):
     seq = tiny_root / "s_000"
-    res = match_pair(seq / "1.png", seq / "2.png", "gt", H=seq / "H_1_2", descriptor="sift", num_features=80,
-                     detector="gftt")
+    res = match_pair(
+        seq / "1.png", seq / "2.png", "gt", H=seq / "H_1_2", descriptor="sift", num_features=80, detector="gftt"
+    )
     assert res.meta["detector"] == "gftt" and 0 < len(res.keypoints_a) <= 80 and len(res.matches) > 0
-    assert cli_main(["match", str(seq / "1.png"), str(seq / "2.png"), "-o", str(tmp_path / "m"), "--detector", "orb",
-                     "--correction", "none", "--descriptor", "sift", "--num-features", "80"]) == 0
+    assert (
+        cli_main(
+            [
+                "match",
+                str(seq / "1.png"),
+                str(seq / "2.png"),
+                "-o",
+                str(tmp_path / "m"),
+                "--detector",
+                "orb",
+                "--correction",
+                "none",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "80",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "m" / "matches.npz").is_file()
 
 
@@ -117,8 +167,19 @@ def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, ca
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     out = tmp_path / "t"
-    args = [str(tiny_root), "-o", str(out), "--detectors", "orb", "gftt", "--descriptors", "sift",
-            "--num-features", "60", "--quiet"]
+    args = [
+        str(tiny_root),
+        "-o",
+        str(out),
+        "--detectors",
+        "orb",
+        "gftt",
+        "--descriptors",
+        "sift",
+        "--num-features",
+        "60",
+        "--quiet",
+    ]
     assert mod.main(args) == 0
     rows = json.loads((out / "table.json").read_text())["rows"]
     assert [(r["detector"], r["descriptor"]) for r in rows] == [("gftt", "sift"), ("orb", "sift")]
@@ -126,7 +187,7 @@ def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, ca
     md = (out / "table.md").read_text()
     assert "| orb + sift |" in md and "MMA@5 local" in md and "matches none" in md
     capsys.readouterr()
-    assert mod.main(args) == 0                                       # kept, not run again
+    assert mod.main(args) == 0  # kept, not run again
     assert capsys.readouterr().out.count("exists, kept") == 2
     assert mod.main(args + ["--detectors", "nope"]) == 2
     assert capsys.readouterr().err.startswith("error: unknown detector 'nope'")

@@ -421,3 +421,58 @@ def test_two_node_cluster(short_dir, monkeypatch, pickle_tests_by_value):
         for proc in (node, head):
             if proc is not None:
                 _stop_group(proc)
+
+
+# ---------------------------------------------------------------- the command line
+
+
+def _pairs_file(folder: Path) -> Path:
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur((rng.random((200, 260, 3)) * 255).astype(np.uint8), (0, 0), 2)
+    cv2.imwrite(str(folder / "a.png"), base)
+    cv2.imwrite(str(folder / "b.png"), cv2.resize(base, None, fx=0.6, fy=0.6))
+    cv2.imwrite(str(folder / "c.png"), base[20:180, 30:230])
+    pairs = folder / "pairs.txt"
+    pairs.write_text("a.png\tb.png\nb.png\tc.png\nc.png\ta.png\n")
+    return pairs
+
+
+def test_predict_pairs_engine_options_need_ray(tmp_path, capsys):
+    from localscale.cli import main
+
+    pairs = _pairs_file(tmp_path)
+    assert main(["predict", "--pairs", str(pairs), "-o", str(tmp_path / "out"), "--workers", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "--engine ray" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+@needs_ray
+def test_predict_pairs_on_ray_writes_what_the_local_engine_writes(tmp_path, capsys):
+    from localscale.cli import main
+
+    pairs = _pairs_file(tmp_path)
+    assert main(["predict", "--pairs", str(pairs), "-o", str(tmp_path / "local")]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                "--pairs",
+                str(pairs),
+                "-o",
+                str(tmp_path / "ray"),
+                "--engine",
+                "ray",
+                "--workers",
+                "1",
+                "--threads-per-worker",
+                "1",
+            ]
+        )
+        == 0
+    )
+    assert "engine:" in capsys.readouterr().err
+    local = sorted(p.name for p in (tmp_path / "local").glob("*.npy"))
+    assert len(local) >= 6 and local == sorted(p.name for p in (tmp_path / "ray").glob("*.npy"))
+    for name in local:
+        assert np.allclose(np.load(tmp_path / "local" / name), np.load(tmp_path / "ray" / name), atol=1e-5)

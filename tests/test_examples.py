@@ -1,4 +1,5 @@
 """The plug-in examples run on the bundled pair and show what they claim."""
+
 import os
 import re
 import subprocess
@@ -12,8 +13,9 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 def _run(script, *args):
     env = dict(os.environ, OMP_NUM_THREADS="1", MPLBACKEND="Agg")
-    res = subprocess.run([sys.executable, str(EXAMPLES / script), *args], capture_output=True, text=True,
-                         env=env, timeout=300)
+    res = subprocess.run(
+        [sys.executable, str(EXAMPLES / script), *args], capture_output=True, text=True, env=env, timeout=300
+    )
     assert res.returncode == 0, res.stderr
     return res.stdout
 

@@ -1,14 +1,31 @@
 """Detector, scale-corrected patches, descriptors, matching pipeline."""
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
 from localscale.errors import CheckpointError, ImageError, LocalScaleError
-from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, detect_keypoints, extract, image_to_gray_tensor, patch_radii, sample_scale_map
-from localscale.matching import CorrectionGate, NO_GATE, draw_matches, match_descriptors, match_pair, reprojection_errors, save_matches
+from localscale.features import (
+    HardNetDescriptor,
+    ScaleCorrectedPatches,
+    SIFTPatchDescriptor,
+    detect_keypoints,
+    extract,
+    image_to_gray_tensor,
+    patch_radii,
+    sample_scale_map,
+)
 from localscale.geometry import HomographyConfig, homography_scale_map, project, sample_homography, warp_image
-
+from localscale.matching import (
+    NO_GATE,
+    CorrectionGate,
+    draw_matches,
+    match_descriptors,
+    match_pair,
+    reprojection_errors,
+    save_matches,
+)
 
 
 def _small(img, side):
@@ -125,11 +142,14 @@ def test_hardnet_loading(tmp_path):
     net = HardNetDescriptor().eval()
     x = torch.rand(3, 1, 32, 32)
     net.save(tmp_path / "ours.pt", meta={"steps": 1}, half=False)
-    assert torch.allclose(HardNetDescriptor.from_pretrained(tmp_path / "ours.pt").describe(x), net.describe(x), atol=1e-5)
+    assert torch.allclose(
+        HardNetDescriptor.from_pretrained(tmp_path / "ours.pt").describe(x), net.describe(x), atol=1e-5
+    )
     # kornia / official checkpoint format: {"state_dict": ...} with the bare HardNet keys
     torch.save({"state_dict": net.net.state_dict(), "epoch": 9}, tmp_path / "official.pth")
-    assert torch.allclose(HardNetDescriptor.from_pretrained(tmp_path / "official.pth").describe(x), net.describe(x),
-                          atol=1e-5)
+    assert torch.allclose(
+        HardNetDescriptor.from_pretrained(tmp_path / "official.pth").describe(x), net.describe(x), atol=1e-5
+    )
     with pytest.raises(CheckpointError):
         HardNetDescriptor.from_pretrained(tmp_path / "missing.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
@@ -162,9 +182,12 @@ def test_reprojection_errors():
 
 def _synthetic_pair(img, seed=3):
     a = _small(img, 256)
-    H = sample_homography(np.random.default_rng(seed), (256, 256), (256, 256),
-                          HomographyConfig(scale_range=(2.2, 2.5), rotation_deg=5, skew=0.0, perspective=0.2,
-                                           translation=0.05))
+    H = sample_homography(
+        np.random.default_rng(seed),
+        (256, 256),
+        (256, 256),
+        HomographyConfig(scale_range=(2.2, 2.5), rotation_deg=5, skew=0.0, perspective=0.2, translation=0.05),
+    )
     b, _ = warp_image(a, H, (256, 256))
     return a, b, H
 
@@ -197,18 +220,27 @@ def test_match_pair_local_and_global_with_tiny_models(photos):
         glob = ScaleNet(width=0.125, image_size=64).eval()
     except TypeError:
         pytest.skip("ScaleNet config differs")
-    res = match_pair(a, b, "global", local_model=None, global_model=glob, descriptor="sift", num_features=100,
-                     gate=NO_GATE)
+    res = match_pair(
+        a, b, "global", local_model=None, global_model=glob, descriptor="sift", num_features=100, gate=NO_GATE
+    )
     assert np.isscalar(res.scale_a) and res.errors is None
     assert abs(res.scale_a * res.scale_b - 1) < 1e-6
     s = res.scale_a
-    gated = match_pair(a, b, "global", global_model=glob, descriptor="sift", num_features=100,
-                       gate=CorrectionGate(min_pair_log2=abs(np.log2(s)) + 0.01))
+    gated = match_pair(
+        a,
+        b,
+        "global",
+        global_model=glob,
+        descriptor="sift",
+        num_features=100,
+        gate=CorrectionGate(min_pair_log2=abs(np.log2(s)) + 0.01),
+    )
     assert gated.scale_a is None and gated.scale_b is None
     # fused: the local maps' shape at the global model's level
     loc = match_pair(a, b, "local", local_model=local, descriptor="sift", num_features=50, gate=NO_GATE)
-    fused = match_pair(a, b, "fused", local_model=local, global_model=glob, descriptor="sift", num_features=50,
-                       gate=NO_GATE)
+    fused = match_pair(
+        a, b, "fused", local_model=local, global_model=glob, descriptor="sift", num_features=50, gate=NO_GATE
+    )
     assert np.isclose(np.median(np.log2(fused.scale_a)), np.log2(s), atol=1e-4)
     assert np.isclose(np.median(np.log2(fused.scale_b)), -np.log2(s), atol=1e-4)
     dl, df = np.log2(loc.scale_a), np.log2(fused.scale_a)
@@ -218,8 +250,8 @@ def test_match_pair_local_and_global_with_tiny_models(photos):
 def test_fuse_local_global():
     from localscale.matching.correction import fuse_local_global
 
-    a = np.exp2(np.linspace(-1, 1, 25, dtype=np.float32)).reshape(5, 5)     # median 1, varies 0.5..2
-    b = np.full((4, 4), 3.0, np.float32)                                     # biased, flat
+    a = np.exp2(np.linspace(-1, 1, 25, dtype=np.float32)).reshape(5, 5)  # median 1, varies 0.5..2
+    b = np.full((4, 4), 3.0, np.float32)  # biased, flat
     fa, fb = fuse_local_global(a, b, 2.0)
     assert np.allclose(fa, 2.0 * a / np.median(a), rtol=1e-5) and np.allclose(fb, 0.5)
     for bad in (0.0, -1.0, float("nan"), float("inf")):
@@ -261,7 +293,7 @@ def test_gate_weighting_ignores_pixels_the_other_image_does_not_show():
     wb = np.ones((6, 6), np.float32)
     plain = CorrectionGate(min_pair_log2=0.5, weighting="none")
     weighted = CorrectionGate(min_pair_log2=0.5, weighting="visible")
-    ga, gb = plain.apply_pair(sa, sb)                       # whole-map medians: the noise sets A's level
+    ga, gb = plain.apply_pair(sa, sb)  # whole-map medians: the noise sets A's level
     assert not np.allclose(ga[:, :3], 2.0, rtol=1e-3)
     ga, gb = weighted.apply_pair(sa, sb, None, None, wa, wb)
     assert np.allclose(ga[:, :3], 2.0, rtol=1e-5) and np.allclose(gb, 0.5, rtol=1e-5)
@@ -322,9 +354,26 @@ def test_match_cli_writes_matches(photos, tmp_path):
     cv2.imwrite(str(tmp_path / "a.png"), a[..., ::-1])
     cv2.imwrite(str(tmp_path / "b.png"), b[..., ::-1])
     np.savetxt(tmp_path / "H", H)
-    assert main(["match", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(tmp_path / "out"),
-                 "--correction", "gt", "--H", str(tmp_path / "H"), "--descriptor", "sift",
-                 "--num-features", "200"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(tmp_path / "a.png"),
+                str(tmp_path / "b.png"),
+                "-o",
+                str(tmp_path / "out"),
+                "--correction",
+                "gt",
+                "--H",
+                str(tmp_path / "H"),
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "200",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "out" / "matches.npz").is_file() and (tmp_path / "out" / "matches.png").is_file()
     z = np.load(tmp_path / "out" / "matches.npz")
     assert (z["errors"] < 5).mean() > 0.5 and str(z["matcher"]) == "hardnet"
@@ -340,7 +389,7 @@ def test_bad_match_options_and_models(photos, tmp_path):
         match_pair(a, b, "none", num_featrues=10)
     with pytest.raises(LocalScaleError, match="LocalScaleNet"):
         match_pair(a, b, "local", local_model=ScaleNet(width=0.125, image_size=64).eval(), descriptor="sift")
-    res = match_pair(a, b, "gt", H=H.tolist(), descriptor="sift", num_features=100)   # H as a nested list
+    res = match_pair(a, b, "gt", H=H.tolist(), descriptor="sift", num_features=100)  # H as a nested list
     assert res.accuracy(5.0) > 0.5
     with pytest.raises(LocalScaleError, match="an existing folder"):
         draw_matches(a, b, res, tmp_path)
@@ -359,7 +408,8 @@ def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos, descriptor, wi
     from pathlib import Path
 
     spec = importlib.util.spec_from_file_location(
-        "train_descriptor", Path(__file__).resolve().parent.parent / "train" / "train_descriptor.py")
+        "train_descriptor", Path(__file__).resolve().parent.parent / "train" / "train_descriptor.py"
+    )
     td = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(td)
     rng = np.random.default_rng(5)

@@ -61,7 +61,7 @@ def test_sampler_respects_ranges(rng):
         assert G.project(H, np.array([59.5, 49.5])) == pytest.approx([59.5, 49.5])
     centres = np.array(centres)
     assert centres.min() >= 0.16 - 1e-9 and centres.max() <= 6 + 1e-9
-    assert centres.min() < 0.3 and centres.max() > 3.5   # log-uniform covers the range
+    assert centres.min() < 0.3 and centres.max() > 3.5  # log-uniform covers the range
 
 
 def test_covisible_mask_and_global_scale():
@@ -79,7 +79,7 @@ def test_warp_fills_empty_region_from_other_image():
     warped, valid = G.warp_image(a, zoom(0.5), (60, 80), fill=fill)
     assert warped.dtype == np.uint8 and warped.shape == (60, 80, 3)
     assert (warped[5:25, 5:35] == 200).all()
-    assert (warped[45:, 60:] == 17).all()       # not zeros: taken from the fill image
+    assert (warped[45:, 60:] == 17).all()  # not zeros: taken from the fill image
     assert valid[5:25, 5:35].min() == pytest.approx(1.0) and valid[45:, 60:].max() == 0
 
 

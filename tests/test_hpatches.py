@@ -1,4 +1,5 @@
 """HPatches loader, splits, protocol and the synthetic sequence generator."""
+
 import json
 import shutil
 
@@ -9,11 +10,16 @@ import torch
 
 from localscale.cli import main as cli_main
 from localscale.errors import LocalScaleError
-from localscale.evaluation import (evaluate, load_hpatches, make_pairs, make_sequences, perspective_split,
-                                   rotation_split, scale_split)
-from localscale.geometry import homography_rotation
-from localscale.geometry import orient_homography
-
+from localscale.evaluation import (
+    evaluate,
+    load_hpatches,
+    make_pairs,
+    make_sequences,
+    perspective_split,
+    rotation_split,
+    scale_split,
+)
+from localscale.geometry import homography_rotation, orient_homography
 
 
 @pytest.fixture(scope="module")
@@ -68,8 +74,15 @@ def test_whole_eval_tiny(tiny_root, tmp_path):
     torch.manual_seed(0)
     pairs = make_pairs(load_hpatches(tiny_root))
     local = LocalScaleNet(width=0.125, image_size=64).eval()
-    res = evaluate(pairs, ["none", "local", "gt"], "hardnet", descriptor="sift", num_features=150, local_model=local,
-                   progress=False)
+    res = evaluate(
+        pairs,
+        ["none", "local", "gt"],
+        "hardnet",
+        descriptor="sift",
+        num_features=150,
+        local_model=local,
+        progress=False,
+    )
     s = res["summary"]
     assert s["all"]["num_pairs"] == 4 and len(res["records"]) == 12
     assert all(r["seconds"] > 0 and r["matcher"] == "hardnet" for r in res["records"])
@@ -80,29 +93,73 @@ def test_whole_eval_tiny(tiny_root, tmp_path):
     with pytest.raises(LocalScaleError):
         evaluate(pairs, ["local"], "hardnet")
     from localscale.models import ScaleNet
-    res = evaluate(pairs[:1], ["global", "gt_gated"], "hardnet", descriptor="sift", num_features=100,
-                   global_model=ScaleNet(width=0.125, image_size=64).eval(), progress=False)
+
+    res = evaluate(
+        pairs[:1],
+        ["global", "gt_gated"],
+        "hardnet",
+        descriptor="sift",
+        num_features=100,
+        global_model=ScaleNet(width=0.125, image_size=64).eval(),
+        progress=False,
+    )
     assert set(res["summary"]["all"]) >= {"global", "gt_gated"}
 
 
 def test_main_writes_outputs(tiny_root, tmp_path):
     out = tmp_path / "out"
     # weights the user names must load: a missing file is an error before anything is computed
-    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt", "local",
-                     "--descriptor", "sift", "--num-features", "100",
-                     "--local-weights", str(tmp_path / "missing.pt")]) == 2
+    assert (
+        cli_main(
+            [
+                "eval-hpatches",
+                str(tiny_root),
+                "-o",
+                str(out),
+                "--methods",
+                "none",
+                "gt",
+                "local",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "100",
+                "--local-weights",
+                str(tmp_path / "missing.pt"),
+            ]
+        )
+        == 2
+    )
     assert not out.exists()
-    assert cli_main(["eval-hpatches", str(tiny_root), "-o", str(out), "--methods", "none", "gt",
-                     "--matcher", "hardnet", "sift", "--descriptor", "sift", "--num-features", "100"]) == 0
+    assert (
+        cli_main(
+            [
+                "eval-hpatches",
+                str(tiny_root),
+                "-o",
+                str(out),
+                "--methods",
+                "none",
+                "gt",
+                "--matcher",
+                "hardnet",
+                "sift",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "100",
+            ]
+        )
+        == 0
+    )
     doc = json.loads((out / "results_hardnet-sift.json").read_text())
     assert doc["methods"] == ["none", "gt"] and doc["skipped"] == []
     assert len(doc["splits"]) == 4 and (out / "splits.csv").is_file() and (out / "results_hardnet-sift.md").is_file()
     assert (out / "mma_hardnet-sift_all.png").stat().st_size > 0
     sift = json.loads((out / "results_sift.json").read_text())
     assert sift["matcher"] == "sift" and sift["matcher_config"]["extractor"] == "sift"
-    assert sift["matcher_config"]["num_features"] == 100                   # --num-features applies to every matcher
+    assert sift["matcher_config"]["num_features"] == 100  # --num-features applies to every matcher
     assert "hardnet-sift" in (out / "results.md").read_text() and "sift" in (out / "results.md").read_text()
-
 
 
 def test_gate_options(tiny_root, tmp_path):
@@ -123,8 +180,8 @@ def test_gate_options(tiny_root, tmp_path):
 def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
     """``crop < 1``: image 1 is the photo's centre; image k = the whole photo warped so that
     ``H_1_k`` still maps image 1 onto it, with the photo (not the fill) around that footprint."""
-    gray = np.full_like(photos["astronaut"], 128)                  # the fill photo
-    imgs = [photos["astronaut"], gray, gray, gray]                 # image k of sequence 0 is filled from imgs[k]
+    gray = np.full_like(photos["astronaut"], 128)  # the fill photo
+    imgs = [photos["astronaut"], gray, gray, gray]  # image k of sequence 0 is filled from imgs[k]
     for crop in (1.0, 0.6):
         d = make_sequences(imgs, tmp_path / f"c{crop}", num_images=3, size=128, seed=4, crop=crop)[0]
         one = cv2.imread(str(d / "1.png"))
@@ -136,18 +193,19 @@ def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
             size = b.shape[1::-1]
             footprint = cv2.warpPerspective(np.ones(one.shape[:2], np.uint8), H, size)
             inside = cv2.erode(footprint, np.ones((5, 5), np.uint8)) > 0
-            ncc = np.corrcoef(cv2.warpPerspective(one, H, size)[inside].ravel().astype(float),
-                              b[inside].ravel().astype(float))[0, 1]
-            assert ncc > 0.9, ncc                                   # H_1_k maps image 1 onto image k
+            ncc = np.corrcoef(
+                cv2.warpPerspective(one, H, size)[inside].ravel().astype(float), b[inside].ravel().astype(float)
+            )[0, 1]
+            assert ncc > 0.9, ncc  # H_1_k maps image 1 onto image k
             grow = lambda n: cv2.dilate(footprint, np.ones((n, n), np.uint8)) > 0  # noqa: E731
-            around = grow(21) & ~grow(7)                            # a ring just outside image 1's footprint
+            around = grow(21) & ~grow(7)  # a ring just outside image 1's footprint
             if around.sum() > 50:
                 fill_share.append((np.abs(b[around].astype(int) - 128) <= 1).all(1).mean())
         assert fill_share
         if crop == 1.0:
-            assert min(fill_share) > 0.95                             # only the fill around image 1
+            assert min(fill_share) > 0.95  # only the fill around image 1
         else:
-            assert np.mean(fill_share) < 0.5                          # mostly the photo's surroundings
+            assert np.mean(fill_share) < 0.5  # mostly the photo's surroundings
     with pytest.raises(ValueError):
         make_sequences(imgs, tmp_path / "bad", crop=0)
 

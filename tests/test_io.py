@@ -1,4 +1,5 @@
 """Bad-input suite: every case gives a one-line LocalScaleError (or documented handling)."""
+
 import struct
 import zlib
 
@@ -85,9 +86,9 @@ def test_tiny_images_are_refused(tmp_path):
 def test_huge_header_is_refused_before_decoding(tmp_path, png):
     data = bytearray(png.read_bytes())
     ihdr = data.index(b"IHDR")
-    data[ihdr + 4:ihdr + 12] = struct.pack(">II", 20000, 20000)
-    crc = zlib.crc32(bytes(data[ihdr:ihdr + 17])) & 0xFFFFFFFF
-    data[ihdr + 17:ihdr + 21] = struct.pack(">I", crc)
+    data[ihdr + 4 : ihdr + 12] = struct.pack(">II", 20000, 20000)
+    crc = zlib.crc32(bytes(data[ihdr : ihdr + 17])) & 0xFFFFFFFF
+    data[ihdr + 17 : ihdr + 21] = struct.pack(">I", crc)
     p = tmp_path / "huge.png"
     p.write_bytes(bytes(data))
     with pytest.raises(ImageError) as e:
@@ -155,7 +156,7 @@ def test_orientation_tag_is_applied_exactly_once(tmp_path, photos, suffix, orien
 
     from localscale.io import image_shape
 
-    stored = cv2.resize(photos["astronaut"], (96, 64), interpolation=cv2.INTER_AREA)   # 64 x 96: not square
+    stored = cv2.resize(photos["astronaut"], (96, 64), interpolation=cv2.INTER_AREA)  # 64 x 96: not square
     p = _tagged(tmp_path / f"o{orientation}{suffix}", stored, orientation)
     with Image.open(p) as im:
         assert im.getexif().get(0x0112) == orientation
@@ -166,7 +167,7 @@ def test_orientation_tag_is_applied_exactly_once(tmp_path, photos, suffix, orien
     diff = np.abs(got.astype(int) - expected.astype(int))
     if suffix == ".tif":
         assert diff.max() == 0
-    else:   # two JPEG decoders: small rounding differences only
+    else:  # two JPEG decoders: small rounding differences only
         assert diff.mean() < 2, diff.mean()
 
 
@@ -182,6 +183,7 @@ def test_predict_on_a_tagged_tiff_gives_the_upright_map(tmp_path, photos):
 
 
 # ---------------------------------------------------------------- float TIFF, 16 bit, thin strips, damaged files
+
 
 def _smooth(h: int, w: int, seed: int = 0) -> np.ndarray:
     """``h x w x 3`` float64 in [0, 1], smooth (a photo-like test image)."""
@@ -199,7 +201,7 @@ def test_float_tiffs_are_decoded(tmp_path, dtype, gray, top):
     img = img[..., 0] if gray else img
     p = tmp_path / "f.tif"
     tifffile.imwrite(p, (img * top).astype(dtype), photometric="minisblack" if gray else "rgb")
-    stored = (img * top).astype(dtype).astype(np.float64) / top          # what the file holds, in [0, 1]
+    stored = (img * top).astype(dtype).astype(np.float64) / top  # what the file holds, in [0, 1]
     want = np.repeat(stored[..., None], 3, 2) if gray else stored
     got = load_image(p)
     assert got.dtype == np.uint8 and got.shape == (48, 64, 3)
@@ -208,8 +210,15 @@ def test_float_tiffs_are_decoded(tmp_path, dtype, gray, top):
     assert precise.dtype == np.float32 and np.abs(precise - want).max() < 1e-6
 
 
-@pytest.mark.parametrize("bad, words", [(np.nan, "NaN or inf"), (np.inf, "NaN or inf"), (-5.0, "expected [0, 1] or [0, 255]"),
-                                        (300.0, "expected [0, 1] or [0, 255]")])
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        (np.nan, "NaN or inf"),
+        (np.inf, "NaN or inf"),
+        (-5.0, "expected [0, 1] or [0, 255]"),
+        (300.0, "expected [0, 1] or [0, 255]"),
+    ],
+)
 def test_float_tiff_with_bad_values_is_refused(tmp_path, bad, words):
     tifffile = pytest.importorskip("tifffile")
     img = _smooth(32, 32).astype(np.float32)
@@ -228,7 +237,7 @@ def test_16bit_images_reach_the_network_at_full_precision(tmp_path):
 
     rng = np.random.default_rng(3)
     img16 = rng.integers(0, 65536, (64, 64, 3), dtype=np.uint16)
-    model = LocalScaleNet(width=0.125, feature_dim=16, image_size=64)   # 64 x 64: no resize in the letterbox
+    model = LocalScaleNet(width=0.125, feature_dim=16, image_size=64)  # 64 x 64: no resize in the letterbox
     for suffix in (".png", ".tif"):
         p = tmp_path / f"x{suffix}"
         cv2.imwrite(str(p), img16[..., ::-1])
@@ -239,10 +248,10 @@ def test_16bit_images_reach_the_network_at_full_precision(tmp_path):
         x, _ = model.prepare(p)
         assert torch_allclose(x[0].permute(1, 2, 0).numpy(), img16 / 65535.0, 1e-6)
         rounded = np.abs(x[0].numpy() * 255 - np.round(x[0].numpy() * 255))
-        assert rounded.max() > 0.4                         # values between the 8-bit levels are kept
+        assert rounded.max() > 0.4  # values between the 8-bit levels are kept
     eight = tmp_path / "8.png"
     cv2.imwrite(str(eight), (img16 // 257).astype(np.uint8)[..., ::-1])
-    x8, _ = model.prepare(eight)                           # 8-bit input: as before, x / 255
+    x8, _ = model.prepare(eight)  # 8-bit input: as before, x / 255
     assert torch_allclose(x8[0].permute(1, 2, 0).numpy(), (img16 // 257) / 255.0, 1e-6)
 
 
@@ -257,7 +266,7 @@ def test_thin_strips_are_images(tmp_path, shape):
     p = tmp_path / "strip.png"
     cv2.imwrite(str(p), (_smooth(*shape) * 255).astype(np.uint8))
     assert load_image(p).shape == (*shape, 3) and image_shape(p) == shape
-    small, full = load_image_reduced(p, "strip", 256)            # decoded at 1/8: the size check is the file's
+    small, full = load_image_reduced(p, "strip", 256)  # decoded at 1/8: the size check is the file's
     assert full == shape and max(small.shape[:2]) == 500
     thinner = tmp_path / "thinner.png"
     cv2.imwrite(str(thinner), (_smooth(15, 4000) * 255).astype(np.uint8))
@@ -270,7 +279,7 @@ def _damaged_jpeg(path, claimed=(9999, 9999)):
     _, buf = cv2.imencode(".jpg", (_smooth(214, 320) * 255).astype(np.uint8))
     data = bytearray(buf.tobytes())
     i = data.index(b"\xff\xc0")
-    data[i + 5:i + 9] = struct.pack(">HH", claimed[1], claimed[0])
+    data[i + 5 : i + 9] = struct.pack(">HH", claimed[1], claimed[0])
     path.write_bytes(bytes(data))
     return path
 
@@ -288,5 +297,5 @@ def test_damaged_jpeg_is_refused_unless_accepted(tmp_path):
     assert full == (9999, 9999)
     with accepting_damaged(), pytest.warns(UserWarning, match="premature end"):
         assert load_image_reduced(p, "image A", 1000)[1] == (9999, 9999)
-    with pytest.raises(ImageError, match="damaged file"):   # the setting ends with the block
+    with pytest.raises(ImageError, match="damaged file"):  # the setting ends with the block
         load_image_reduced(p, "image A", 1000)

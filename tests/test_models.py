@@ -65,7 +65,7 @@ def test_self_terms_are_computed_once_per_encoding(local_model, photos):
     p_ac = local_model.predict_from_features(ea, ec)
     assert np.allclose(local_model.predict_from_features(ea, ec).scale, p_ac.scale, rtol=1e-6)
     assert np.allclose(local_model.predict_from_features(ea, eb).scale, p_ab.scale, rtol=1e-6)
-    assert not np.allclose(p_ab.scale, p_ac.scale)     # B still matters
+    assert not np.allclose(p_ab.scale, p_ac.scale)  # B still matters
 
 
 def test_loaded_models_are_channels_last_on_cpu_with_the_same_output(tmp_path, local_model, photos):
@@ -129,7 +129,7 @@ def test_bad_images_are_refused_with_a_clear_error(local_model, tmp_path):
 def test_position_invariant_cues_variant(tmp_path, photos):
     """top-k correlation profile + warped-B-features branch (the shipped configuration)."""
     torch.manual_seed(0)
-    m = LocalScaleNet(**TINY, topk=100, warp_features=True).eval()   # topk > 8*8 cells is clipped
+    m = LocalScaleNet(**TINY, topk=100, warp_features=True).eval()  # topk > 8*8 cells is clipped
     x = torch.rand(2, 3, 64, 64)
     assert m(x, x.flip(-1)).shape == (2, 13, 8, 8)
     save_model(m, tmp_path / "v.pt")
@@ -142,7 +142,7 @@ def test_planar_option_gives_a_homography_scale_field(local_model, photos):
     pred = local_model.predict(photos["coffee"], photos["chelsea"], planar=True)
     raw = local_model.predict(photos["coffee"], photos["chelsea"])
     assert pred.scale.shape == raw.scale.shape and np.isfinite(pred.scale).all()
-    ls = np.log(pred.scale)       # ln S = c - 1.5 ln(1 + p.x) is smooth: tiny second differences
+    ls = np.log(pred.scale)  # ln S = c - 1.5 ln(1 + p.x) is smooth: tiny second differences
     assert np.abs(np.diff(ls, 2, axis=1)).max() < 1e-3
 
 
@@ -154,7 +154,6 @@ def test_global_with_cues_is_symmetric_in_structure():
     l_ab, l_ba = g(a, b)
     m_ab, m_ba = g(b, a)
     assert torch.allclose(l_ab, m_ba, atol=1e-4) and torch.allclose(l_ba, m_ab, atol=1e-4)
-
 
 
 def _orientation_sensitive(g):
@@ -170,18 +169,24 @@ def _orientation_sensitive(g):
 
     def top(e):
         f = e.features
-        return float(f[..., : f.shape[-2] // 2, :].mean() - f[..., f.shape[-2] // 2:, :].mean())
+        return float(f[..., : f.shape[-2] // 2, :].mean() - f[..., f.shape[-2] // 2 :, :].mean())
 
     def left(e):
         f = e.features
-        return float(f[..., : f.shape[-1] // 2].mean() - f[..., f.shape[-1] // 2:].mean())
+        return float(f[..., : f.shape[-1] // 2].mean() - f[..., f.shape[-1] // 2 :].mean())
 
     def head(ea, eb, bf16=False):
-        shared = 100 * left(ea) * left(eb) + 1000 * top(ea) * top(eb)   # common bias: the inconsistency
+        shared = 100 * left(ea) * left(eb) + 1000 * top(ea) * top(eb)  # common bias: the inconsistency
         ls_ab, ls_ba = 20 * (top(eb) - top(ea)) + shared, 20 * (top(ea) - top(eb)) + shared
         probs = np.full(13, 1 / 13, np.float32)
-        return GlobalScalePrediction(scale=float(np.exp((ls_ab - ls_ba) / 2)), scale_ab=float(np.exp(ls_ab)),
-                                     scale_ba=float(np.exp(ls_ba)), hard_scale=1.0, probs_ab=probs, probs_ba=probs)
+        return GlobalScalePrediction(
+            scale=float(np.exp((ls_ab - ls_ba) / 2)),
+            scale_ab=float(np.exp(ls_ab)),
+            scale_ba=float(np.exp(ls_ba)),
+            hard_scale=1.0,
+            probs_ab=probs,
+            probs_ba=probs,
+        )
 
     g.encode_image, g.predict_from_features = encode, head
     return g
@@ -194,8 +199,11 @@ def test_global_quarter_turns_keep_the_most_consistent_prediction(photos):
     upright = g.predict(a, b, turns=False)
     assert not upright.reliable and upright.turns == (0, 0)
     rot = lambda x, k: np.ascontiguousarray(np.rot90(x, k))  # noqa: E731
-    candidates = [upright] + [g.predict(a, rot(b, k), turns=False) for k in (1, 2, 3)] \
+    candidates = (
+        [upright]
+        + [g.predict(a, rot(b, k), turns=False) for k in (1, 2, 3)]
         + [g.predict(rot(a, k), b, turns=False) for k in (1, 2, 3)]
+    )
     incs = [c.inconsistency_log2 for c in candidates]
     assert max(incs) - min(incs) > 0.1, "the turns must matter for this test"
     p = g.predict(a, b)
@@ -207,7 +215,7 @@ def test_global_quarter_turns_keep_the_most_consistent_prediction(photos):
     q = g.predict(b, a)
     assert p.scale * q.scale == pytest.approx(1, rel=1e-6) and q.turns == p.turns[::-1]
     # a reliable upright prediction is kept as it is
-    g.TURN_MARGIN_LOG2 = incs[0] - min(incs) + 0.01    # not better by the margin: the upright one stays
+    g.TURN_MARGIN_LOG2 = incs[0] - min(incs) + 0.01  # not better by the margin: the upright one stays
     assert g.predict(a, b).turns == (0, 0) and g.predict(a, b).scale == upright.scale
     kept = g.predict(a, rot(b, 1))
     assert kept.reliable and kept.turns == (0, 0) and kept.scale == candidates[1].scale
@@ -219,7 +227,7 @@ def test_folded_inference_copy_matches_and_follows_weight_changes(local_model, t
     torch.manual_seed(1)
     model = LocalScaleNet(**TINY)
     model.train()
-    model(torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64))      # BatchNorm statistics move off 0 / 1
+    model(torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64))  # BatchNorm statistics move off 0 / 1
     model.eval()
     x = torch.rand(1, 3, 64, 64)
     with torch.no_grad():
@@ -227,14 +235,16 @@ def test_folded_inference_copy_matches_and_follows_weight_changes(local_model, t
         assert len(model._folded) == 1
         assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in model._folded[0].modules())
         assert torch.allclose(folded, model.extractor(x), atol=1e-5)
-        model.load_state_dict(local_model.state_dict())                 # new weights reach inference
+        model.load_state_dict(local_model.state_dict())  # new weights reach inference
         assert not model._folded
         assert torch.allclose(model.encode(x), local_model.extractor(x), atol=1e-5)
         fa, fb = model.encode(x), model.encode(x.flip(-1))
         with torch.enable_grad():
-            plain = model.forward_features_all(fa, fb)[0]                 # the model's own modules
+            plain = model.forward_features_all(fa, fb)[0]  # the model's own modules
         assert torch.allclose(model.forward_features_all(fa, fb)[0], plain, atol=1e-4)
-    with torch.enable_grad():                                          # training path: the real modules
+    with torch.enable_grad():  # training path: the real modules
         assert model.encode(x).requires_grad
-    assert isinstance(fold_batch_norm(torch.nn.Sequential(torch.nn.Conv2d(1, 2, 3), torch.nn.BatchNorm2d(2).eval()))[0],
-                      torch.nn.Conv2d)
+    assert isinstance(
+        fold_batch_norm(torch.nn.Sequential(torch.nn.Conv2d(1, 2, 3), torch.nn.BatchNorm2d(2).eval()))[0],
+        torch.nn.Conv2d,
+    )

@@ -1,4 +1,5 @@
 """Packaging: dependency ranges (no exact pins), one version everywhere, ``localscale --version``."""
+
 import re
 import sys
 from pathlib import Path

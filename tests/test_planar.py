@@ -9,7 +9,7 @@ def test_planar_fit_recovers_a_homography_scale_field_from_noisy_samples(rng):
     gt = homography_scale_map(H, 240, 320).astype(np.float32)
     noisy = gt * np.exp(rng.normal(0, 0.25, gt.shape)).astype(np.float32)
     outliers = rng.random(gt.shape) < 0.1
-    noisy[outliers] *= 6                                   # 10% gross errors
+    noisy[outliers] *= 6  # 10% gross errors
     fit = planarize(noisy, np.ones_like(gt), stride=4)
     err_raw = np.abs(np.log(noisy / gt)).mean()
     err_fit = np.abs(np.log(fit / gt)).mean()

@@ -1,12 +1,20 @@
 """The bundled default models: they load, follow the convention and beat the constant baselines
 on held-out pairs (scikit-image photos, never used for training)."""
+
 import math
 
 import numpy as np
 import pytest
 
 from localscale import LocalScaleNet, ScaleNet
-from localscale.geometry import HomographyConfig, covisible_mask, global_scale, homography_scale_map, sample_homography, warp_image
+from localscale.geometry import (
+    HomographyConfig,
+    covisible_mask,
+    global_scale,
+    homography_scale_map,
+    sample_homography,
+    warp_image,
+)
 
 
 @pytest.fixture(scope="module")
@@ -17,10 +25,12 @@ def local():
 def held_out_pairs(photos, n, seed, perspective):
     rng = np.random.default_rng(seed)
     names = list(photos)
-    for k in range(n):
+    for _k in range(n):
         i, j = rng.choice(len(names), 2, replace=False)
         a = photos[names[i]]
-        H = sample_homography(rng, a.shape[:2], a.shape[:2], HomographyConfig(scale_range=(0.25, 4.0), perspective=perspective))
+        H = sample_homography(
+            rng, a.shape[:2], a.shape[:2], HomographyConfig(scale_range=(0.25, 4.0), perspective=perspective)
+        )
         b, _ = warp_image(a, H, a.shape[:2], fill=photos[names[j]])
         yield a, b, H
 
@@ -94,9 +104,9 @@ def test_forward_and_backward_maps_agree_through_the_homography(local, photos):
     ratios = []
     for a, b, H in held_out_pairs(photos, 6, 3, 0.3):
         fwd, bwd = local.predict(a, b).scale, local.predict(b, a).scale
-        ys, xs = np.mgrid[0:a.shape[0]:8, 0:a.shape[1]:8]
+        ys, xs = np.mgrid[0 : a.shape[0] : 8, 0 : a.shape[1] : 8]
         q = np.round(project(H, np.stack([xs, ys], -1).astype(float))).astype(int)
-        m = covisible_mask(H, a.shape[:2], b.shape[:2], 8)[:ys.shape[0], :ys.shape[1]]
+        m = covisible_mask(H, a.shape[:2], b.shape[:2], 8)[: ys.shape[0], : ys.shape[1]]
         m &= (q[..., 0] >= 0) & (q[..., 0] < b.shape[1]) & (q[..., 1] >= 0) & (q[..., 1] < b.shape[0])
         if m.sum() > 20:
             ratios.append(np.median(np.log2(fwd[ys[m], xs[m]] * bwd[q[m][:, 1], q[m][:, 0]])))

@@ -1,4 +1,5 @@
 """HardNet precisions (fp32 / bf16 / int8) and narrower HardNets."""
+
 import pytest
 import torch
 
@@ -6,9 +7,9 @@ from localscale.errors import CheckpointError, LocalScaleError
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, image_to_gray_tensor
 from localscale.features.descriptors import SlimHardNet
 from localscale.features.detector import HessianDetector
+from localscale.features.quantization import OBSERVED, calibrate_int8, int8_available
 from localscale.matching.config import MatchConfig
 from localscale.matching.matcher import Matcher
-from localscale.features.quantization import OBSERVED, calibrate_int8, int8_available
 
 needs_int8 = pytest.mark.skipif(not int8_available(), reason="no x86 quantised engine in this PyTorch")
 
@@ -31,7 +32,7 @@ def test_shipped_int8_agrees_with_fp32_on_real_patches(real_patches):
     assert model.resolved_precision("cpu") == "int8" and model.resolved_precision("cuda") == "fp32"
     d8 = model.describe(real_patches)
     d32 = model.set_precision("fp32").describe(real_patches)
-    assert not torch.equal(d8, d32)                      # the int8 path really ran
+    assert not torch.equal(d8, d32)  # the int8 path really ran
     assert torch.allclose(d8.norm(dim=1), torch.ones(len(d8)), atol=1e-4)
     err = (d8 - d32).norm(dim=1)
     assert err.mean() < 0.06 and err.quantile(0.99) < 0.2, (err.mean(), err.quantile(0.99))

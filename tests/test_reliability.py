@@ -1,4 +1,5 @@
 """Per-pixel reliability calibration, the visibility output and the pair-level check."""
+
 import math
 from types import SimpleNamespace
 
@@ -11,8 +12,7 @@ from localscale.checkpoint import save_model
 from localscale.models import load_model
 from localscale.models.local import reliability, reliability_features
 from localscale.models.scalenet import GlobalScalePrediction
-from localscale.reliability import (PairCheckConfig, auroc, check_pair, fit_calibration, flag_reasons,
-                                    pair_statistics)
+from localscale.reliability import PairCheckConfig, auroc, check_pair, fit_calibration, flag_reasons, pair_statistics
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 
@@ -49,7 +49,7 @@ def test_pair_statistics_and_flag():
     stats = pair_statistics(fwd, bwd)
     assert stats["inconsistency_log2"] == pytest.approx(0) and stats["visible_fraction"] == 1
     assert flag_reasons(stats) == []
-    bad = pair_statistics(_pred(2 * ones, ones, 0.9 * ones), _pred(2 * ones, ones))    # both say "bigger"
+    bad = pair_statistics(_pred(2 * ones, ones, 0.9 * ones), _pred(2 * ones, ones))  # both say "bigger"
     assert bad["inconsistency_log2"] == pytest.approx(2)
     assert any("disagree" in r for r in flag_reasons(bad))
     hidden = pair_statistics(_pred(ones, 0.01 * ones, 0.9 * ones), _pred(ones, ones))
@@ -66,7 +66,7 @@ def test_reliability_features_and_calibrated_map():
     assert torch.allclose(f[:, 1], vis)
     sharp = torch.zeros(1, 13, 1, 1)
     sharp[0, 6] = 1
-    assert float(reliability_features(sharp, None, 1)[0, 2]) == pytest.approx(0)   # no spread
+    assert float(reliability_features(sharp, None, 1)[0, 2]) == pytest.approx(0)  # no spread
     r = reliability(probs, vis, (0.0, 1.0, 1.0, -1.0), 1)
     assert r.shape == (2, 4, 5) and float(r.min()) >= 0 and float(r.max()) <= 1
 
@@ -87,7 +87,11 @@ def test_visibility_output_and_calibration_survive_a_checkpoint(tmp_path, photos
 
 
 def test_a_model_without_visibility_has_none():
-    pred = LocalScaleNet(**TINY).eval().predict(np.zeros((64, 64, 3), np.uint8) + 100, np.zeros((64, 64, 3), np.uint8) + 90)
+    pred = (
+        LocalScaleNet(**TINY)
+        .eval()
+        .predict(np.zeros((64, 64, 3), np.uint8) + 100, np.zeros((64, 64, 3), np.uint8) + 90)
+    )
     assert pred.visible is None and pred.reliability is None
 
 
@@ -108,7 +112,9 @@ def test_check_pair_runs_both_directions(photos):
 def test_global_prediction_flags_disagreeing_directions():
     probs = np.full(13, 1 / 13)
     ok = GlobalScalePrediction(scale=2.0, scale_ab=2.0, scale_ba=0.5, hard_scale=2.0, probs_ab=probs, probs_ba=probs)
-    bad = GlobalScalePrediction(scale=1.35, scale_ab=1.8, scale_ba=1 / 1.0, hard_scale=2.0, probs_ab=probs, probs_ba=probs)
+    bad = GlobalScalePrediction(
+        scale=1.35, scale_ab=1.8, scale_ba=1 / 1.0, hard_scale=2.0, probs_ab=probs, probs_ba=probs
+    )
     assert ok.reliable and ok.inconsistency_log2 == pytest.approx(0)
     assert not bad.reliable
 

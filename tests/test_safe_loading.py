@@ -1,5 +1,6 @@
 """Untrusted input: checkpoints that would run code or are malformed, image files whose
 size is unknown or huge, EXIF orientation, and homographies near the numeric limits."""
+
 import os
 from collections import Counter
 from pathlib import Path
@@ -79,17 +80,28 @@ def test_hardnet_checkpoint_with_code_is_refused_unrun(tmp_path):
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("name,edit,match", [
-    ("nosd", lambda ck: ck.pop("state_dict"), "has no 'state_dict'"),
-    ("sdlist", lambda ck: ck.update(state_dict=[1, 2]), "'state_dict' is a list"),
-    ("sdvalue", lambda ck: ck["state_dict"].update(extra=3.0), "'state_dict' entry 'extra' is a float, not a tensor"),
-    ("version", lambda ck: ck.update(localscale_format=FORMAT_VERSION + 1), "unsupported checkpoint format version 2"),
-    ("version_str", lambda ck: ck.update(localscale_format="1"), "unsupported checkpoint format version '1'"),
-    ("noconfig", lambda ck: ck.pop("config"), "no valid 'config'"),
-    ("config_key", lambda ck: ck["config"].update(colour=1), "config does not fit LocalScaleNet"),
-    ("config_type", lambda ck: ck["config"].update(reduction="abc"), "config does not fit LocalScaleNet"),
-    ("config_list", lambda ck: ck.update(config=[1, 2]), "no valid 'config'"),
-])
+@pytest.mark.parametrize(
+    "name,edit,match",
+    [
+        ("nosd", lambda ck: ck.pop("state_dict"), "has no 'state_dict'"),
+        ("sdlist", lambda ck: ck.update(state_dict=[1, 2]), "'state_dict' is a list"),
+        (
+            "sdvalue",
+            lambda ck: ck["state_dict"].update(extra=3.0),
+            "'state_dict' entry 'extra' is a float, not a tensor",
+        ),
+        (
+            "version",
+            lambda ck: ck.update(localscale_format=FORMAT_VERSION + 1),
+            "unsupported checkpoint format version 2",
+        ),
+        ("version_str", lambda ck: ck.update(localscale_format="1"), "unsupported checkpoint format version '1'"),
+        ("noconfig", lambda ck: ck.pop("config"), "no valid 'config'"),
+        ("config_key", lambda ck: ck["config"].update(colour=1), "config does not fit LocalScaleNet"),
+        ("config_type", lambda ck: ck["config"].update(reduction="abc"), "config does not fit LocalScaleNet"),
+        ("config_list", lambda ck: ck.update(config=[1, 2]), "no valid 'config'"),
+    ],
+)
 def test_malformed_checkpoints_give_one_line_errors(ckpt_path, tmp_path, name, edit, match):
     bad = _variant(ckpt_path, tmp_path, f"{name}.pt", edit)
     with pytest.raises(CheckpointError, match=match) as e:
@@ -136,7 +148,7 @@ def test_train_state_is_plain_data_and_restores_the_schedule(tmp_path):
         opt.step()
         sched.step()
     state = train_state(opt, sched, 3)
-    assert type(state["scheduler"]["milestones"]) is dict     # no Counter stored
+    assert type(state["scheduler"]["milestones"]) is dict  # no Counter stored
 
     def no_counter(obj):
         if isinstance(obj, Counter):
@@ -160,7 +172,7 @@ def test_train_state_is_plain_data_and_restores_the_schedule(tmp_path):
         opt2.step()
         sched2.step()
         lrs.append(opt2.param_groups[0]["lr"])
-    assert lrs == pytest.approx([0.125, 0.125, 0.125])   # 1 * 0.5 (step 2) * 0.25 (step 4, twice)
+    assert lrs == pytest.approx([0.125, 0.125, 0.125])  # 1 * 0.5 (step 2) * 0.25 (step 4, twice)
 
 
 # ---------------------------------------------------------------- image files
@@ -198,14 +210,17 @@ def test_huge_size_in_a_header_pil_cannot_read_is_refused_undecoded(tmp_path, fm
         load_image(p)
     assert "larger than the limit" in _one_line(e) and str(p) in str(e.value)
     assert not no_decode
-    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200 * 1024   # KiB: < 200 MB
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 200 * 1024  # KiB: < 200 MB
 
 
 def test_file_whose_size_is_unreadable_is_refused_undecoded(tmp_path, no_decode):
     p = tmp_path / "mystery.img"
     p.write_bytes(b"\x00\x01 no known image header " * 40)
-    no_size = {"pfm": b"PF\n-1.0\n", "pam": b"P7\nDEPTH 3\nMAXVAL 255\nENDHDR\n",   # right signature, no size
-               "hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\nno resolution line\n"}
+    no_size = {
+        "pfm": b"PF\n-1.0\n",
+        "pam": b"P7\nDEPTH 3\nMAXVAL 255\nENDHDR\n",  # right signature, no size
+        "hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\nno resolution line\n",
+    }
     for fmt, header in no_size.items():
         (tmp_path / f"bad.{fmt}").write_bytes(header + bytes(100))
     for f in [p] + [tmp_path / f"bad.{fmt}" for fmt in no_size]:
@@ -227,7 +242,7 @@ def test_small_pfm_pam_hdr_files_still_load(tmp_path, ext):
     out = load_image(p)
     assert out.shape == (20, 30, 3) and out.dtype == np.uint8
     want = (img[..., ::-1] * 255).round()
-    assert np.abs(out.astype(np.float32) - want).mean() < 3   # RGBE keeps ~8 bits of mantissa
+    assert np.abs(out.astype(np.float32) - want).mean() < 3  # RGBE keeps ~8 bits of mantissa
 
 
 def _exif(orientation: int) -> Image.Exif:
@@ -238,16 +253,16 @@ def _exif(orientation: int) -> Image.Exif:
 
 @pytest.mark.parametrize("orientation", [6, 8])
 def test_portrait_jpeg_with_exif_orientation_loads_portrait(tmp_path, photos, orientation):
-    stored = cv2.resize(photos["coffee"], (64, 48), interpolation=cv2.INTER_AREA)   # landscape pixels
+    stored = cv2.resize(photos["coffee"], (64, 48), interpolation=cv2.INTER_AREA)  # landscape pixels
     p = tmp_path / f"o{orientation}.jpg"
     Image.fromarray(stored).save(p, quality=95, exif=_exif(orientation))
     out = load_image(p)
-    assert out.shape == (64, 48, 3)   # portrait, as a viewer shows it
+    assert out.shape == (64, 48, 3)  # portrait, as a viewer shows it
     with Image.open(p) as im:
         upright = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
     assert upright.shape == out.shape
     assert np.abs(out.astype(int) - upright).mean() < 3
-    assert np.abs(out.astype(int) - np.rot90(upright, 2)).mean() > 10   # a rotation is not mistaken
+    assert np.abs(out.astype(int) - np.rot90(upright, 2)).mean() > 10  # a rotation is not mistaken
 
 
 @pytest.mark.parametrize("orientation", range(1, 9))
@@ -265,19 +280,20 @@ def test_every_exif_orientation_matches_pil(tmp_path, orientation):
 def test_decoder_messages_stay_off_the_terminal(tmp_path, photos, capfd):
     img = photos["coffee"][:120, :160, ::-1]
     ok, png = cv2.imencode(".png", img)
-    (tmp_path / "t.png").write_bytes(png.tobytes()[:len(png) // 2])
+    (tmp_path / "t.png").write_bytes(png.tobytes()[: len(png) // 2])
     with pytest.raises(ImageError, match="cannot decode") as e:
         load_image(tmp_path / "t.png")
     _one_line(e)
     ok, jpg = cv2.imencode(".jpg", img)
     bad = jpg.copy()
-    bad[len(bad) // 2:len(bad) // 2 + 40] = 0   # corrupt the entropy-coded data: libjpeg warns, still decodes
+    bad[len(bad) // 2 : len(bad) // 2 + 40] = 0  # corrupt the entropy-coded data: libjpeg warns, still decodes
     (tmp_path / "c.jpg").write_bytes(bad.tobytes())
     with pytest.warns(UserWarning, match="decoder reported a problem: Corrupt JPEG data"):
         assert load_image(tmp_path / "c.jpg").shape == (120, 160, 3)
     err = capfd.readouterr().err
     assert "WARN" not in err and "Corrupt JPEG" not in err and "libpng" not in err
     import sys
+
     print("stderr still works", file=sys.stderr)
     os.write(2, b"fd 2 still works\n")
     err = capfd.readouterr().err
@@ -298,7 +314,7 @@ def test_symlink_loop_and_broken_link_are_named(tmp_path):
 
 def test_opaque_alpha_is_dropped_silently(tmp_path, photos):
     rgb = photos["coffee"][:64, :80]
-    Image.fromarray(rgb).save(tmp_path / "o.gif")   # GIF without transparency
+    Image.fromarray(rgb).save(tmp_path / "o.gif")  # GIF without transparency
     Image.fromarray(np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)])).save(tmp_path / "o.png")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -313,29 +329,35 @@ def test_opaque_alpha_is_dropped_silently(tmp_path, photos):
 
 
 # ---------------------------------------------------------------- homographies
-@pytest.mark.parametrize("H", [
-    [[1, 0, 1e4], [0, 1, -1.2e4], [0, 0, 1]],             # translation by ~1e4 px
-    [[1e-7, 0, 0], [0, 1e-7, 0], [0, 0, 1]],               # zoom out by 1e7
-    [[1e7, 0, 0], [0, 1e7, 0], [0, 0, 1]],                 # zoom in by 1e7
-    [[0.9, 0.1, 2e4], [-0.1, 0.9, 3e4], [1e-6, 2e-6, 1]],  # far-away projective view
-])
+@pytest.mark.parametrize(
+    "H",
+    [
+        [[1, 0, 1e4], [0, 1, -1.2e4], [0, 0, 1]],  # translation by ~1e4 px
+        [[1e-7, 0, 0], [0, 1e-7, 0], [0, 0, 1]],  # zoom out by 1e7
+        [[1e7, 0, 0], [0, 1e7, 0], [0, 0, 1]],  # zoom in by 1e7
+        [[0.9, 0.1, 2e4], [-0.1, 0.9, 3e4], [1e-6, 2e-6, 1]],  # far-away projective view
+    ],
+)
 def test_valid_homographies_with_extreme_entries_are_accepted(tmp_path, H):
     H = np.array(H, dtype=np.float64)
     assert np.array_equal(read_homography(H), H)
     np.savetxt(tmp_path / "H", H)
     assert np.allclose(read_homography(tmp_path / "H"), H, rtol=1e-15, atol=0)
     pts = np.array([[10.0, 20.0, 1.0], [300.0, -40.0, 1.0]]).T
-    back = np.linalg.solve(H, H @ pts)   # invertible in float64
+    back = np.linalg.solve(H, H @ pts)  # invertible in float64
     assert np.allclose(back / back[2], pts, rtol=1e-6)
 
 
-@pytest.mark.parametrize("H", [
-    [[1, 2, 3], [2, 4, 6], [0, 0, 1]],          # two proportional rows
-    [[1, 2, 3], [4, 5, 6], [7, 8, 9]],          # rank 2 (row 3 = 2 row 2 - row 1)
-    [[1e4, 0, 5e3], [0, 0, 0], [0, 0, 1]],      # a zero row, large entries
-    [[1e-9, 0, 0], [0, 1e-9, 0], [0, 0, 0]],    # projects everything to infinity
-    np.zeros((3, 3)),
-])
+@pytest.mark.parametrize(
+    "H",
+    [
+        [[1, 2, 3], [2, 4, 6], [0, 0, 1]],  # two proportional rows
+        [[1, 2, 3], [4, 5, 6], [7, 8, 9]],  # rank 2 (row 3 = 2 row 2 - row 1)
+        [[1e4, 0, 5e3], [0, 0, 0], [0, 0, 1]],  # a zero row, large entries
+        [[1e-9, 0, 0], [0, 1e-9, 0], [0, 0, 0]],  # projects everything to infinity
+        np.zeros((3, 3)),
+    ],
+)
 def test_rank_deficient_homographies_are_refused(H):
     with pytest.raises(HomographyError, match="singular homography") as e:
         read_homography(np.array(H, dtype=np.float64))

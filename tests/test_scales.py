@@ -9,7 +9,9 @@ from localscale import scales
 def test_bins_are_log_spaced_powers_of_sqrt2():
     s = scales.bin_scales()
     assert s.shape == (13,)
-    assert s[0].item() == pytest.approx(0.125) and s[6].item() == pytest.approx(1.0) and s[-1].item() == pytest.approx(8.0)
+    assert (
+        s[0].item() == pytest.approx(0.125) and s[6].item() == pytest.approx(1.0) and s[-1].item() == pytest.approx(8.0)
+    )
     assert torch.allclose(s[1:] / s[:-1], torch.full((12,), math.sqrt(2)))
 
 
@@ -39,13 +41,13 @@ def test_target_rejects_non_positive():
 
 
 def test_dense_layout_and_hard_readout():
-    s = torch.tensor([[[0.5, 2.0], [1.0, 3.9]]])                # B x H x W
-    d = scales.scale_to_distribution(s, dim=1)                  # B x 13 x H x W
+    s = torch.tensor([[[0.5, 2.0], [1.0, 3.9]]])  # B x H x W
+    d = scales.scale_to_distribution(s, dim=1)  # B x 13 x H x W
     assert d.shape == (1, 13, 2, 2)
     assert torch.allclose(scales.soft_scale(d), s, rtol=1e-5)
     hard = scales.hard_scale(d)
     assert torch.allclose(hard[0, 0], torch.tensor([0.5, 2.0]))
-    assert hard[0, 1, 1].item() == pytest.approx(4.0)          # 3.9 is closer (in log) to 4 than to 2*sqrt2
+    assert hard[0, 1, 1].item() == pytest.approx(4.0)  # 3.9 is closer (in log) to 4 than to 2*sqrt2
 
 
 def test_kl_loss_is_zero_at_target_and_masked():

@@ -1,5 +1,6 @@
 """Window search (localscale.search): window geometry, the mutual-neighbour score, composing maps,
 and on the bundled weights: identity stays whole, strong zooms get better (scikit-image photos)."""
+
 import math
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 import torch
 
 from localscale import LocalScaleNet
-from localscale.geometry import covisible_mask, homography_scale_map, sample_homography, warp_image, HomographyConfig
+from localscale.geometry import HomographyConfig, covisible_mask, homography_scale_map, sample_homography, warp_image
 from localscale.search import WindowSearchConfig, grid_windows, mutual_similarity, search_scale_map, unturn_window
 
 
@@ -33,7 +34,7 @@ def test_grid_windows_cover_the_image_with_half_overlap(shape, zoom, n):
 
 
 def test_grid_windows_skip_windows_below_the_minimum_size():
-    assert grid_windows(40, 40, 0.25) == []      # 10 px sides, below the 16 px minimum
+    assert grid_windows(40, 40, 0.25) == []  # 10 px sides, below the 16 px minimum
     assert len(grid_windows(64, 64, 0.25)) == 49
 
 
@@ -43,7 +44,7 @@ def test_unturn_window_maps_a_window_of_the_turned_image_back(turns):
     turned = np.rot90(img, turns)
     win = (2, 1, 5, 4)
     x0, y0, x1, y1 = unturn_window(win, turned.shape, turns)
-    inside_turned = turned[win[1]:win[3], win[0]:win[2]]
+    inside_turned = turned[win[1] : win[3], win[0] : win[2]]
     np.testing.assert_array_equal(np.sort(img[y0:y1, x0:x1].ravel()), np.sort(inside_turned.ravel()))
 
 
@@ -150,17 +151,25 @@ def _constant_prediction(scale: float, visible: float, shape_a, shape_b, size: i
 
     g = size // 8
     grid = torch.stack([torch.full((g, g), math.log(scale)), torch.ones(g, g), torch.full((g, g), visible)])
-    return LocalScalePrediction(grid, ("scale", "confidence", "visible"), torch.full((13, g, g), 1 / 13),
-                                make_letterbox(*shape_a, size), make_letterbox(*shape_b, size))
+    return LocalScalePrediction(
+        grid,
+        ("scale", "confidence", "visible"),
+        torch.full((13, g, g), 1 / 13),
+        make_letterbox(*shape_a, size),
+        make_letterbox(*shape_b, size),
+    )
 
 
-@pytest.mark.parametrize("scale_ab,scale_ba,side,expected", [
-    (0.2, 5.0, "b", True),      # A at 1/5 fills 16 % of a window a quarter of A's side
-    (0.05, 20.0, "b", False),   # A at 1/20 would fill 1 % of it: not what a chosen window means
-    (0.05, 20.0, "a", True),    # the cover rule is for windows of B only
-    (0.2, 0.2, "b", False),     # the directions disagree by 25x
-    (1.0, 1 / 3.0, "a", True),  # within 4x
-])
+@pytest.mark.parametrize(
+    "scale_ab,scale_ba,side,expected",
+    [
+        (0.2, 5.0, "b", True),  # A at 1/5 fills 16 % of a window a quarter of A's side
+        (0.05, 20.0, "b", False),  # A at 1/20 would fill 1 % of it: not what a chosen window means
+        (0.05, 20.0, "a", True),  # the cover rule is for windows of B only
+        (0.2, 0.2, "b", False),  # the directions disagree by 25x
+        (1.0, 1 / 3.0, "a", True),  # within 4x
+    ],
+)
 def test_plausible_checks_cover_and_consistency(scale_ab, scale_ba, side, expected):
     from localscale.search import plausible
 
@@ -176,7 +185,7 @@ def test_searched_correction_gives_each_image_its_searched_map(local, photos):
     from localscale.matching.correction import NO_GATE, scale_maps_for_pair
 
     a = photos["coffee"]
-    b = np.ascontiguousarray(a[100:300, 150:450])      # B: a window of A, at A's resolution
+    b = np.ascontiguousarray(a[100:300, 150:450])  # B: a window of A, at A's resolution
     sa, sb = scale_maps_for_pair(a, b, "searched", local_model=local, gate=NO_GATE)
     assert sa.shape == a.shape[:2] and sb.shape == b.shape[:2]
     np.testing.assert_allclose(sa, search_scale_map(local, a, b).prediction.scale)

@@ -1,6 +1,7 @@
 """Structure from motion (localscale.sfm) on a rendered scene with known cameras: the whole
 reconstruction, its resume, the h5 files and the COLMAP database read back, and the pieces the
 matching step relies on (keypoint merging, the level cache, pairs). No data files."""
+
 import json
 import os
 
@@ -12,9 +13,19 @@ h5py = pytest.importorskip("h5py")
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from localscale.sfm import (KeypointSet, extract_features, find_images, pairs_exhaustive,  # noqa: E402
-                            pairs_from_file, pairs_from_retrieval, read_all_matches, read_database,
-                            read_geometries, reconstruct, snap_factor)
+from localscale.sfm import (  # noqa: E402
+    KeypointSet,
+    extract_features,
+    find_images,
+    pairs_exhaustive,  # noqa: E402
+    pairs_from_file,
+    pairs_from_retrieval,
+    read_all_matches,
+    read_database,
+    read_geometries,
+    reconstruct,
+    snap_factor,
+)
 from localscale.sfm.extract import FeatureConf, LevelMatcher, read_features  # noqa: E402
 from localscale.sfm.h5io import H5Writer, matches0_from_matches, matches_from_matches0, read_group  # noqa: E402
 from localscale.sfm.synthetic import write_scene  # noqa: E402
@@ -42,9 +53,9 @@ def _similarity_residual(x: np.ndarray, y: np.ndarray) -> float:
     u, s, vt = np.linalg.svd(yc.T @ xc)
     d = np.diag([1, 1, np.sign(np.linalg.det(u @ vt))])
     R = u @ d @ vt
-    scale = np.trace(np.diag(s) @ d) / (xc ** 2).sum()
+    scale = np.trace(np.diag(s) @ d) / (xc**2).sum()
     err = yc - scale * xc @ R.T
-    return float(np.sqrt((err ** 2).sum(1).mean()) / np.sqrt((yc ** 2).sum(1).mean()))
+    return float(np.sqrt((err**2).sum(1).mean()) / np.sqrt((yc**2).sum(1).mean()))
 
 
 def test_reconstruct_registers_every_view_at_the_true_poses(scene, run):
@@ -72,6 +83,7 @@ def test_rerun_resumes_and_other_options_are_refused(scene, run):
     assert again["matching"]["resumed"] == 15 and again["matching"]["matched"] == 0
     assert again["registered"] == first["registered"]
     from localscale.sfm import OutputFolderError
+
     with pytest.raises(OutputFolderError, match="other options"):
         reconstruct(folder, out, matcher="sift", num_keypoints=1000, show_progress=False)
 
@@ -95,7 +107,7 @@ def test_h5_files_hold_hloc_layout(run):
         na = len(read_group(out / "keypoints.h5", a, ("keypoints",))["keypoints"])
         nb = len(read_group(out / "keypoints.h5", b, ("keypoints",))["keypoints"])
         assert len(m) > 20 and m[:, 0].max() < na and m[:, 1].max() < nb
-        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)   # one to one
+        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)  # one to one
         assert s.dtype == np.float32 and len(s) == len(m)
 
 
@@ -107,7 +119,7 @@ def test_h5_writer_round_trip_is_exact(tmp_path):
     w.add("sub/a.jpg", {"keypoints": kps, "descriptors": desc}, {"note": "x"})
     w.flush()
     w.add("b.png", {"keypoints": kps[:3]})
-    w.flush()                                    # a second flush keeps the first groups
+    w.flush()  # a second flush keeps the first groups
     got = read_group(tmp_path / "f.h5", "sub/a.jpg")
     assert got["keypoints"].dtype == np.float32
     np.testing.assert_array_equal(got["keypoints"], kps)
@@ -124,7 +136,7 @@ def test_h5_writer_round_trip_is_exact(tmp_path):
 def test_database_reads_back_what_was_written(run):
     out, _ = run
     db = read_database(out / "database.db")
-    assert len(db.cameras) == 1                  # auto: same size, no EXIF -> one camera
+    assert len(db.cameras) == 1  # auto: same size, no EXIF -> one camera
     assert sorted(db.images) == ["view_%d.png" % i for i in range(6)]
     for name in db.images:
         kp = read_group(out / "keypoints.h5", name, ("keypoints",))["keypoints"]
@@ -134,20 +146,25 @@ def test_database_reads_back_what_was_written(run):
     assert len(db.matches) == len(matches) == 15
     for (a, b), (m, _) in matches.items():
         got = db.matches.get((a, b))
-        if got is None:                          # COLMAP stores a pair in image-id order
+        if got is None:  # COLMAP stores a pair in image-id order
             got = db.matches[(b, a)][:, ::-1]
         assert {tuple(r) for r in got} == {tuple(r) for r in m}
         g = geometries[(a, b)]
         config, inliers = db.geometries[(a, b)] if (a, b) in db.geometries else db.geometries[(b, a)]
         assert len(inliers) == len(g.inlier_matches)
-        assert len(inliers) == 0 or config in ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC",
-                                               "PLANAR_OR_PANORAMIC")
+        assert len(inliers) == 0 or config in (
+            "CALIBRATED",
+            "UNCALIBRATED",
+            "PLANAR",
+            "PANORAMIC",
+            "PLANAR_OR_PANORAMIC",
+        )
 
 
 def test_keypoint_set_merges_coincident_points():
     s = KeypointSet(np.array([[10.0, 10.0], [10.6, 10.0], [50.0, 50.0]]), merge_px=1.0)
     idx = s.index(np.array([[10.5, 10.1], [9.8, 10.2], [30.0, 30.0], [30.4, 29.8], [50.0, 50.0]]))
-    assert list(idx) == [1, 0, 3, 3, 2]           # nearest within 1 px; a new point, then merged with it
+    assert list(idx) == [1, 0, 3, 3, 2]  # nearest within 1 px; a new point, then merged with it
     assert len(s) == 4 and s.num_base == 3
     np.testing.assert_allclose(s.keypoints[3], [30.0, 30.0])
 
@@ -155,17 +172,17 @@ def test_keypoint_set_merges_coincident_points():
 def test_level_cache_extracts_each_image_level_once():
     from localscale.matching import match_config
 
-    assert snap_factor(0.5, 2) == 0.5 and snap_factor(0.55, 2) == 0.5 and snap_factor(0.7, 2) == 2 ** -0.5
+    assert snap_factor(0.5, 2) == 0.5 and snap_factor(0.55, 2) == 0.5 and snap_factor(0.7, 2) == 2**-0.5
     assert snap_factor(1.0) == 1.0
     rng = np.random.default_rng(0)
     img = (rng.random((120, 160, 3)) * 255).astype(np.uint8)
     m = LevelMatcher(match_config("sift", num_features=200), cache_size=8, levels_per_octave=2)
     f1 = m.extract(img, 0.52, "a")
-    f2 = m.extract(img, 0.47, "a")               # the same half-octave level: from the cache
+    f2 = m.extract(img, 0.47, "a")  # the same half-octave level: from the cache
     assert f1 is f2 and m.level_count == 1
-    m.extract(img, 0.52, "b")                    # another image
-    m.extract(np.rot90(img).copy(), 0.52, ("a", "turn", 1))    # a turn of the same image
-    m.extract(img, 0.25, "a")                    # another level
+    m.extract(img, 0.52, "b")  # another image
+    m.extract(np.rot90(img).copy(), 0.52, ("a", "turn", 1))  # a turn of the same image
+    m.extract(img, 0.25, "a")  # another level
     assert m.level_count == 4 and max(m.extractions.values()) == 1
 
 
@@ -201,7 +218,7 @@ def test_extract_features_resumes(tmp_path, scene):
     before = read_features(path, images[0].name)["keypoints"]
     m = LevelMatcher(conf.match_config())
     extract_features(images[:3], path, conf, matcher=m, show_progress=False)
-    assert m.level_count == 1                    # only the image not yet in the file
+    assert m.level_count == 1  # only the image not yet in the file
     np.testing.assert_array_equal(read_features(path, images[0].name)["keypoints"], before)
 
 
@@ -213,8 +230,9 @@ def test_pairs_file_takes_names_tabs_and_paths(scene, tmp_path):
     f.write_text(f"view_0.png\tview_1.png\n{rel} view_5.png\n")
     assert pairs_from_file(f, names, folder) == [("view_0.png", "view_1.png"), ("view_4.png", "view_5.png")]
     from localscale.sfm import PairsFileError
+
     with pytest.raises(PairsFileError, match="not one of the usable images"):
-        pairs_from_file(f, names)                # paths need the images folder
+        pairs_from_file(f, names)  # paths need the images folder
 
 
 def test_interrupted_matching_keeps_its_pairs_and_resumes(scene, tmp_path, monkeypatch):
@@ -234,7 +252,7 @@ def test_interrupted_matching_keeps_its_pairs_and_resumes(scene, tmp_path, monke
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         reconstruct(folder, out, matcher="sift", num_threads=1, show_progress=False)
-    assert len(read_all_matches(out / "matches.h5")) == 5       # flushed on the way out
+    assert len(read_all_matches(out / "matches.h5")) == 5  # flushed on the way out
     assert not (out / "summary.json").exists()
     monkeypatch.setattr(match_module._PairRunner, "run", real_run)
     summary = reconstruct(folder, out, matcher="sift", num_threads=1, show_progress=False)

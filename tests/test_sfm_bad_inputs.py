@@ -1,6 +1,7 @@
 """Bad input to ``localscale reconstruct``: one ``error:`` line, exit code 2 and nothing written;
 skipped files and untrustworthy results flagged with ``warning:``. Runs the command in-process
 (``localscale.cli.main`` once it has the command, else the command's own ``main``)."""
+
 import os
 
 import numpy as np
@@ -16,21 +17,10 @@ from localscale.sfm.synthetic import write_scene  # noqa: E402
 FAST = ["--matcher", "sift", "--num-keypoints", "1500", "--no-progress", "--num-threads", "1"]
 
 
-def _registered() -> bool:
-    import argparse
-
-    from localscale import cli
-
-    parser = cli.build_parser()
-    return any(isinstance(a, argparse._SubParsersAction) and "reconstruct" in a.choices for a in parser._actions)
-
-
 def run_cli(argv):
-    if _registered():
-        from localscale import cli
-        return cli.main(["reconstruct", *argv])
-    from localscale.cli_reconstruct import main
-    return main(argv)
+    from localscale.cli import main
+
+    return main(["reconstruct", *argv])
 
 
 def error_lines(err: str) -> list:
@@ -58,8 +48,7 @@ def _refused(argv, capsys, out=None, match=""):
 
 def test_empty_folder(tmp_path, capsys):
     (tmp_path / "imgs").mkdir()
-    _refused([str(tmp_path / "imgs"), "-o", str(tmp_path / "out"), *FAST], capsys, tmp_path / "out",
-             "no usable images")
+    _refused([str(tmp_path / "imgs"), "-o", str(tmp_path / "out"), *FAST], capsys, tmp_path / "out", "no usable images")
 
 
 def test_missing_folder(tmp_path, capsys):
@@ -68,8 +57,9 @@ def test_missing_folder(tmp_path, capsys):
 
 def test_single_image(tmp_path, capsys):
     write_scene(tmp_path / "imgs", num_views=1, shape=(60, 80))
-    _refused([str(tmp_path / "imgs"), "-o", str(tmp_path / "out"), *FAST], capsys, tmp_path / "out",
-             "only one usable image")
+    _refused(
+        [str(tmp_path / "imgs"), "-o", str(tmp_path / "out"), *FAST], capsys, tmp_path / "out", "only one usable image"
+    )
 
 
 def test_only_unreadable_files(tmp_path, capsys):
@@ -85,7 +75,7 @@ def test_only_unreadable_files(tmp_path, capsys):
 def test_clashing_names(tmp_path, capsys):
     d = tmp_path / "imgs"
     write_scene(d / "x", num_views=2, shape=(60, 80))
-    os.replace(d / "x" / "view_1.png", d / "x-view_0.png")      # x/view_0.png and x-view_0.png
+    os.replace(d / "x" / "view_1.png", d / "x-view_0.png")  # x/view_0.png and x-view_0.png
     _refused([str(d), "-o", str(tmp_path / "out"), *FAST], capsys, tmp_path / "out", "clash")
 
 
@@ -99,7 +89,7 @@ def test_bad_files_are_skipped_with_warnings_and_stems_kept_apart(views, tmp_pat
     (d / "notes.txt").write_text("x")
     (d / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
     img = cv2.imread(str(d / "view_0.png"))
-    cv2.imwrite(str(d / "view_0.jpg"), img)                      # same stem, other extension: a sixth view
+    cv2.imwrite(str(d / "view_0.jpg"), img)  # same stem, other extension: a sixth view
     out = tmp_path / "out"
     code = run_cli([str(d), "-o", str(out), *FAST])
     captured = capsys.readouterr()
@@ -108,6 +98,7 @@ def test_bad_files_are_skipped_with_warnings_and_stems_kept_apart(views, tmp_pat
     assert "warning: skipped broken.jpg" in captured.err
     assert "view_0.jpg and view_0.png differ only in their extension" in captured.err
     import json
+
     summary = json.loads((out / "summary.json").read_text())
     assert summary["images"] == 6 and summary["registered"] >= 5
     assert any("differ only in their extension" in w for w in summary["warnings"])
@@ -122,15 +113,16 @@ def test_non_empty_output_folder(views, tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["mine.txt"]
     assert run_cli([str(views), "-o", str(out), *FAST, "--overwrite"]) == 0
     capsys.readouterr()
-    assert (out / "mine.txt").read_text() == "keep me"          # --overwrite replaces only our files
+    assert (out / "mine.txt").read_text() == "keep me"  # --overwrite replaces only our files
     assert (out / "sparse" / "0").is_dir()
     # our own run, same options: resumed; other options: refused, nothing changed
     assert run_cli([str(views), "-o", str(out), *FAST]) == 0
     assert "resume" in (out / "summary.json").read_text()
     capsys.readouterr()
     before = (out / "summary.json").read_bytes()
-    _refused([str(views), "-o", str(out), *FAST[:2], "--num-keypoints", "99", "--no-progress"], capsys, None,
-             "other options")
+    _refused(
+        [str(views), "-o", str(out), *FAST[:2], "--num-keypoints", "99", "--no-progress"], capsys, None, "other options"
+    )
     assert (out / "summary.json").read_bytes() == before
 
 
@@ -143,8 +135,12 @@ def test_output_is_a_file(views, tmp_path, capsys):
 
 def test_camera_file_missing_or_malformed(views, tmp_path, capsys):
     out = tmp_path / "out"
-    _refused([str(views), "-o", str(out), *FAST, "--camera", str(tmp_path / "none.txt")], capsys, out,
-             "camera file not found")
+    _refused(
+        [str(views), "-o", str(out), *FAST, "--camera", str(tmp_path / "none.txt")],
+        capsys,
+        out,
+        "camera file not found",
+    )
     bad = tmp_path / "cameras.txt"
     bad.write_text("# COLMAP\n1 PINHOLE 320 240 300 300\n")
     _refused([str(views), "-o", str(out), *FAST, "--camera", str(bad)], capsys, out, "PINHOLE takes 4")
@@ -165,10 +161,11 @@ def test_good_camera_file_is_used(views, tmp_path, capsys):
     assert run_cli([str(views), "-o", str(out), *FAST, "--camera", str(cam)]) == 0
     capsys.readouterr()
     import pycolmap
+
     rec = pycolmap.Reconstruction(out / "sparse" / "0")
     (camera,) = rec.cameras.values()
     assert camera.model.name == "PINHOLE" and (camera.width, camera.height) == (320, 240)
-    assert abs(camera.focal_length_x - 300) < 15          # rescaled to the images, refined near the truth
+    assert abs(camera.focal_length_x - 300) < 15  # rescaled to the images, refined near the truth
 
 
 def test_bad_pairs_options(views, tmp_path, capsys):
@@ -180,8 +177,12 @@ def test_bad_pairs_options(views, tmp_path, capsys):
     _refused([str(views), "-o", str(out), *FAST, "--pairs", str(pairs)], capsys, out, "expected two image names")
     _refused([str(views), "-o", str(out), *FAST, "--pairs", str(tmp_path / "nope.txt")], capsys, out, "not found")
     pairs.write_text("view_0.png view_1.png\n")
-    _refused([str(views), "-o", str(out), *FAST, "--pairs", str(pairs), "--pairs-nearest", "2"], capsys, out,
-             "--pairs-nearest")
+    _refused(
+        [str(views), "-o", str(out), *FAST, "--pairs", str(pairs), "--pairs-nearest", "2"],
+        capsys,
+        out,
+        "--pairs-nearest",
+    )
 
 
 def test_disconnected_images_are_flagged(views, tmp_path, capsys):

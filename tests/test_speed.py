@@ -1,5 +1,6 @@
 """The fast paths give the results of the plain ones: batched description, patches of a subset of
 keypoints, work shared between methods in the HPatches evaluation, lazy imports of the CLI."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -9,12 +10,11 @@ import pytest
 import torch
 
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
-
-from localscale.matching import NO_GATE, match_descriptors, match_pair, reprojection_errors, scale_maps_for_pair
 from localscale.features.descriptors import default_batch_size
-from localscale.matching.config import MatchConfig
 from localscale.features.detector import HessianDetector
 from localscale.io import load_image, read_homography
+from localscale.matching import NO_GATE, match_descriptors, match_pair, reprojection_errors, scale_maps_for_pair
+from localscale.matching.config import MatchConfig
 
 ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"
 
@@ -34,13 +34,13 @@ def test_batched_describe_equals_per_patch_describe(cls, gray_and_keypoints):
     radii = 16 + 48 * torch.rand(len(kps), generator=torch.Generator().manual_seed(0))
     patches, _ = ScaleCorrectedPatches().patches_from_radii(g, kps, radii)
     assert len(patches) > default_batch_size()
-    single = torch.cat([desc.describe(patches[i:i + 1]) for i in range(len(patches))])
+    single = torch.cat([desc.describe(patches[i : i + 1]) for i in range(len(patches))])
     for bs in (None, 7, 1000):
         batched = desc.describe(patches, batch_size=bs)
         assert batched.shape == single.shape
         torch.testing.assert_close(batched, single, atol=1e-5, rtol=0)
     out = desc.describe(patches)
-    out[0] = 0   # an ordinary tensor, not an inference-mode one
+    out[0] = 0  # an ordinary tensor, not an inference-mode one
     assert not desc.training
 
 
@@ -87,8 +87,9 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
     local, glob = tiny_models
     methods = ["none", "global", "local", "fused", "gt", "gt_gated"]
     pairs = make_pairs(load_hpatches(tiny_seqs))
-    res = evaluate(pairs, methods, "hardnet", local, glob, None, progress=False, descriptor="sift", num_features=150,
-                   gate=NO_GATE)
+    res = evaluate(
+        pairs, methods, "hardnet", local, glob, None, progress=False, descriptor="sift", num_features=150, gate=NO_GATE
+    )
     recs = {(r["pair"], r["method"]): r for r in res["records"]}
     desc = SIFTPatchDescriptor().eval()
     cutter = ScaleCorrectedPatches()
@@ -114,8 +115,8 @@ def test_evaluation_sharing_gives_the_per_method_results(tiny_seqs, tiny_models)
 
 
 def test_matcher_describes_each_radius_once(tiny_seqs):
-    from localscale.matching.matcher import Matcher
     from localscale.io import load_image
+    from localscale.matching.matcher import Matcher
 
     path = sorted(tiny_seqs.glob("*/1.png"))[0]
     img = load_image(path)
@@ -124,7 +125,7 @@ def test_matcher_describes_each_radius_once(tiny_seqs):
     n = len(f0)
     assert m.described == n
     smap = np.full(img.shape[:2], 0.5, np.float32)
-    smap[:, : img.shape[1] // 2] = 2.0         # left half S > 1: base radius, reused
+    smap[:, : img.shape[1] // 2] = 2.0  # left half S > 1: base radius, reused
     f1 = m.extract(img, smap, key=str(path))
     kps = torch.from_numpy(f0.keypoints)
     left = kps[:, 0] < img.shape[1] / 2 - 2
@@ -138,8 +139,8 @@ def test_matcher_describes_each_radius_once(tiny_seqs):
     before = m.described
     again = m.extract(img, smap, key=str(path))
     m.extract(img, 1.0, key=str(path))
-    assert m.described == before and again.seconds > 0      # cached features still carry their cost
-    m.extract(img, smap)                                      # no key: no cache
+    assert m.described == before and again.seconds > 0  # cached features still carry their cost
+    m.extract(img, smap)  # no key: no cache
     assert m.described == before + n
 
 
@@ -159,9 +160,11 @@ def test_corrections_beat_no_correction_on_the_bundled_pair():
 
 
 def test_help_imports_no_heavy_module():
-    code = ("import sys\nfrom localscale.cli import main\n"
-            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-            "print(sorted(m for m in ('torch', 'kornia', 'cv2', 'matplotlib', 'numpy') if m in sys.modules))")
+    code = (
+        "import sys\nfrom localscale.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print(sorted(m for m in ('torch', 'kornia', 'cv2', 'matplotlib', 'numpy') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[]", out
 
@@ -174,7 +177,7 @@ def test_lazy_package_names():
     assert all(getattr(features, n) is not None for n in features.__all__)
     assert localscale.LocalScaleNet.__name__ == "LocalScaleNet"
     with pytest.raises(AttributeError):
-        features.no_such_name
+        _ = features.no_such_name
 
 
 def test_benchmark_throughput_code_path_runs_on_cpu():
@@ -182,7 +185,9 @@ def test_benchmark_throughput_code_path_runs_on_cpu():
     positive and finite; the CUDA-only calls are skipped there."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("benchmark", Path(__file__).resolve().parent.parent / "eval" / "benchmark.py")
+    spec = importlib.util.spec_from_file_location(
+        "benchmark", Path(__file__).resolve().parent.parent / "eval" / "benchmark.py"
+    )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     from localscale.matching.matcher import Matcher
@@ -193,4 +198,6 @@ def test_benchmark_throughput_code_path_runs_on_cpu():
     a, b, H = bench.test_pair((160, 120))
     out = bench.pairs_per_second(a, b, H, local, Matcher(MatchConfig(num_features=100)), "cpu", 3)
     assert out["pairs"] == 3 and out["map_batch"] == 3 and out["device"] == "cpu"
-    assert 0 < out["match_pair_local_pairs_per_s"] < float("inf") and 0 < out["scale_map_batched_pairs_per_s"] < float("inf")
+    assert 0 < out["match_pair_local_pairs_per_s"] < float("inf") and 0 < out["scale_map_batched_pairs_per_s"] < float(
+        "inf"
+    )

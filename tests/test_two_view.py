@@ -4,6 +4,7 @@ Scenes are synthetic: random 3D points (one plane, two planes, a volume) seen by
 cameras with noise and outliers, and two rendered views of a randomly textured plane matched
 with OpenCV SIFT. No data files.
 """
+
 import json
 import math
 
@@ -11,11 +12,26 @@ import cv2
 import numpy as np
 import pytest
 
-from localscale.cameras import (Camera, CameraError, as_camera, cut_window, read_camera, read_cameras_txt,
-                                turn_rotation, window_camera, window_pixels)
+from localscale.cameras import (
+    Camera,
+    CameraError,
+    as_camera,
+    cut_window,
+    read_camera,
+    read_cameras_txt,
+    turn_rotation,
+    window_camera,
+    window_pixels,
+)
 from localscale.errors import LocalScaleError
-from localscale.matching.two_view import (CONFIGURATIONS, TwoViewConfig, TwoViewError, estimate_two_view_geometry,
-                                          pose_auc, relative_pose_error)
+from localscale.matching.two_view import (
+    CONFIGURATIONS,
+    TwoViewConfig,
+    TwoViewError,
+    estimate_two_view_geometry,
+    pose_auc,
+    relative_pose_error,
+)
 
 CAM_A = Camera.parse("PINHOLE 640 480 500 505 320 240")
 CAM_B = Camera.parse("SIMPLE_RADIAL 800 600 650 400 300 0.02")
@@ -27,7 +43,7 @@ def rotation(axis, deg):
 
 
 R_AB = rotation([0.3, 1.0, 0.1], 10.0)
-T_AB = np.array([-1.0, 0.15, 0.25])          # x_B = R x_A + t
+T_AB = np.array([-1.0, 0.15, 0.25])  # x_B = R x_A + t
 
 
 def make_points(kind, rng, n=400):
@@ -46,8 +62,11 @@ def observe(X, R, t, rng, cam_a=CAM_A, cam_b=CAM_B, noise=0.3, outliers=0.2):
     replaced by uniform outliers. Points outside either image are dropped."""
     xa = cam_a.project(X)
     xb = cam_b.project(X @ R.T + t)
-    keep = ((xa >= 0) & (xa < [cam_a.width - 1, cam_a.height - 1])).all(1) & \
-           ((xb >= 0) & (xb < [cam_b.width - 1, cam_b.height - 1])).all(1) & ((X @ R.T + t)[:, 2] > 0)
+    keep = (
+        ((xa >= 0) & (xa < [cam_a.width - 1, cam_a.height - 1])).all(1)
+        & ((xb >= 0) & (xb < [cam_b.width - 1, cam_b.height - 1])).all(1)
+        & ((X @ R.T + t)[:, 2] > 0)
+    )
     xa, xb = xa[keep] + rng.normal(0, noise, (keep.sum(), 2)), xb[keep] + rng.normal(0, noise, (keep.sum(), 2))
     k = int(outliers * len(xa))
     xb[:k] = rng.uniform([0, 0], [cam_b.width, cam_b.height], (k, 2))
@@ -91,8 +110,14 @@ def test_camera_files_and_bad_cameras(tmp_path):
     many.write_text("1 PINHOLE 640 480 500 500 320 240\n2 SIMPLE_PINHOLE 320 240 250 160 120\n")
     assert sorted(read_cameras_txt(many)) == [1, 2]
 
-    bad = {"missing": tmp_path / "nope.txt", "empty": tmp_path / "empty.txt", "json": tmp_path / "bad.json",
-           "count": tmp_path / "count.txt", "model": tmp_path / "model.txt", "focal": tmp_path / "focal.txt"}
+    bad = {
+        "missing": tmp_path / "nope.txt",
+        "empty": tmp_path / "empty.txt",
+        "json": tmp_path / "bad.json",
+        "count": tmp_path / "count.txt",
+        "model": tmp_path / "model.txt",
+        "focal": tmp_path / "focal.txt",
+    }
     bad["empty"].write_text("# nothing\n")
     bad["json"].write_text("{not json")
     bad["count"].write_text("PINHOLE 640 480 500 320 240\n")
@@ -118,12 +143,12 @@ def test_prior_and_exif_focal(tmp_path):
 
     img = Image.fromarray(np.zeros((400, 600, 3), np.uint8))
     exif = Image.Exif()
-    exif.get_ifd(0x8769)[0xA405] = 28           # FocalLengthIn35mmFilm
+    exif.get_ifd(0x8769)[0xA405] = 28  # FocalLengthIn35mmFilm
     path = tmp_path / "exif.jpg"
     img.save(path, exif=exif)
     cam = Camera.from_exif(path)
     assert cam.has_prior_focal_length and (cam.width, cam.height) == (600, 400)
-    assert cam.focal_lengths[0] == pytest.approx(28 / 36 * 600, rel=1e-3)     # 3:2 frame: f35 / 36 mm * W
+    assert cam.focal_lengths[0] == pytest.approx(28 / 36 * 600, rel=1e-3)  # 3:2 frame: f35 / 36 mm * W
     plain = tmp_path / "plain.jpg"
     img.save(plain)
     assert Camera.from_exif(plain).focal_lengths[0] == pytest.approx(720)
@@ -138,7 +163,7 @@ def test_window_camera_projects_like_the_cut_resized_turned_image(turns):
     rng = np.random.default_rng(turns)
     cam = Camera.parse("OPENCV 640 480 500 510 330 235 -0.04 0.01 0.003 -0.002")
     X = np.c_[rng.uniform(-0.5, 0.5, 100), rng.uniform(-0.4, 0.4, 100), rng.uniform(2, 4, 100)]
-    window, out_size = (150, 100, 200, 150), (600, 450)       # a 3x close-up
+    window, out_size = (150, 100, 200, 150), (600, 450)  # a 3x close-up
     win, R_turn = window_camera(cam, window, out_size, turns)
     M = window_pixels(window, out_size, turns)
     px = cam.project(X)
@@ -150,7 +175,7 @@ def test_window_camera_projects_like_the_cut_resized_turned_image(turns):
 
 def test_cut_window_image_matches_its_pixel_map():
     img = np.zeros((120, 160), np.uint8)
-    img[40, 70] = 255                          # one bright pixel at (x, y) = (70, 40)
+    img[40, 70] = 255  # one bright pixel at (x, y) = (70, 40)
     cam = Camera.parse("PINHOLE 160 120 150 150 80 60")
     window, out_size = (50, 30, 40, 30), (120, 90)
     for turns in range(4):
@@ -176,11 +201,17 @@ def test_pycolmap_camera_round_trip_and_convention():
 
 
 # ---------------------------------------------------------------------------- two-view geometry
-@pytest.mark.parametrize("kind, with_cameras, expected", [
-    ("plane", True, "PLANAR"), ("plane", False, "PLANAR_OR_PANORAMIC"),
-    ("two_planes", True, "CALIBRATED"), ("two_planes", False, "UNCALIBRATED"),
-    ("volume", True, "CALIBRATED"), ("volume", False, "UNCALIBRATED"),
-])
+@pytest.mark.parametrize(
+    "kind, with_cameras, expected",
+    [
+        ("plane", True, "PLANAR"),
+        ("plane", False, "PLANAR_OR_PANORAMIC"),
+        ("two_planes", True, "CALIBRATED"),
+        ("two_planes", False, "UNCALIBRATED"),
+        ("volume", True, "CALIBRATED"),
+        ("volume", False, "UNCALIBRATED"),
+    ],
+)
 def test_configuration_follows_the_scene(kind, with_cameras, expected):
     rng = np.random.default_rng(1)
     xa, xb = observe(make_points(kind, rng), R_AB, T_AB, rng)
@@ -188,7 +219,7 @@ def test_configuration_follows_the_scene(kind, with_cameras, expected):
     g = estimate_two_view_geometry(xa, xb, *cams)
     assert g.configuration == expected
     assert g.num_inliers >= 0.7 * len(xa) and g.inliers.shape == (len(xa),)
-    assert not g.inliers[: int(0.2 * len(xa))].mean() > 0.1        # the outliers are rejected
+    assert not g.inliers[: int(0.2 * len(xa))].mean() > 0.1  # the outliers are rejected
     if kind == "plane":
         assert g.model == "homography" and g.num_inliers_H > 0.8 * g.num_inliers_F
     else:
@@ -209,7 +240,7 @@ def test_pose_from_essential_matrix_within_a_degree():
         g = estimate_two_view_geometry(xa, xb, CAM_A, CAM_B)
         assert g.configuration == "CALIBRATED" and g.pose_source == "E"
         rot, trans = relative_pose_error(g.R_E, g.t_E, R_AB, T_AB)
-        assert rot < 1.0 and trans < 1.5, (seed, rot, trans)      # 0.5 px noise: t is the weaker part
+        assert rot < 1.0 and trans < 1.5, (seed, rot, trans)  # 0.5 px noise: t is the weaker part
         # cheirality: the sign of t is the true one, not only its line
         assert g.t_E @ T_AB / np.linalg.norm(T_AB) > 0.99
 
@@ -271,8 +302,9 @@ def test_bad_inputs_and_too_few_matches():
     assert few.configuration == "DEGENERATE" and few.num_inliers == 0 and "10 matches" in few.reasons[0]
     empty = estimate_two_view_geometry(np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty.configuration == "DEGENERATE" and not empty.reliable
-    noise = estimate_two_view_geometry(rng.uniform(0, 640, (200, 2)), rng.uniform(0, 640, (200, 2)), CAM_A, CAM_A,
-                                       TwoViewConfig(max_error=1.0))
+    noise = estimate_two_view_geometry(
+        rng.uniform(0, 640, (200, 2)), rng.uniform(0, 640, (200, 2)), CAM_A, CAM_A, TwoViewConfig(max_error=1.0)
+    )
     assert noise.configuration == "DEGENERATE" or noise.num_inliers < 0.3 * 200
     json.dumps(noise.to_dict())
 
@@ -288,9 +320,10 @@ def test_pose_error_and_auc():
     R = rotation([0, 0, 1], 3.0)
     t = np.array([1.0, 0, 0])
     assert relative_pose_error(R, t, np.eye(3), t) == pytest.approx((3.0, 0.0))
-    assert relative_pose_error(np.eye(3), -t, np.eye(3), t)[1] == pytest.approx(0.0)       # sign folded
-    assert relative_pose_error(np.eye(3), [math.cos(0.1), math.sin(0.1), 0], np.eye(3), t)[1] == \
-        pytest.approx(math.degrees(0.1))
+    assert relative_pose_error(np.eye(3), -t, np.eye(3), t)[1] == pytest.approx(0.0)  # sign folded
+    assert relative_pose_error(np.eye(3), [math.cos(0.1), math.sin(0.1), 0], np.eye(3), t)[1] == pytest.approx(
+        math.degrees(0.1)
+    )
     assert relative_pose_error(None, None, np.eye(3), t) == (180.0, 180.0)
     assert pose_auc([0.0] * 4) == pytest.approx([1, 1, 1])
     assert pose_auc([180.0] * 4) == pytest.approx([0, 0, 0])
@@ -312,15 +345,15 @@ def _texture(rng, size=1024):
 def test_sift_on_two_rendered_views_of_a_textured_plane():
     rng = np.random.default_rng(7)
     tex = _texture(rng)
-    # the texture lies on a plane: texel (u, v) -> X = O + s (u e1 + v e2), in A's frame
+    # the texture lies on a plane: texel (u, v) -> X = origin + s (u e1 + v e2), in A's frame
     n_rot = rotation([1, 0.3, 0], 20)
-    e1, e2, s = n_rot[:, 0], n_rot[:, 1], 10.0 / 1024                   # a 10 x 10 plane, 7 in front of A
-    O = np.array([0.0, 0.0, 7.0]) - 512 * s * (e1 + e2)
+    e1, e2, s = n_rot[:, 0], n_rot[:, 1], 10.0 / 1024  # a 10 x 10 plane, 7 in front of A
+    origin = np.array([0.0, 0.0, 7.0]) - 512 * s * (e1 + e2)
     cam_a = Camera.parse("PINHOLE 640 480 520 520 320 240")
     cam_b = Camera.parse("PINHOLE 640 480 560 560 320 240")
     R = rotation([0.1, 1, 0.05], 8)
     t = np.array([-0.8, 0.1, 0.1])
-    plane_a = np.c_[s * e1, s * e2, O]                                   # texel -> A's frame (homogeneous)
+    plane_a = np.c_[s * e1, s * e2, origin]  # texel -> A's frame (homogeneous)
     H_a = cam_a.K() @ plane_a
     H_b = cam_b.K() @ (R @ plane_a + np.c_[np.zeros((3, 2)), t])
     img_a = cv2.warpPerspective(tex, H_a, (640, 480), flags=cv2.INTER_LINEAR)
@@ -350,7 +383,7 @@ def test_sift_on_two_rendered_views_of_a_textured_plane():
 def test_cameras_and_two_view_work_without_pycolmap(monkeypatch):
     import sys
 
-    monkeypatch.setitem(sys.modules, "pycolmap", None)          # import pycolmap -> ImportError
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap -> ImportError
     with pytest.raises(CameraError, match="pip install"):
         CAM_A.to_pycolmap()
     rng = np.random.default_rng(8)

@@ -1,5 +1,6 @@
 """Two-view geometry inside matching: verification by COLMAP's model choice, the relative pose of
 ``match_pair`` with cameras, ``auto``'s hypothesis from a fundamental matrix, the CLI's cameras."""
+
 import json
 import math
 
@@ -50,7 +51,7 @@ def test_two_view_verification_chooses_the_model_and_gives_the_pose(kind, model)
     assert math.degrees(math.acos(np.clip(v.two_view.t @ (t / np.linalg.norm(t)), -1, 1))) < 3.0
     d = v.to_dict()
     assert json.loads(json.dumps(d))["two_view"]["configuration"] == v.two_view.configuration
-    back = v.swapped()   # seen from B: x_A = R^T x_B - R^T t
+    back = v.swapped()  # seen from B: x_A = R^T x_B - R^T t
     assert np.allclose(back.two_view.R, v.two_view.R.T) and np.allclose(back.two_view.t, -v.two_view.R.T @ v.two_view.t)
 
 
@@ -115,18 +116,23 @@ def test_match_pair_with_cameras_returns_the_relative_pose(two_views):
 def test_cli_match_with_a_camera_writes_the_pose(two_views, tmp_path, capsys):
     (a, b), camera, R, _ = two_views
     out = tmp_path / "out"
-    assert main(["match", str(a), str(b), "-o", str(out), "--matcher", "sift", "--correction", "none",
-                 "--camera", camera]) == 0
+    assert (
+        main(["match", str(a), str(b), "-o", str(out), "--matcher", "sift", "--correction", "none", "--camera", camera])
+        == 0
+    )
     geo = json.loads((out / "geometry.json").read_text())
     assert geo["two_view"]["configuration"] in ("CALIBRATED", "UNCALIBRATED")
     assert _angle(np.array(geo["two_view"]["R"]), R) < 2.0
     assert "two-view geometry:" in capsys.readouterr().out
-    for bad_args in (["--camera", camera, "--camera-a", camera],              # both kinds at once
-                     ["--camera", str(tmp_path / "missing.txt")],              # no such camera file
-                     ["--camera", "PINHOLE 100 100 80 80 50 50"]):             # not the images' shape
+    for bad_args in (
+        ["--camera", camera, "--camera-a", camera],  # both kinds at once
+        ["--camera", str(tmp_path / "missing.txt")],  # no such camera file
+        ["--camera", "PINHOLE 100 100 80 80 50 50"],
+    ):  # not the images' shape
         bad = tmp_path / "bad"
-        assert main(["match", str(a), str(b), "-o", str(bad), "--matcher", "sift", "--correction", "none",
-                     *bad_args]) == 2
+        assert (
+            main(["match", str(a), str(b), "-o", str(bad), "--matcher", "sift", "--correction", "none", *bad_args]) == 2
+        )
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error:"), err
         assert not bad.exists()

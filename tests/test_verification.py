@@ -1,4 +1,5 @@
 """Geometric verification, refined scale maps, the second matching pass, homography accuracy."""
+
 import json
 from pathlib import Path
 
@@ -6,12 +7,12 @@ import numpy as np
 import pytest
 
 from localscale.cli import main
-from localscale.matching.pipeline import match_pair, refine_match
-from localscale.matching.verification import VerificationConfig, local_affine_scales, verify_matches
-from localscale.matching.metrics import corner_error, homography_auc
-from localscale.matching.refinement import refine_scale_map
 from localscale.geometry import covisible_mask, homography_scale_at, homography_scale_map, project
 from localscale.io import load_image, read_homography
+from localscale.matching.metrics import corner_error, homography_auc
+from localscale.matching.pipeline import match_pair, refine_match
+from localscale.matching.refinement import refine_scale_map
+from localscale.matching.verification import VerificationConfig, local_affine_scales, verify_matches
 
 ASSETS = Path(__file__).resolve().parents[1] / "localscale" / "assets"
 
@@ -38,7 +39,7 @@ def test_exact_homography_gives_the_analytic_map_over_its_support(example, rng):
     sup = ref.source > 0.999
     assert sup.mean() > 0.3
     assert np.nanmax(np.abs(np.log2(ref.scale[sup] / gt[sup]))) < 1e-3
-    far = ref.source < 1e-3       # far from the support: the network map
+    far = ref.source < 1e-3  # far from the support: the network map
     assert np.allclose(ref.scale[far], 1.3, rtol=1e-3)
     assert ref.verified and ref.H is not None and ref.inliers.sum() == v.num_inliers
 
@@ -104,7 +105,7 @@ def test_fundamental_path_with_local_affine_scales(rng):
     c, s = np.cos(0.05), np.sin(0.05)
     R, t = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]), np.array([0.4, 0.2, -1.0])
     pa, pb, truth = [], [], []
-    for z, x0 in ((4.0, 0), (9.0, 160)):   # left half of A on the near plane, right half on the far one
+    for z, x0 in ((4.0, 0), (9.0, 160)):  # left half of A on the near plane, right half on the far one
         Hz = K @ (R + np.outer(t, [0, 0, 1]) / z) @ np.linalg.inv(K)
         uv = rng.uniform([x0, 0], [x0 + 160, 240], (150, 2))
         pa.append(uv), pb.append(project(Hz, uv)), truth.append(homography_scale_at(Hz, uv))
@@ -146,8 +147,27 @@ def test_corner_error_and_auc():
 
 def test_cli_match_and_predict_refine(tmp_path, capsys):
     a, b, h = ASSETS / "kodim01_a.jpg", ASSETS / "kodim01_b.jpg", ASSETS / "H_a_b.txt"
-    assert main(["match", str(a), str(b), "-o", str(tmp_path / "m"), "--correction", "none", "--descriptor", "sift",
-                 "--num-features", "400", "--H", str(h), "--refine"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(a),
+                str(b),
+                "-o",
+                str(tmp_path / "m"),
+                "--correction",
+                "none",
+                "--descriptor",
+                "sift",
+                "--num-features",
+                "400",
+                "--H",
+                str(h),
+                "--refine",
+            ]
+        )
+        == 0
+    )
     for f in ("matches.npz", "refined_scale.npy", "refined_source.npy", "refined_scale_b.npy", "geometry.json"):
         assert (tmp_path / "m" / f).is_file(), f
     geo = json.loads((tmp_path / "m" / "geometry.json").read_text())
@@ -184,15 +204,17 @@ def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
     kp = rng.uniform([0, 0], [639, 426], (300, 2))
     calls = []
 
-    def describe(scale_map):          # descriptors that match nothing consistently
+    def describe(scale_map):  # descriptors that match nothing consistently
         calls.append(scale_map)
         return kp, torch.nn.functional.normalize(torch.randn(300, 16), dim=1)
 
     pa, pb = _points(H, a.shape[:2], 100, rng)
     net = np.ones(a.shape[:2], np.float32)
-    out = refine_matching(describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb))
+    out = refine_matching(
+        describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb)
+    )
     assert out.seed is not None and out.seed.verified and out.refined_a.verified
-    assert out.passes == 2 and calls[2] is out.refined_a.scale      # second pass cut with the refined maps
+    assert out.passes == 2 and calls[2] is out.refined_a.scale  # second pass cut with the refined maps
     gt = homography_scale_map(H, *a.shape[:2])
     sup = out.refined_a.source > 0.999
     assert np.nanmax(np.abs(np.log2(out.refined_a.scale[sup] / gt[sup]))) < 1e-3

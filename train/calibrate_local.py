@@ -11,6 +11,7 @@ model's config (``calibration``); the model is written to ``--out``. Also prints
 statistics of :mod:`localscale.reliability` for pairs with mean r > 2 and < 1.3, to choose
 :class:`~localscale.reliability.PairCheckConfig` thresholds on synthetic data.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,7 +48,7 @@ def collect(model, dataset, batch_size: int = 16):
         probs, probs_ba = torch.softmax(logits, 1), torch.softmax(logits_ba, 1)
         visible = torch.sigmoid(vis[:, 0]) if vis is not None else None
         visible_ba = torch.sigmoid(vis_ba[:, 0]) if vis_ba is not None else None
-        f = reliability_features(probs, visible, 1)                    # B x 3 x h x w
+        f = reliability_features(probs, visible, 1)  # B x 3 x h x w
         log_s = scales.soft_log_scale(probs, 1)
         err = (log_s - torch.log(batch["scale"])).abs()
         good = batch["mask"] & (err < math.log(GOOD_RATIO))
@@ -57,19 +58,24 @@ def collect(model, dataset, batch_size: int = 16):
         ls_ba = scales.soft_log_scale(probs_ba, 1)
         for k in range(len(probs)):
             m, v = batch["mask"][k], valid[k]
-            rows, cols = v.any(1).nonzero()[:, 0], v.any(0).nonzero()[:, 0]   # A's image region (a rectangle)
-            crop = lambda x: x[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].numpy()  # noqa: E731
+            rows, cols = v.any(1).nonzero()[:, 0], v.any(0).nonzero()[:, 0]  # A's image region (a rectangle)
+            crop = lambda x: x[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1].numpy()  # noqa: E731
             grid = lambda ls, vis: SimpleNamespace(  # noqa: E731
-                scale=np.exp(crop(ls)), visible=crop(vis) if vis is not None else None, reliability=None)
-            fwd, bwd = grid(log_s[k], visible[k] if visible is not None else None), \
-                grid(ls_ba[k], visible_ba[k] if visible_ba is not None else None)
+                scale=np.exp(crop(ls)), visible=crop(vis) if vis is not None else None, reliability=None
+            )
+            fwd, bwd = (
+                grid(log_s[k], visible[k] if visible is not None else None),
+                grid(ls_ba[k], visible_ba[k] if visible_ba is not None else None),
+            )
             va = fwd.visible > 0.5 if fwd.visible is not None else np.ones(fwd.scale.shape, bool)
-            pairs.append({
-                "mean_r": float(torch.exp(err[k][m]).mean()) if m.any() else float("inf"),
-                "related": bool(batch["related"][k]),
-                **pair_statistics(fwd, bwd),
-                "features": crop(f[k].permute(1, 2, 0))[va],
-            })
+            pairs.append(
+                {
+                    "mean_r": float(torch.exp(err[k][m]).mean()) if m.any() else float("inf"),
+                    "related": bool(batch["related"][k]),
+                    **pair_statistics(fwd, bwd),
+                    "features": crop(f[k].permute(1, 2, 0))[va],
+                }
+            )
     return np.concatenate(feats), np.concatenate(labels), pairs
 
 
@@ -96,28 +102,48 @@ def main(argv=None) -> int:
     model.config.calibration = coef
     z = coef[0] + x @ np.asarray(coef[1:])
     prob = 1 / (1 + np.exp(-z))
-    print(f"calibration {coef}: {len(y)} cells, {100 * y.mean():.1f}% good, AUROC {auroc(prob, y):.3f}, "
-          f"mean predicted {prob.mean():.3f}", file=sys.stderr)
+    print(
+        f"calibration {coef}: {len(y)} cells, {100 * y.mean():.1f}% good, AUROC {auroc(prob, y):.3f}, "
+        f"mean predicted {prob.mean():.3f}",
+        file=sys.stderr,
+    )
     for lo in np.arange(0, 1, 0.1):
         sel = (prob >= lo) & (prob < lo + 0.1)
         if sel.any():
-            print(f"  predicted {lo:.1f}-{lo + 0.1:.1f}: {sel.sum():7d} cells, observed {y[sel].mean():.3f}", file=sys.stderr)
+            print(
+                f"  predicted {lo:.1f}-{lo + 0.1:.1f}: {sel.sum():7d} cells, observed {y[sel].mean():.3f}",
+                file=sys.stderr,
+            )
     stats = []
-    for pr in pairs:   # the mean reliability over A's visible part, now that the calibration is known
+    for pr in pairs:  # the mean reliability over A's visible part, now that the calibration is known
         f = pr.pop("features")
-        pr["mean_reliability"] = float((1 / (1 + np.exp(-(coef[0] + f @ np.asarray(coef[1:]))))).mean()) if len(f) else 0.0
+        pr["mean_reliability"] = (
+            float((1 / (1 + np.exp(-(coef[0] + f @ np.asarray(coef[1:]))))).mean()) if len(f) else 0.0
+        )
         stats.append(pr)
-    for name, sel in (("bad (mean r > 2 or unrelated)", lambda s: s["mean_r"] > 2 or not s["related"]),
-                      ("good (mean r < 1.3)", lambda s: s["related"] and s["mean_r"] < 1.3)):
+    for name, sel in (
+        ("bad (mean r > 2 or unrelated)", lambda s: s["mean_r"] > 2 or not s["related"]),
+        ("good (mean r < 1.3)", lambda s: s["related"] and s["mean_r"] < 1.3),
+    ):
         group = [s for s in stats if sel(s)]
         if group:
-            q = {k: np.percentile([s[k] for s in group], [10, 50, 90]).round(3).tolist()
-                 for k in ("inconsistency_log2", "visible_fraction", "mean_reliability")}
+            q = {
+                k: np.percentile([s[k] for s in group], [10, 50, 90]).round(3).tolist()
+                for k in ("inconsistency_log2", "visible_fraction", "mean_reliability")
+            }
             print(f"{name}: {len(group)} pairs, 10/50/90th percentiles {json.dumps(q)}", file=sys.stderr)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     (Path(args.out).with_suffix(".pairs.json")).write_text(json.dumps(stats))
-    meta = dict(meta, calibration={"pairs": len(dataset), "seed": args.seed, "cells": int(len(y)),
-                                   "good_ratio": GOOD_RATIO, "photos": "held-out split of " + str(args.data)})
+    meta = dict(
+        meta,
+        calibration={
+            "pairs": len(dataset),
+            "seed": args.seed,
+            "cells": int(len(y)),
+            "good_ratio": GOOD_RATIO,
+            "photos": "held-out split of " + str(args.data),
+        },
+    )
     save_model(model, args.out, meta=meta, half=True)
     print(args.out)
     return 0

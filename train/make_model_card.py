@@ -1,11 +1,12 @@
 """Export a training run as shipped weights + a JSON model card.
 
     python train/make_model_card.py --run runs/local --name local_scalenet \
-        --eval results/scale_accuracy_local.json --command "python -m localscale.training ..."
+        --eval results/scale_accuracy_local.json --command "localscale-train ..."
 
 Writes ``localscale/weights/<name>.pt`` (fp16 weights, config, metadata) and ``<name>.json``.
 Uses ``<run>/model.pt`` when the run finished, else its latest ``last.pt``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,7 +19,7 @@ from localscale.models import load_model
 
 DATA_CARD = {
     "source": "../shared/data/train_images (291 photos, longer side <= 640 px); training used the 'train' split: "
-              "every 10th file in sorted order is held out for validation/evaluation (localscale.data.split_images)",
+    "every 10th file in sorted order is held out for validation/evaluation (localscale.data.split_images)",
     "groups_and_licences": {
         "bsd68 (60)": "CBSD68 / Berkeley Segmentation Dataset BSDS300 (Martin et al. ICCV 2001): non-commercial research and educational use",
         "urban100 (88)": "Urban100 (Huang et al. CVPR 2015), Flickr photos, Creative Commons per the authors",
@@ -28,15 +29,17 @@ DATA_CARD = {
         "wikiphotos (43)": "Wikimedia Commons photos (mostly CC, attribution per file page; list in shared/data/SOURCES.md)",
     },
     "pairs": "synthetic: random homography (log-uniform scale, rotation, skew, perspective, shift) warps a crop "
-             "of a photo into the target; the target's empty region is filled from another random photo; "
-             "ground truth = analytic sqrt|det J_H| on the stride-8 grid",
+    "of a photo into the target; the target's empty region is filled from another random photo; "
+    "ground truth = analytic sqrt|det J_H| on the stride-8 grid",
     "never_used": "the evaluation sequences/pairs (../shared/data/sequences, ../shared/data/pairs) and scikit-image photos",
 }
 
 
-CONTEXT_NOTE = ("; with context (--context): the target is rendered from the whole photo, so around the "
-                "crop's content it shows the photo's real surroundings, and the fill photo covers only what lies "
-                "beyond the photo")
+CONTEXT_NOTE = (
+    "; with context (--context): the target is rendered from the whole photo, so around the "
+    "crop's content it shows the photo's real surroundings, and the fill photo covers only what lies "
+    "beyond the photo"
+)
 
 
 def backbone_card(model) -> dict:
@@ -46,8 +49,12 @@ def backbone_card(model) -> dict:
     n = sum(p.numel() for p in model.extractor.backbone.parameters())
     if record is None:
         return {"name": "vgg", "trained": "with the model, from scratch, on the data below", "parameters": n}
-    return dict(record, trained="frozen: pre-trained weights, not changed by our training (not in our .pt; "
-                                "read from the weight file, which must have this sha256)", parameters=n)
+    return dict(
+        record,
+        trained="frozen: pre-trained weights, not changed by our training (not in our .pt; "
+        "read from the weight file, which must have this sha256)",
+        parameters=n,
+    )
 
 
 def main(argv=None) -> int:
@@ -58,9 +65,12 @@ def main(argv=None) -> int:
     p.add_argument("--command", default="", help="the command that trained it")
     p.add_argument("--notes", default="")
     p.add_argument("--hardware", default="2 CPU cores (no GPU), fp32, 1 torch thread")
-    p.add_argument("--init-card", default="",
-                   help="model card of the weights this run was initialised from (--init-weights); "
-                        "its training record is kept under training.initialised_from")
+    p.add_argument(
+        "--init-card",
+        default="",
+        help="model card of the weights this run was initialised from (--init-weights); "
+        "its training record is kept under training.initialised_from",
+    )
     a = p.parse_args(argv)
     run = Path(a.run)
     src = run / "model.pt" if (run / "model.pt").exists() else run / "last.pt"
@@ -68,7 +78,7 @@ def main(argv=None) -> int:
     if (run / "last.pt").exists():
         ck = read_checkpoint(run / "last.pt")
         step, train_cfg = ck["train_state"]["step"], ck["meta"].get("train_config", {})
-    else:   # only the exported model came back (e.g. from a remote GPU run)
+    else:  # only the exported model came back (e.g. from a remote GPU run)
         meta = read_checkpoint(src)["meta"]
         step, train_cfg = meta["steps"], meta.get("train_config", {})
     val = [json.loads(line) for line in open(run / "val_log.jsonl")] if (run / "val_log.jsonl").exists() else []
@@ -77,12 +87,20 @@ def main(argv=None) -> int:
     meta = {"steps": step, "train_config": train_cfg, "validation": val[-1] if val else {}}
     save_model(model, weights, meta=meta, half=True)
     card = {
-        "name": a.name, "architecture": model.arch, "config": {k: (list(v) if isinstance(v, tuple) else v)
-                                                               for k, v in vars(model.config).items()},
+        "name": a.name,
+        "architecture": model.arch,
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(model.config).items()},
         "parameters": sum(p.numel() for p in model.parameters() if p.requires_grad),
-        "weights_file": weights.name, "weights_mb": round(weights.stat().st_size / 2**20, 2), "storage": "fp16",
-        "training": {"steps": step, "batch_size": train_cfg.get("batch_size"), "config": train_cfg,
-                     "command": a.command, "hardware": a.hardware},
+        "weights_file": weights.name,
+        "weights_mb": round(weights.stat().st_size / 2**20, 2),
+        "storage": "fp16",
+        "training": {
+            "steps": step,
+            "batch_size": train_cfg.get("batch_size"),
+            "config": train_cfg,
+            "command": a.command,
+            "hardware": a.hardware,
+        },
         "data": dict(DATA_CARD, pairs=DATA_CARD["pairs"] + (CONTEXT_NOTE if train_cfg.get("context") else "")),
         "validation_history": val,
         "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
@@ -92,7 +110,9 @@ def main(argv=None) -> int:
     }
     if a.init_card:
         init = json.loads(Path(a.init_card).read_text())
-        card["training"]["initialised_from"] = {k: init.get(k) for k in ("name", "training", "validation_history", "notes")}
+        card["training"]["initialised_from"] = {
+            k: init.get(k) for k in ("name", "training", "validation_history", "notes")
+        }
     (out_dir / f"{a.name}.json").write_text(json.dumps(card, indent=1))
     print(f"wrote {weights} ({card['weights_mb']} MB) and {a.name}.json (step {step})")
     return 0

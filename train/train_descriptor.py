@@ -31,6 +31,7 @@ Example (docs/TRAINING.md has the commands of the shipped weights)::
     OMP_NUM_THREADS=1 python train/train_descriptor.py --data ../shared/data/train_images \
         --out /tmp/hardnet_run --steps 2000 --max-minutes 20 --export /tmp/hardnet_run/hardnet.pt
 """
+
 from __future__ import annotations
 
 import argparse
@@ -73,9 +74,16 @@ def _photometric(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
     return out
 
 
-def patch_pairs_from_image(rng: np.random.Generator, img: np.ndarray, per_pair: int = 150, base_radius: float = 16.0,
-                           max_side: int = 480, cfg: HomographyConfig = MODERATE, scale_error: float = 0.25,
-                           jitter: float = 1.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def patch_pairs_from_image(
+    rng: np.random.Generator,
+    img: np.ndarray,
+    per_pair: int = 150,
+    base_radius: float = 16.0,
+    max_side: int = 480,
+    cfg: HomographyConfig = MODERATE,
+    scale_error: float = 0.25,
+    jitter: float = 1.5,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One synthetic pair from a photo -> ``(patches_A, patches_B, keypoints_A)``: uint8
     ``N x 1 x 32 x 32`` patches and ``N x 2`` float keypoints of A (pixels of the resized photo)."""
     s = max_side / max(img.shape[:2])
@@ -91,8 +99,11 @@ def patch_pairs_from_image(rng: np.random.Generator, img: np.ndarray, per_pair: 
         return empty
     kb = project(H, ka.astype(np.float64))
     sab = homography_scale_at(H, ka.astype(np.float64))
-    s_used = np.clip(sab * np.exp(rng.normal(0, scale_error, len(sab))), 0.125, 8) if scale_error > 0 \
+    s_used = (
+        np.clip(sab * np.exp(rng.normal(0, scale_error, len(sab))), 0.125, 8)
+        if scale_error > 0
         else np.clip(sab, 0.125, 8)
+    )
     ra = base_radius * np.maximum(1, 1 / s_used)
     rb = base_radius * np.maximum(1, s_used)
     ok = np.isfinite(kb).all(1) & np.isfinite(sab)
@@ -112,8 +123,15 @@ def patch_pairs_from_image(rng: np.random.Generator, img: np.ndarray, per_pair: 
     return to8(pa), to8(pb), torch.from_numpy(ka[idx].astype(np.float32))
 
 
-def build_patch_set(files, seed: int, pairs_per_image: int, per_pair: int, desc: str = "patches",
-                    scale_error: float = 0.25, jitter: float = 1.5):
+def build_patch_set(
+    files,
+    seed: int,
+    pairs_per_image: int,
+    per_pair: int,
+    desc: str = "patches",
+    scale_error: float = 0.25,
+    jitter: float = 1.5,
+):
     """Patch pairs of all photos -> ``(patches_A, patches_B, pair_id, keypoints_A)``."""
     rng = np.random.default_rng(seed)
     pa, pb, gid, kp = [], [], [], []
@@ -128,8 +146,9 @@ def build_patch_set(files, seed: int, pairs_per_image: int, per_pair: int, desc:
     return torch.cat(pa), torch.cat(pb), torch.cat(gid), torch.cat(kp)
 
 
-def group_batch(gid: torch.Tensor, groups: list[torch.Tensor], batch: int, images_per_batch: int,
-                generator: torch.Generator) -> torch.Tensor:
+def group_batch(
+    gid: torch.Tensor, groups: list[torch.Tensor], batch: int, images_per_batch: int, generator: torch.Generator
+) -> torch.Tensor:
     """Indices of a batch: ``images_per_batch`` random pairs, ``batch / images_per_batch`` patches each
     (all of them when a pair has fewer), topped up with random patches."""
     per = max(1, batch // max(1, images_per_batch))
@@ -140,13 +159,14 @@ def group_batch(gid: torch.Tensor, groups: list[torch.Tensor], batch: int, image
         parts.append(members[torch.randperm(len(members), generator=generator)[:per]])
     idx = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long)
     if len(idx) < batch:
-        extra = torch.randperm(len(gid), generator=generator)[:batch - len(idx)]
+        extra = torch.randperm(len(gid), generator=generator)[: batch - len(idx)]
         idx = torch.cat([idx, extra])
     return idx[:batch]
 
 
-def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0,
-                         not_negative: torch.Tensor | None = None) -> torch.Tensor:
+def hardest_triplet_loss(
+    da: torch.Tensor, db: torch.Tensor, margin: float = 1.0, not_negative: torch.Tensor | None = None
+) -> torch.Tensor:
     """HardNet loss: for each pair, the hardest negative in the batch (row and column).
     ``not_negative``: ``B x B`` bool, pairs that must not be used as negatives (overlapping patches)."""
     d = torch.cdist(da, db).clamp_min(1e-8)
@@ -163,8 +183,8 @@ def hardest_triplet_loss(da: torch.Tensor, db: torch.Tensor, margin: float = 1.0
 def calibration_set(pa: torch.Tensor, pb: torch.Tensor, n: int, seed: int = 0) -> torch.Tensor:
     """``n`` random training patches (half from A, half from B), float in [0, 1]."""
     g = torch.Generator().manual_seed(seed)
-    ia = torch.randperm(len(pa), generator=g)[:(n + 1) // 2]
-    ib = torch.randperm(len(pb), generator=g)[:n // 2]
+    ia = torch.randperm(len(pa), generator=g)[: (n + 1) // 2]
+    ib = torch.randperm(len(pb), generator=g)[: n // 2]
     return torch.cat([pa[ia], pb[ib]]).float() / 255
 
 
@@ -196,13 +216,17 @@ def evaluate(desc, pa: torch.Tensor, pb: torch.Tensor, chunk: int = 1000) -> dic
     fpr95 = float((neg <= thr).float().mean())
     accs, aps = [], []
     for i in range(0, len(da) - chunk + 1, chunk):
-        d = torch.cdist(da[i:i + chunk], db[i:i + chunk])
+        d = torch.cdist(da[i : i + chunk], db[i : i + chunk])
         accs.append(float((d.argmin(1) == torch.arange(chunk)).float().mean()))
         rank = (d < d.diag()[:, None]).sum(1) + 1
         aps.append(float((1.0 / rank.float()).mean()))
     nan = float("nan")
-    return {"fpr95": fpr95, "nn_accuracy_1000": float(np.mean(accs)) if accs else nan,
-            "map_1000": float(np.mean(aps)) if aps else nan, "pairs": len(da)}
+    return {
+        "fpr95": fpr95,
+        "nn_accuracy_1000": float(np.mean(accs)) if accs else nan,
+        "map_1000": float(np.mean(aps)) if aps else nan,
+        "pairs": len(da),
+    }
 
 
 def main(argv=None) -> int:
@@ -214,25 +238,48 @@ def main(argv=None) -> int:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--pairs-per-image", type=int, default=3)
     p.add_argument("--per-pair", type=int, default=150)
-    p.add_argument("--scale-error", type=float, default=0.25,
-                   help="std of the log error applied to the true scale before cutting patches")
+    p.add_argument(
+        "--scale-error",
+        type=float,
+        default=0.25,
+        help="std of the log error applied to the true scale before cutting patches",
+    )
     p.add_argument("--jitter", type=float, default=1.5, help="max keypoint re-detection error in B, px")
-    p.add_argument("--images-per-batch", type=int, default=16,
-                   help="synthetic pairs per batch (0: patches drawn uniformly)")
-    p.add_argument("--min-negative-distance", type=float, default=8.0,
-                   help="keypoints of one pair closer than this (px in A) are not negatives")
-    p.add_argument("--evaluate-only", default=None, metavar="WEIGHTS",
-                   help="score these descriptor weights (and SIFT) on the held-out patches of --out, no training")
-    p.add_argument("--calibrate-int8", default=None, metavar="WEIGHTS",
-                   help="add int8 activation ranges (from training patches of --out) to these weights, in place")
+    p.add_argument(
+        "--images-per-batch", type=int, default=16, help="synthetic pairs per batch (0: patches drawn uniformly)"
+    )
+    p.add_argument(
+        "--min-negative-distance",
+        type=float,
+        default=8.0,
+        help="keypoints of one pair closer than this (px in A) are not negatives",
+    )
+    p.add_argument(
+        "--evaluate-only",
+        default=None,
+        metavar="WEIGHTS",
+        help="score these descriptor weights (and SIFT) on the held-out patches of --out, no training",
+    )
+    p.add_argument(
+        "--calibrate-int8",
+        default=None,
+        metavar="WEIGHTS",
+        help="add int8 activation ranges (from training patches of --out) to these weights, in place",
+    )
     p.add_argument("--calibration-patches", type=int, default=4096, help="training patches for the int8 ranges")
     p.add_argument("--init", default=None, help="start from these descriptor weights (localscale/kornia format)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-minutes", type=float, default=float("inf"), help="stop (and save) after this wall time")
     p.add_argument("--ckpt-every", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--widths", type=int, nargs=3, default=None, metavar=("C1", "C2", "C3"),
-                   help="channel widths of the three stages (default: HardNet's 32 64 128, or --init's)")
+    p.add_argument(
+        "--widths",
+        type=int,
+        nargs=3,
+        default=None,
+        metavar=("C1", "C2", "C3"),
+        help="channel widths of the three stages (default: HardNet's 32 64 128, or --init's)",
+    )
     p.add_argument("--teacher", default=None, metavar="WEIGHTS", help="distil from these descriptor weights")
     p.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation term")
     p.add_argument("--export", default=None, help="write fp16 inference weights here at the end")
@@ -244,67 +291,97 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     train_files, held_files = split_images(list_images(args.data))
     if args.limit_images:
-        train_files, held_files = train_files[:args.limit_images], held_files[:max(1, args.limit_images // 4)]
+        train_files, held_files = train_files[: args.limit_images], held_files[: max(1, args.limit_images // 4)]
     cache = out / f"patches_v2_seed{args.seed}_e{args.scale_error:g}_j{args.jitter:g}_p{args.pairs_per_image}.pt"
     if cache.is_file():
-        data = torch.load(cache, map_location="cpu", weights_only=True)   # tensors only, no code
+        data = torch.load(cache, map_location="cpu", weights_only=True)  # tensors only, no code
     else:
-        tr = build_patch_set(train_files, args.seed, args.pairs_per_image, args.per_pair, "train patches",
-                             args.scale_error, args.jitter)
-        ho = build_patch_set(held_files, args.seed + 10_000, 2, args.per_pair, "held-out patches",
-                             args.scale_error, args.jitter)
+        tr = build_patch_set(
+            train_files, args.seed, args.pairs_per_image, args.per_pair, "train patches", args.scale_error, args.jitter
+        )
+        ho = build_patch_set(
+            held_files, args.seed + 10_000, 2, args.per_pair, "held-out patches", args.scale_error, args.jitter
+        )
         data = {"train": tr, "held": ho}
         torch.save(data, cache)
     pa, pb, gid, kpa = data["train"]
     ha, hb = data["held"][:2]
     groups = [g for g in torch.split(torch.argsort(gid, stable=True), torch.bincount(gid).tolist()) if len(g)]
-    print(f"patch pairs: train {len(pa)} (from {len(train_files)} photos), held-out {len(ha)} "
-          f"(from {len(held_files)} photos); data ready in {time.time() - t0:.0f}s", flush=True)
+    print(
+        f"patch pairs: train {len(pa)} (from {len(train_files)} photos), held-out {len(ha)} "
+        f"(from {len(held_files)} photos); data ready in {time.time() - t0:.0f}s",
+        flush=True,
+    )
 
     if args.evaluate_only:
-        report = {"weights": args.evaluate_only,
-                  "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(args.evaluate_only), ha, hb),
-                  "held_out_sift_baseline": evaluate(SIFTPatchDescriptor(), ha, hb)}
+        report = {
+            "weights": args.evaluate_only,
+            "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(args.evaluate_only), ha, hb),
+            "held_out_sift_baseline": evaluate(SIFTPatchDescriptor(), ha, hb),
+        }
         print(json.dumps(report, indent=1), flush=True)
         return 0
     if args.calibrate_int8:
         path = Path(args.calibrate_int8)
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        model = add_int8_ranges(HardNetDescriptor.from_pretrained(path),
-                                calibration_set(pa, pb, args.calibration_patches, args.seed))
+        model = add_int8_ranges(
+            HardNetDescriptor.from_pretrained(path), calibration_set(pa, pb, args.calibration_patches, args.seed)
+        )
         model.save(path, meta=ckpt.get("meta", {}), half=True)
-        report = {"weights": str(path), "calibration_patches": args.calibration_patches,
-                  "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(path), ha, hb)}
+        report = {
+            "weights": str(path),
+            "calibration_patches": args.calibration_patches,
+            "held_out": scores_by_precision(HardNetDescriptor.from_pretrained(path), ha, hb),
+        }
         print(json.dumps(report, indent=1), flush=True)
         return 0
-    model = HardNetDescriptor.from_pretrained(args.init) if args.init \
-        else HardNetDescriptor(tuple(args.widths)) if args.widths else HardNetDescriptor()
+    model = (
+        HardNetDescriptor.from_pretrained(args.init)
+        if args.init
+        else HardNetDescriptor(tuple(args.widths))
+        if args.widths
+        else HardNetDescriptor()
+    )
     teacher = HardNetDescriptor.from_pretrained(args.teacher).eval() if args.teacher else None
     model.net.float()
     opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-4)
     step, elapsed_before = 0, 0.0
     last = out / "last.pt"
     if last.is_file():
-        ck = torch.load(last, map_location="cpu", weights_only=True)   # tensors and plain data only
+        ck = torch.load(last, map_location="cpu", weights_only=True)  # tensors and plain data only
         model.net.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before = ck["step"], ck.get("elapsed", 0.0)
         print(f"resumed from {last} at step {step}", flush=True)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: max(0.02, 1 - s / args.steps), last_epoch=step - 1) \
-        if step else torch.optim.lr_scheduler.LambdaLR(opt, lambda s: max(0.02, 1 - s / args.steps))
+    sched = (
+        torch.optim.lr_scheduler.LambdaLR(opt, lambda s: max(0.02, 1 - s / args.steps), last_epoch=step - 1)
+        if step
+        else torch.optim.lr_scheduler.LambdaLR(opt, lambda s: max(0.02, 1 - s / args.steps))
+    )
     t_start = time.time()
 
     def save():
-        torch.save({"state_dict": model.net.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                    "elapsed": elapsed_before + time.time() - t_start, "args": vars(args)}, last)
+        torch.save(
+            {
+                "state_dict": model.net.state_dict(),
+                "optimizer": opt.state_dict(),
+                "step": step,
+                "elapsed": elapsed_before + time.time() - t_start,
+                "args": vars(args),
+            },
+            last,
+        )
 
     model.train()
     bar = tqdm(total=args.steps, initial=step, desc="hardnet", mininterval=10)
     stopped_early = False
     while step < args.steps:
         g = torch.Generator().manual_seed(args.seed * 1_000_003 + step)
-        idx = group_batch(gid, groups, args.batch, args.images_per_batch, g) if args.images_per_batch \
-            else torch.randperm(len(pa), generator=g)[:args.batch]
+        idx = (
+            group_batch(gid, groups, args.batch, args.images_per_batch, g)
+            if args.images_per_batch
+            else torch.randperm(len(pa), generator=g)[: args.batch]
+        )
         a, b = pa[idx].float() / 255, pb[idx].float() / 255
         if step % 2:  # joint flip augmentation
             a, b = a.flip(-1), b.flip(-1)
@@ -335,10 +412,19 @@ def main(argv=None) -> int:
     scores = scores_by_precision(model, ha, hb)
     score = scores["fp32"]
     sift = evaluate(SIFTPatchDescriptor(), ha, hb)
-    report = {"widths": list(model.widths), "teacher": args.teacher, "steps": step, "batch": args.batch,
-              "images_per_batch": args.images_per_batch, "train_pairs": len(pa), "held_out": score,
-              "held_out_int8": scores.get("int8"), "held_out_sift_baseline": sift, "stopped_by_time_limit": stopped_early,
-              "train_wall_minutes": round((elapsed_before + time.time() - t_start) / 60, 1)}
+    report = {
+        "widths": list(model.widths),
+        "teacher": args.teacher,
+        "steps": step,
+        "batch": args.batch,
+        "images_per_batch": args.images_per_batch,
+        "train_pairs": len(pa),
+        "held_out": score,
+        "held_out_int8": scores.get("int8"),
+        "held_out_sift_baseline": sift,
+        "stopped_by_time_limit": stopped_early,
+        "train_wall_minutes": round((elapsed_before + time.time() - t_start) / 60, 1),
+    }
     print(json.dumps(report, indent=1), flush=True)
     (out / "report.json").write_text(json.dumps(report, indent=1))
     if args.export:

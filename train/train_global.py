@@ -2,6 +2,7 @@
 
 Same trainer and options as ``train_local.py`` (shared code in :mod:`localscale.training`).
 """
+
 import sys
 
 from localscale.cli.train import main

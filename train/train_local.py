@@ -3,6 +3,7 @@
 Multi-GPU: ``torchrun --nproc_per_node 4 train/train_local.py --device cuda ...``.
 All options: ``--help`` (they mirror :class:`localscale.training.TrainConfig`).
 """
+
 import sys
 
 from localscale.cli.train import main

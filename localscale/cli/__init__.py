@@ -13,6 +13,7 @@ Every command takes the same model options: ``--local-weights`` / ``--global-wei
 (checkpoints; default: the bundled weights), ``--device`` and, where a network runs, ``--bf16``.
 ``-o`` is always an output folder. Bad input is a one-line ``error: ...`` and exit code 2.
 """
+
 from .common import ASSETS, check_output_dir, pair_name
 from .main import build_parser, main
 from .pairs_file import read_pairs_file

@@ -1,15 +1,16 @@
 """What the commands share: loading a scale model from the options, the output folder check, output names."""
+
 from __future__ import annotations
 
+import hashlib
+from collections import Counter, defaultdict
 from pathlib import Path
 
 from .. import loading
 from ..errors import LocalScaleError
 from ..outputs import resolved_path
-import hashlib
-from collections import Counter, defaultdict
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"   #: the example pair (examples/ use it too)
+ASSETS = Path(__file__).resolve().parent.parent / "assets"  #: the example pair (examples/ use it too)
 
 
 def _model(args, kind: str):
@@ -21,7 +22,7 @@ def check_output_dir(path, names=()) -> Path:
     a folder that cannot be written, or file ``names`` too long for the file system are errors."""
     from ..outputs import check_writable_dir
 
-    if isinstance(path, (str, bytes)) and not path:   # Path("") would be the current folder
+    if isinstance(path, (str, bytes)) and not path:  # Path("") would be the current folder
         raise LocalScaleError("-o: empty output folder name (give a folder, e.g. -o out, or -o . for this one)")
     return check_writable_dir(Path(path), names)
 
@@ -38,10 +39,11 @@ def image_labels(paths, always_parent: bool = False) -> dict:
     def with_parent(p: Path, name: str) -> str:
         return f"{p.parent.name}-{name}" if p.parent.name else name
 
-    labels = {p: with_parent(p, p.stem) if (always_parent or len(ps) > 1) else p.stem
-              for ps in by_stem.values() for p in ps}
+    labels = {
+        p: with_parent(p, p.stem) if (always_parent or len(ps) > 1) else p.stem for ps in by_stem.values() for p in ps
+    }
     counts = Counter(labels.values())
-    for p in uniq:   # same folder and stem, other extension
+    for p in uniq:  # same folder and stem, other extension
         if counts[labels[p]] > 1:
             labels[p] = with_parent(p, p.name.replace(".", "-"))
     return labels
@@ -54,7 +56,7 @@ def short_name(name: str, room: int = 200) -> str:
     if len(raw) <= room:
         return name
     digest = hashlib.sha1(raw).hexdigest()[:10]
-    return raw[:room - 11].decode("utf-8", "ignore") + "~" + digest
+    return raw[: room - 11].decode("utf-8", "ignore") + "~" + digest
 
 
 def pair_name(image_a, image_b, always_parent: bool = False) -> str:

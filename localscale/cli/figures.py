@@ -1,4 +1,5 @@
 """``localscale show`` / ``demo`` (figures of a map), ``scale`` (global ScaleNet) and ``rectify``."""
+
 from __future__ import annotations
 
 import json
@@ -9,9 +10,7 @@ from pathlib import Path
 from .. import loading
 from ..errors import LocalScaleError
 from ..outputs import ensure_not_input, make_dir, write_image, write_text
-
 from .common import ASSETS, _model, check_output_dir, pair_name
-
 
 SHOW_MAX_SIDE = 2048
 
@@ -27,7 +26,7 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
 
     output = ensure_not_input(output, (image_a, image_b, H))
     model = model or loading.load_scale_model("local")
-    a, to_a = load_working_image(image_a, SHOW_MAX_SIDE, "image A")   # a figure needs no more pixels
+    a, to_a = load_working_image(image_a, SHOW_MAX_SIDE, "image A")  # a figure needs no more pixels
     b, to_b = load_working_image(image_b, SHOW_MAX_SIDE, "image B")
     pred = model.predict(a, b, bf16=bf16)
     gt = mask = None
@@ -37,8 +36,9 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
         mask = covisible_mask(Hm, a.shape[:2], b.shape[:2])
     make_dir(Path(output).parent)
     try:
-        plot_scale_prediction(a, b, pred.scale, pred.confidence, gt, mask, output, title,
-                              visible=getattr(pred, "visible", None))
+        plot_scale_prediction(
+            a, b, pred.scale, pred.confidence, gt, mask, output, title, visible=getattr(pred, "visible", None)
+        )
     except (OSError, ValueError) as e:
         raise LocalScaleError(f"cannot write figure {output}: {e}") from None
     return Path(output)
@@ -62,35 +62,57 @@ def cmd_demo(args) -> int:
 
 # ---------------------------------------------------------------- scale, rectify
 
+
 def cmd_scale(args) -> int:
     if args.search:
         from ..search import search_global_scale
 
-        p, found = search_global_scale(_model(args, "local"), _model(args, "global"), args.image_a, args.image_b,
-                                       bf16=args.bf16)
-        print(f"search: {found.candidates} window pairs scored; ScaleNet on {found.kept()}",
-              file=sys.stderr)
+        p, found = search_global_scale(
+            _model(args, "local"), _model(args, "global"), args.image_a, args.image_b, bf16=args.bf16
+        )
+        print(f"search: {found.candidates} window pairs scored; ScaleNet on {found.kept()}", file=sys.stderr)
     else:
         p = _model(args, "global").predict(args.image_a, args.image_b, bf16=args.bf16)
     import numpy as np
 
-    if not (all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale))
-            and np.isfinite(p.probs_ab).all()):
+    if not (
+        all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale)) and np.isfinite(p.probs_ab).all()
+    ):
         raise LocalScaleError("ScaleNet predicted a non-finite scale (NaN or inf): the model is broken")
     if not p.reliable:
-        print(f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
-              f"disagree by x{2 ** p.inconsistency_log2:.2f}", file=sys.stderr)
+        print(
+            f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
+            f"disagree by x{2**p.inconsistency_log2:.2f}",
+            file=sys.stderr,
+        )
     if any(p.turns):
         which = "A" if p.turns[0] else "B"
-        print(f"warning: the upright images gave inconsistent scales; this one comes from {which} turned by "
-              f"{90 * max(p.turns)} deg", file=sys.stderr)
+        print(
+            f"warning: the upright images gave inconsistent scales; this one comes from {which} turned by "
+            f"{90 * max(p.turns)} deg",
+            file=sys.stderr,
+        )
     if args.json:
-        print(json.dumps(allow_nan=False, obj={"scale": p.scale, "scale_ab": p.scale_ab, "scale_ba": p.scale_ba,
-                          "hard_scale": p.hard_scale, "reliable": p.reliable, "turns": list(p.turns),
-                          "inconsistency_log2": p.inconsistency_log2, "probs_ab": p.probs_ab.round(4).tolist()}))
+        print(
+            json.dumps(
+                allow_nan=False,
+                obj={
+                    "scale": p.scale,
+                    "scale_ab": p.scale_ab,
+                    "scale_ba": p.scale_ba,
+                    "hard_scale": p.hard_scale,
+                    "reliable": p.reliable,
+                    "turns": list(p.turns),
+                    "inconsistency_log2": p.inconsistency_log2,
+                    "probs_ab": p.probs_ab.round(4).tolist(),
+                },
+            )
+        )
     else:
-        print(f"S(A->B) = {p.scale:.4f}  (A->B {p.scale_ab:.4f}, 1/(B->A) {1 / p.scale_ba:.4f}, "
-              f"D-ScaleNet {p.hard_scale:.4f})")
+        print(
+            f"S(A->B) = {p.scale:.4f}  (A->B {p.scale_ab:.4f}, 1/(B->A) {1 / p.scale_ba:.4f}, "
+            f"D-ScaleNet {p.hard_scale:.4f})"
+        )
     return 0
 
 
@@ -118,17 +140,23 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     src = image_b if which == "B" else image_a
     h, w = image_shape(src, f"image {which}")
     size = (max(1, round(w * factor)), max(1, round(h * factor)))
-    img, (h, w) = load_image_reduced(src, f"image {which}", max(size))   # decoded no larger than needed
+    img, (h, w) = load_image_reduced(src, f"image {which}", max(size))  # decoded no larger than needed
     resized = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     dst = ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     sidecar = ensure_not_input(out / f"{name}_rectified.json", inputs)
     make_dir(out)
     write_image(dst, resized[..., ::-1])
-    record = {"image_a": "array" if hasattr(image_a, "shape") else str(image_a),
-              "image_b": "array" if hasattr(image_b, "shape") else str(image_b),
-              "scale": s, "resized": which, "resized_image": "array" if hasattr(src, "shape") else str(src),
-              "factor": factor, "size_before": [w, h], "size_after": list(size),
-              "output": str(dst)}
+    record = {
+        "image_a": "array" if hasattr(image_a, "shape") else str(image_a),
+        "image_b": "array" if hasattr(image_b, "shape") else str(image_b),
+        "scale": s,
+        "resized": which,
+        "resized_image": "array" if hasattr(src, "shape") else str(src),
+        "factor": factor,
+        "size_before": [w, h],
+        "size_after": list(size),
+        "output": str(dst),
+    }
     write_text(sidecar, json.dumps(record, indent=1) + "\n")
     record["sidecar"] = str(sidecar)
     return record
@@ -138,6 +166,8 @@ def cmd_rectify(args) -> int:
     name = pair_name(args.image_a, args.image_b, always_parent=True)
     check_output_dir(args.output, [f"{name}_rectified_A.png", f"{name}_rectified.json"])
     r = rectify_pair(args.image_a, args.image_b, args.output, _model(args, "global"), bf16=args.bf16)
-    print(f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']} "
-          f"(record: {r['sidecar']})")
+    print(
+        f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']} "
+        f"(record: {r['sidecar']})"
+    )
     return 0

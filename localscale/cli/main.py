@@ -1,21 +1,29 @@
 """The ``localscale`` parser and entry point."""
+
 from __future__ import annotations
 
-import sys
-
-from ..errors import LocalScaleError
 import argparse
 import signal
+import sys
 import threading
 
-from .options import (HelpFormatter, OneLineErrorParser, _LazyArgumentParser, add_hpatches_options,
-                      add_match_options, add_model_options, add_refine_matcher_options, add_refine_options,
-                      positive_float, positive_int)
+from ..errors import LocalScaleError
 from .figures import cmd_demo, cmd_rectify, cmd_scale, cmd_show
 from .match import cmd_eval_hpatches, cmd_match
+from .options import (
+    HelpFormatter,
+    OneLineErrorParser,
+    _LazyArgumentParser,
+    add_hpatches_options,
+    add_match_options,
+    add_model_options,
+    add_refine_matcher_options,
+    add_refine_options,
+    positive_float,
+    positive_int,
+)
 from .predict import cmd_predict
 from .signals import SIGTERM_STATE, Terminated, _on_sigterm
-
 
 EXAMPLES = {
     "predict": """examples:
@@ -61,48 +69,92 @@ EXAMPLES = {
 
 def build_parser() -> argparse.ArgumentParser:
 
-    p = OneLineErrorParser(prog="localscale", description=sys.modules[__package__].__doc__, formatter_class=HelpFormatter)
+    p = OneLineErrorParser(
+        prog="localscale", description=sys.modules[__package__].__doc__, formatter_class=HelpFormatter
+    )
     from .. import __version__
+
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_LazyArgumentParser)
 
     def command(name, summary, description, add_options=None):
-        return sub.add_parser(name, help=summary, description=description, epilog=EXAMPLES[name],
-                              formatter_class=HelpFormatter, add_options=add_options)
+        return sub.add_parser(
+            name,
+            help=summary,
+            description=description,
+            epilog=EXAMPLES[name],
+            formatter_class=HelpFormatter,
+            add_options=add_options,
+        )
 
     _add_map_commands(command)
     _add_scale_and_match_commands(command)
+    from .reconstruct import add_reconstruct_parser
+
+    add_reconstruct_parser(sub)
     return p
 
 
 def _add_map_commands(command) -> None:
     from .options import add_image_options
 
-    sp = command("predict", "per-pixel scale map S(A->B) -> .npy/.tif/.png",
-                 "Per-pixel scale map S(A->B) of Local-ScaleNet for one pair (A B) or for every pair of a\n"
-                 "pairs file (--pairs, with a feature cache: each image is encoded once).")
+    sp = command(
+        "predict",
+        "per-pixel scale map S(A->B) -> .npy/.tif/.png",
+        "Per-pixel scale map S(A->B) of Local-ScaleNet for one pair (A B) or for every pair of a\n"
+        "pairs file (--pairs, with a feature cache: each image is encoded once).",
+    )
     sp.add_argument("image_a", nargs="?", help="image A (omit with --pairs)")
     sp.add_argument("image_b", nargs="?", help="image B (omit with --pairs)")
     sp.add_argument("-o", "--output", default="out", help="output folder")
-    sp.add_argument("--pairs", help="text file with one pair per line: 'A<TAB>B', or 'A B' with shell-like "
-                                    "quoting for names with spaces (default: none, predict A B)")
+    sp.add_argument(
+        "--pairs",
+        help="text file with one pair per line: 'A<TAB>B', or 'A B' with shell-like "
+        "quoting for names with spaces (default: none, predict A B)",
+    )
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
-    sp.add_argument("--search", action="store_true",
-                    help="window search: re-estimate on the windows of A or B (1/2, 1/4 of the sides) that share "
-                         "the most content with the other image; for strong zooms and low overlap, ~30x slower")
+    sp.add_argument(
+        "--search",
+        action="store_true",
+        help="window search: re-estimate on the windows of A or B (1/2, 1/4 of the sides) that share "
+        "the most content with the other image; for strong zooms and low overlap, ~30x slower",
+    )
     sp.add_argument("--batch-size", type=positive_int, default=8, help="pairs per network batch with --pairs")
+    sp.add_argument(
+        "--engine",
+        choices=["local", "ray"],
+        default="local",
+        help="where --pairs runs: this process (local) or a Ray cluster (ray; pip install 'localscale[ray]')",
+    )
+    sp.add_argument(
+        "--workers", type=positive_int, default=None, help="Ray workers (default: one per threads-per-worker CPUs)"
+    )
+    sp.add_argument(
+        "--threads-per-worker", type=positive_int, default=None, help="torch threads of each Ray worker (default: 1)"
+    )
+    sp.add_argument(
+        "--ray-address",
+        default=None,
+        help="a running Ray cluster (e.g. auto, or HOST:PORT); default: a local one, started and stopped",
+    )
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
-    sp.add_argument("--overwrite", action="store_true",
-                    help="with --pairs: redo pairs whose outputs already exist (default: skip them)")
+    sp.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="with --pairs: redo pairs whose outputs already exist (default: skip them)",
+    )
     add_refine_matcher_options(add_refine_options(sp))
     add_model_options(sp, local=True, global_=False, model_alias="local")
     add_image_options(sp)
     sp.set_defaults(func=cmd_predict)
 
-    sp = command("show", "figure: A, B, predicted map, confidence (+ GT and error with --H)",
-                 "Figure of a pair: A, B, the predicted scale map S(A->B) (colours = factors), the\n"
-                 "confidence, and with --H the ground-truth map and the error.")
+    sp = command(
+        "show",
+        "figure: A, B, predicted map, confidence (+ GT and error with --H)",
+        "Figure of a pair: A, B, the predicted scale map S(A->B) (colours = factors), the\n"
+        "confidence, and with --H the ground-truth map and the error.",
+    )
     sp.add_argument("image_a", help="image A")
     sp.add_argument("image_b", help="image B")
     sp.add_argument("-o", "--output", default="out", help="output folder (figure <A>_<B>_figure.png)")
@@ -111,32 +163,43 @@ def _add_map_commands(command) -> None:
     add_image_options(sp)
     sp.set_defaults(func=cmd_show)
 
-    sp = command("demo", "run show on the bundled example pair and write out/demo.png",
-                 "The figure of 'show' on the bundled example pair (with its ground-truth homography).")
+    sp = command(
+        "demo",
+        "run show on the bundled example pair and write out/demo.png",
+        "The figure of 'show' on the bundled example pair (with its ground-truth homography).",
+    )
     sp.add_argument("-o", "--output", default="out", help="output folder (demo.png)")
     add_model_options(sp, local=True, global_=False, model_alias="local")
     sp.set_defaults(func=cmd_demo)
 
 
-
 def _add_scale_and_match_commands(command) -> None:
     from .options import add_image_options
 
-    sp = command("scale", "global scale S(A->B) with ScaleNet",
-                 "Global scale S(A->B) of ScaleNet: consistency-checked, both directions, D-ScaleNet.")
+    sp = command(
+        "scale",
+        "global scale S(A->B) with ScaleNet",
+        "Global scale S(A->B) of ScaleNet: consistency-checked, both directions, D-ScaleNet.",
+    )
     sp.add_argument("image_a", help="image A")
     sp.add_argument("image_b", help="image B")
     sp.add_argument("--json", action="store_true", help="print one JSON object")
-    sp.add_argument("--search", action="store_true",
-                    help="run ScaleNet on the window pair Local-ScaleNet's window search keeps (see predict --search): "
-                         "strong zoom, low overlap; ~30x slower")
+    sp.add_argument(
+        "--search",
+        action="store_true",
+        help="run ScaleNet on the window pair Local-ScaleNet's window search keeps (see predict --search): "
+        "strong zoom, low overlap; ~30x slower",
+    )
     add_model_options(sp, local=True, global_=True, model_alias="global")
     add_image_options(sp)
     sp.set_defaults(func=cmd_scale)
 
-    sp = command("rectify", "resize one image by the global scale so the pair has scale ~1",
-                 "Downscale the image whose content is bigger by ScaleNet's global scale, so that the\n"
-                 "pair has scale ~1; writes the resized image and a JSON record of what was done.")
+    sp = command(
+        "rectify",
+        "resize one image by the global scale so the pair has scale ~1",
+        "Downscale the image whose content is bigger by ScaleNet's global scale, so that the\n"
+        "pair has scale ~1; writes the resized image and a JSON record of what was done.",
+    )
     sp.add_argument("image_a", help="image A")
     sp.add_argument("image_b", help="image B")
     sp.add_argument("-o", "--output", default="out", help="output folder")
@@ -144,16 +207,23 @@ def _add_scale_and_match_commands(command) -> None:
     add_image_options(sp)
     sp.set_defaults(func=cmd_rectify)
 
-    sp = command("match", "match two images: our scale-corrected patches, SIFT, ALIKED/DISK/XFeat + LightGlue",
-                 "Match two images with a matcher (--matcher) and a scale correction (--correction): our\n"
-                 "scale-corrected patches (hardnet: the patch size of each keypoint follows the scale map),\n"
-                 "or SIFT / learned features on a pair rectified to scale 1 (the image whose content is\n"
-                 "bigger is shrunk by the correction's level).", add_options=add_match_options)
+    sp = command(
+        "match",
+        "match two images: our scale-corrected patches, SIFT, ALIKED/DISK/XFeat + LightGlue",
+        "Match two images with a matcher (--matcher) and a scale correction (--correction): our\n"
+        "scale-corrected patches (hardnet: the patch size of each keypoint follows the scale map),\n"
+        "or SIFT / learned features on a pair rectified to scale 1 (the image whose content is\n"
+        "bigger is shrunk by the correction's level).",
+        add_options=add_match_options,
+    )
     sp.set_defaults(func=cmd_match)
 
-    sp = command("eval-hpatches", "HPatches-style MMA evaluation",
-                 "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.",
-                 add_options=add_hpatches_options)
+    sp = command(
+        "eval-hpatches",
+        "HPatches-style MMA evaluation",
+        "HPatches-style mean matching accuracy of the correction methods on a folder of sequences.",
+        add_options=add_hpatches_options,
+    )
     sp.set_defaults(func=cmd_eval_hpatches)
 
 
@@ -176,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
-    except OSError as e:   # a file the command reads or writes (e.g. a full disk, no permission)
+    except OSError as e:  # a file the command reads or writes (e.g. a full disk, no permission)
         where = f"{e.filename}: " if e.filename else ""
         print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
@@ -187,4 +257,3 @@ def main(argv: list[str] | None = None) -> int:
         SIGTERM_STATE.reset()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-

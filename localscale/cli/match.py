@@ -1,14 +1,13 @@
 """``localscale match`` (two images, a matcher, a correction) and ``eval-hpatches``."""
+
 from __future__ import annotations
 
 import sys
 
 from ..errors import LocalScaleError
-from ..outputs import ensure_not_input
-
 from ..loading import MODEL_KINDS
+from ..outputs import ensure_not_input
 from .common import check_output_dir
-
 
 #: options of ``match`` that only the patch matcher (``--matcher hardnet``) reads
 PATCH_OPTIONS = ("descriptor", "descriptor_precision", "detector", "orientation", "ratio")
@@ -47,10 +46,20 @@ def cmd_match(args) -> int:
         if getattr(args, f"{kind}_weights", None) is not None and kind not in correction.models:
             print(f"note: --{kind}-weights is not used by --correction {correction}", file=sys.stderr)
     camera_a, camera_b = _cameras(args)
-    matcher = get_matcher(cfg)   # loads the matcher's weights: a missing file fails before the scale models load
+    matcher = get_matcher(cfg)  # loads the matcher's weights: a missing file fails before the scale models load
     local_model, global_model = correction.load_models(args.local_weights, args.global_weights, args.device)
-    run_match(args.image_a, args.image_b, out, correction, args.H, local_model, global_model, matcher,
-              camera_a=camera_a, camera_b=camera_b)
+    run_match(
+        args.image_a,
+        args.image_b,
+        out,
+        correction,
+        args.H,
+        local_model,
+        global_model,
+        matcher,
+        camera_a=camera_a,
+        camera_b=camera_b,
+    )
     return 0
 
 
@@ -71,13 +80,17 @@ def _matcher_options(args) -> dict:
     if args.matcher != "hardnet":
         used = [f"--{n.replace('_', '-')}" for n in PATCH_OPTIONS if getattr(args, n, None) is not None]
         if used:
-            raise LocalScaleError(f"{', '.join(used)}: only the hardnet matcher takes patch options, "
-                                  f"not --matcher {args.matcher}")
+            raise LocalScaleError(
+                f"{', '.join(used)}: only the hardnet matcher takes patch options, not --matcher {args.matcher}"
+            )
     if args.matcher == "hardnet" and getattr(args, "matcher_weights", None) is not None:
-        raise LocalScaleError("--matcher-weights: the hardnet matcher uses our bundled weights "
-                              "(--descriptor PATH for other HardNet weights)")
-    opts.update(refine=getattr(args, "refine", False), max_passes=args.refine_passes,
-                sift_seed=args.refine_seed == "sift")
+        raise LocalScaleError(
+            "--matcher-weights: the hardnet matcher uses our bundled weights "
+            "(--descriptor PATH for other HardNet weights)"
+        )
+    opts.update(
+        refine=getattr(args, "refine", False), max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift"
+    )
     if getattr(args, "geometry", None) is not None:
         import dataclasses
 
@@ -92,23 +105,30 @@ def cmd_eval_hpatches(args) -> int:
     from ..matching import get_matcher, match_config
 
     opts = match_options(args)
-    opts.pop("max_side", None)                  # one working resolution for every matcher, below
+    opts.pop("max_side", None)  # one working resolution for every matcher, below
     if getattr(args, "base_radius", None) is not None:
         opts["base_radius"] = args.base_radius
     patch_opts = {k: opts.pop(k) for k in list(opts) if k in PATCH_OPTIONS + ("base_radius",)}
     if patch_opts and "hardnet" not in args.matcher:
-        raise LocalScaleError(f"--{', --'.join(k.replace('_', '-') for k in patch_opts)}: only the hardnet matcher "
-                              f"takes patch options")
+        raise LocalScaleError(
+            f"--{', --'.join(k.replace('_', '-') for k in patch_opts)}: only the hardnet matcher takes patch options"
+        )
     gate = gate_from_args(args)
-    configs = [match_config(n, gate=gate, **opts, **(patch_opts if n == "hardnet" else {}))
-               for n in dict.fromkeys(args.matcher)]
+    configs = [
+        match_config(n, gate=gate, **opts, **(patch_opts if n == "hardnet" else {}))
+        for n in dict.fromkeys(args.matcher)
+    ]
     tags = [result_tag(c) for c in configs]
-    check_output_dir(args.out, ["splits.csv", "results.md"] + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
-                     + [f"mma_{t}_rot30-90.png" for t in tags])
+    check_output_dir(
+        args.out,
+        ["splits.csv", "results.md"]
+        + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
+        + [f"mma_{t}_rot30-90.png" for t in tags],
+    )
     from ..devices import resolve_device
 
     resolve_device(args.device)
-    matchers = [get_matcher(c) for c in configs]   # a missing weight file fails before any pair runs
+    matchers = [get_matcher(c) for c in configs]  # a missing weight file fails before any pair runs
     seqs = load_hpatches(args.root, args.include_illumination, args.exclude_hires, args.exclude, args.sequences)
     if args.pairs is not None:
         for s in seqs:
@@ -117,9 +137,12 @@ def cmd_eval_hpatches(args) -> int:
     skipped: list = []
     pairs = make_pairs(seqs, skipped)
     if not pairs:
-        raise LocalScaleError(f"no pair of {args.root} can be evaluated ({len(skipped)} skipped; first: "
-                              f"{skipped[0]['pair']}: {skipped[0]['reason']})" if skipped else
-                              f"no pairs in {args.root}")
+        raise LocalScaleError(
+            f"no pair of {args.root} can be evaluated ({len(skipped)} skipped; first: "
+            f"{skipped[0]['pair']}: {skipped[0]['reason']})"
+            if skipped
+            else f"no pairs in {args.root}"
+        )
     methods = list(dict.fromkeys(args.methods))
     models, notes = load_scale_models(methods, args.local_weights, args.global_weights, args.device)
     if not methods:
@@ -127,7 +150,16 @@ def cmd_eval_hpatches(args) -> int:
     for n in notes:
         print("note:", n)
     print(f"{len(seqs)} sequences, {len(pairs)} pairs; matchers {[m.name for m in matchers]}; methods {methods}")
-    run(pairs, methods, matchers, args.out, models, notes, skipped, args.max_side,
-        extra={"gate": vars(gate), "args": {k: v for k, v in vars(args).items() if not callable(v)}})
+    run(
+        pairs,
+        methods,
+        matchers,
+        args.out,
+        models,
+        notes,
+        skipped,
+        args.max_side,
+        extra={"gate": vars(gate), "args": {k: v for k, v in vars(args).items() if not callable(v)}},
+    )
     print(f"wrote {args.out}/")
     return 0

@@ -2,11 +2,13 @@
 
 Only :mod:`localscale.cli` imports this module; the library never does.
 """
+
 from __future__ import annotations
 
 import argparse
 import math
 import sys
+
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Keeps the description/epilog layout and appends ``(default: ...)`` to options whose help
@@ -21,71 +23,109 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
         return text
 
 
-
 def add_image_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """``--accept-damaged``, for the commands that read image files."""
-    p.add_argument("--accept-damaged", action="store_true",
-                   help="decode an image file whose data ends before the image its header declares (the rest is "
-                        "filler), with a warning, instead of refusing it")
+    p.add_argument(
+        "--accept-damaged",
+        action="store_true",
+        help="decode an image file whose data ends before the image its header declares (the rest is "
+        "filler), with a warning, instead of refusing it",
+    )
     return p
 
 
-def add_model_options(p: argparse.ArgumentParser, local: bool = True, global_: bool = True, bf16: bool = True,
-                      model_alias: str | None = None) -> argparse.ArgumentParser:
+def add_model_options(
+    p: argparse.ArgumentParser,
+    local: bool = True,
+    global_: bool = True,
+    bf16: bool = True,
+    model_alias: str | None = None,
+) -> argparse.ArgumentParser:
     """Model options, spelled the same for every command: ``--local-weights``, ``--global-weights``,
     ``--device`` and ``--bf16``. ``model_alias`` (``"local"``/``"global"``) adds the deprecated,
     hidden ``--model`` for that checkpoint."""
     g = p.add_argument_group("model options")
     if local:
-        g.add_argument("--local-weights", metavar="CKPT", default=None,
-                       help="Local-ScaleNet checkpoint (default: the bundled weights)")
+        g.add_argument(
+            "--local-weights",
+            metavar="CKPT",
+            default=None,
+            help="Local-ScaleNet checkpoint (default: the bundled weights)",
+        )
     if global_:
-        g.add_argument("--global-weights", metavar="CKPT", default=None,
-                       help="global ScaleNet checkpoint (default: the bundled weights)")
+        g.add_argument(
+            "--global-weights",
+            metavar="CKPT",
+            default=None,
+            help="global ScaleNet checkpoint (default: the bundled weights)",
+        )
     if model_alias:
         g.add_argument("--model", dest=f"{model_alias}_weights", metavar="CKPT", help=argparse.SUPPRESS)
     g.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or mps")
     if bf16:
-        g.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast "
-                                                           "(fast on CPUs with AMX and on recent GPUs)")
+        g.add_argument(
+            "--bf16",
+            action="store_true",
+            help="run the networks under bfloat16 autocast (fast on CPUs with AMX and on recent GPUs)",
+        )
     return p
-
 
 
 def add_refine_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """``--refine`` and ``--refine-passes`` (``match`` and ``predict``)."""
     g = p.add_argument_group("verification and refinement")
-    g.add_argument("--refine", action="store_true",
-                   help="verify the matches (MAGSAC homography), refine the scale maps by the verified geometry "
-                        "and match again with the refined maps; also writes refined maps and geometry.json")
-    g.add_argument("--refine-passes", type=int, default=2, metavar="N",
-                   help="with --refine: matching passes at most (stops when the inlier count stops growing)")
-    g.add_argument("--refine-seed", choices=("sift", "none"), default="sift",
-                   help="with --refine: when the first pass is not verified, verify OpenCV SIFT matches instead "
-                        "and refine the maps with their geometry (none: only the first pass's matches)")
+    g.add_argument(
+        "--refine",
+        action="store_true",
+        help="verify the matches (MAGSAC homography), refine the scale maps by the verified geometry "
+        "and match again with the refined maps; also writes refined maps and geometry.json",
+    )
+    g.add_argument(
+        "--refine-passes",
+        type=int,
+        default=2,
+        metavar="N",
+        help="with --refine: matching passes at most (stops when the inlier count stops growing)",
+    )
+    g.add_argument(
+        "--refine-seed",
+        choices=("sift", "none"),
+        default="sift",
+        help="with --refine: when the first pass is not verified, verify OpenCV SIFT matches instead "
+        "and refine the maps with their geometry (none: only the first pass's matches)",
+    )
     return p
-
 
 
 def add_refine_matcher_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """``--matcher`` and ``--matcher-weights`` of ``predict --refine`` (names checked when it runs,
     so that building the parser imports no model code)."""
     g = p.add_argument_group("refinement by a matcher")
-    g.add_argument("--matcher", default="hardnet", metavar="NAME",
-                   help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
-                        "matcher of 'localscale match --help' (e.g. aliked-lightglue) takes the geometry from "
-                        "correction auto with that matcher (the images as they are, then the networks' "
-                        "hypotheses, verified)")
-    g.add_argument("--matcher-weights", metavar="DIR", default=None,
-                   help="folder of the learned matchers' weight files (default: the installed weight packages)")
+    g.add_argument(
+        "--matcher",
+        default="hardnet",
+        metavar="NAME",
+        help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
+        "matcher of 'localscale match --help' (e.g. aliked-lightglue) takes the geometry from "
+        "correction auto with that matcher (the images as they are, then the networks' "
+        "hypotheses, verified)",
+    )
+    g.add_argument(
+        "--matcher-weights",
+        metavar="DIR",
+        default=None,
+        help="folder of the learned matchers' weight files (default: the installed weight packages)",
+    )
     return p
 
 
 def _matcher_help() -> str:
     from ..matching.config import MATCHER_NEEDS, MATCHERS
 
-    rows = [f"{n} ({MATCHERS[n].num_features} features, {MATCHERS[n].max_side or 'full'} px; {MATCHER_NEEDS[n]})"
-            for n in MATCHERS]
+    rows = [
+        f"{n} ({MATCHERS[n].num_features} features, {MATCHERS[n].max_side or 'full'} px; {MATCHER_NEEDS[n]})"
+        for n in MATCHERS
+    ]
     return "; ".join(rows)
 
 
@@ -97,34 +137,74 @@ def add_matcher_options(p: argparse.ArgumentParser, several: bool = False) -> ar
 
     g = p.add_argument_group("matcher")
     if several:
-        g.add_argument("--matcher", nargs="+", default=["hardnet"], choices=list(MATCHERS), metavar="NAME",
-                       help="matchers to compare: " + _matcher_help())
+        g.add_argument(
+            "--matcher",
+            nargs="+",
+            default=["hardnet"],
+            choices=list(MATCHERS),
+            metavar="NAME",
+            help="matchers to compare: " + _matcher_help(),
+        )
     else:
-        g.add_argument("--matcher", default="hardnet", choices=list(MATCHERS), metavar="NAME",
-                       help="matcher: " + _matcher_help())
-    g.add_argument("--matcher-weights", metavar="DIR", default=None,
-                   help=f"folder of the learned matchers' weight files (default: the installed weight packages: "
-                        f"{INSTALL_HINT})")
-    g.add_argument("--num-features", type=positive_int, default=None,
-                   help="keypoints per image (default: the matcher's)")
-    g.add_argument("--max-side", type=nonnegative_int, default=None, metavar="PX",
-                   help="working resolution, longer side (0: full resolution; default: the matcher's, hardnet 2048, "
-                        "learned matchers 1024, as LightGlue); keypoints are written in full-image pixels")
-    g.add_argument("--pyramid", type=nonnegative_int, default=None, metavar="N",
-                   help="learned matchers with scale maps (correction local, ...): N half-octave levels, each "
-                        "keypoint from the level its local scale selects (default 0: one rectification)")
-    g.add_argument("--descriptor", default=None, help="hardnet matcher: hardnet | hardnet-full | sift | path to HardNet weights "
-                                                      "(default: hardnet)")
-    g.add_argument("--descriptor-precision", choices=("auto", "fp32", "bf16", "int8"), default=None,
-                   help="hardnet matcher: HardNet precision (default auto: int8 on CPU when the weights carry int8 "
-                        "ranges, else fp32)")
-    g.add_argument("--detector", default=None, metavar="NAME",
-                   help="hardnet matcher: single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb "
-                        "| akaze (default: hessian)")
-    g.add_argument("--ratio", type=positive_float, default=None,
-                   help="hardnet matcher: Lowe ratio test threshold on top of mutual NN (default: mutual NN only)")
-    g.add_argument("--orientation", choices=("upright", "gradient"), default=None,
-                   help="hardnet matcher: patch orientation, upright or the dominant gradient (default: upright)")
+        g.add_argument(
+            "--matcher", default="hardnet", choices=list(MATCHERS), metavar="NAME", help="matcher: " + _matcher_help()
+        )
+    g.add_argument(
+        "--matcher-weights",
+        metavar="DIR",
+        default=None,
+        help=f"folder of the learned matchers' weight files (default: the installed weight packages: {INSTALL_HINT})",
+    )
+    g.add_argument(
+        "--num-features", type=positive_int, default=None, help="keypoints per image (default: the matcher's)"
+    )
+    g.add_argument(
+        "--max-side",
+        type=nonnegative_int,
+        default=None,
+        metavar="PX",
+        help="working resolution, longer side (0: full resolution; default: the matcher's, hardnet 2048, "
+        "learned matchers 1024, as LightGlue); keypoints are written in full-image pixels",
+    )
+    g.add_argument(
+        "--pyramid",
+        type=nonnegative_int,
+        default=None,
+        metavar="N",
+        help="learned matchers with scale maps (correction local, ...): N half-octave levels, each "
+        "keypoint from the level its local scale selects (default 0: one rectification)",
+    )
+    g.add_argument(
+        "--descriptor",
+        default=None,
+        help="hardnet matcher: hardnet | hardnet-full | sift | path to HardNet weights (default: hardnet)",
+    )
+    g.add_argument(
+        "--descriptor-precision",
+        choices=("auto", "fp32", "bf16", "int8"),
+        default=None,
+        help="hardnet matcher: HardNet precision (default auto: int8 on CPU when the weights carry int8 "
+        "ranges, else fp32)",
+    )
+    g.add_argument(
+        "--detector",
+        default=None,
+        metavar="NAME",
+        help="hardnet matcher: single-scale keypoint detector: hessian | harris | gftt | dog | sift | orb "
+        "| akaze (default: hessian)",
+    )
+    g.add_argument(
+        "--ratio",
+        type=positive_float,
+        default=None,
+        help="hardnet matcher: Lowe ratio test threshold on top of mutual NN (default: mutual NN only)",
+    )
+    g.add_argument(
+        "--orientation",
+        choices=("upright", "gradient"),
+        default=None,
+        help="hardnet matcher: patch orientation, upright or the dominant gradient (default: upright)",
+    )
     return p
 
 
@@ -135,20 +215,34 @@ def add_match_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("image_a", help="image A (path)")
     p.add_argument("image_b", help="image B (path)")
     p.add_argument("-o", "--output", default="out", help="output folder (matches.npz, matches.png)")
-    p.add_argument("--correction", choices=list(CORRECTION_METHODS), default="local", metavar="NAME",
-                   help="scale correction: " + "; ".join(f"{c.name}: {c.help}" for c in CORRECTION_METHODS.values()))
-    p.add_argument("--H", default=None,
-                   help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; "
-                        "colours inliers; default: none)")
-    p.add_argument("--camera", default=None,
-                   help="camera of both images: a COLMAP cameras.txt line ('SIMPLE_RADIAL W H f cx cy k'), or a "
-                        "file holding one (or JSON); with cameras the pair's two-view geometry and relative pose "
-                        "go to geometry.json (default: none)")
-    p.add_argument("--camera-a", default=None, help="camera of image A (as --camera)")
-    p.add_argument("--camera-b", default=None, help="camera of image B (as --camera)")
-    p.add_argument("--geometry", choices=["homography", "fundamental", "auto", "two_view"], default=None,
-                   help="verification model: homography (planes), fundamental, auto (either), two_view "
-                        "(chosen per pair as COLMAP does; the default with cameras, else homography)")
+    p.add_argument(
+        "--correction",
+        choices=list(CORRECTION_METHODS),
+        default="local",
+        metavar="NAME",
+        help="scale correction: " + "; ".join(f"{c.name}: {c.help}" for c in CORRECTION_METHODS.values()),
+    )
+    p.add_argument(
+        "--H",
+        default=None,
+        help="ground-truth homography A->B, 3x3 text file (needed for --correction gt; colours inliers; default: none)",
+    )
+    p.add_argument(
+        "--camera",
+        default=None,
+        help="camera of both images: a COLMAP cameras.txt line ('SIMPLE_RADIAL W H f cx cy k'), or a "
+        "file holding one (or JSON); with cameras the pair's two-view geometry and relative pose "
+        "go to geometry.json (default: none)",
+    )
+    p.add_argument("--camera-a", default=None, help="camera of image A (as --camera; default: none)")
+    p.add_argument("--camera-b", default=None, help="camera of image B (as --camera; default: none)")
+    p.add_argument(
+        "--geometry",
+        choices=["homography", "fundamental", "auto", "two_view"],
+        default=None,
+        help="verification model: homography (planes), fundamental, auto (either), two_view "
+        "(chosen per pair as COLMAP does; the default with cameras, else homography)",
+    )
     add_matcher_options(p)
     add_refine_options(p)
     add_model_options(p, local=True, global_=True, bf16=True)
@@ -162,33 +256,67 @@ def add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     from ..matching.correction import GATE_WEIGHTINGS
 
     p.add_argument("root", help="folder of sequences (HPatches layout)")
-    p.add_argument("-o", "--output", "--out", dest="out", default="hpatches_eval",
-                   help="output folder (results*.json, results*.md, splits.csv, mma_*.png)")
-    p.add_argument("--methods", nargs="+", default=["none", "global", "local", "fused", "gt"], choices=METHODS,
-                   metavar="METHOD", help=f"correction methods to compare: {', '.join(METHODS)}")
+    p.add_argument(
+        "-o",
+        "--output",
+        "--out",
+        dest="out",
+        default="hpatches_eval",
+        help="output folder (results*.json, results*.md, splits.csv, mma_*.png)",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["none", "global", "local", "fused", "gt"],
+        choices=METHODS,
+        metavar="METHOD",
+        help=f"correction methods to compare: {', '.join(METHODS)}",
+    )
     add_matcher_options(p, several=True)
     g = p.add_argument_group("hardnet matcher, more")
-    g.add_argument("--base-radius", type=positive_float, default=None, help="patch radius (px) at scale 1 (default: 16)")
+    g.add_argument(
+        "--base-radius", type=positive_float, default=None, help="patch radius (px) at scale 1 (default: 16)"
+    )
     add_model_options(p, local=True, global_=True, bf16=False)
     g = p.add_argument_group("pairs")
     g.add_argument("--include-illumination", action="store_true", help="also evaluate i_* sequences")
     g.add_argument("--exclude-hires", action="store_true", help=f"skip {', '.join(HIGH_RES)}")
     g.add_argument("--exclude", nargs="*", default=[], help="sequence names to skip")
     g.add_argument("--sequences", nargs="*", default=None, help="only these sequences (default: all)")
-    g.add_argument("--pairs", nargs="*", type=positive_int, default=None, metavar="K",
-                   help="only the pairs 1-K of each sequence (default: 2 3 4 5 6)")
+    g.add_argument(
+        "--pairs",
+        nargs="*",
+        type=positive_int,
+        default=None,
+        metavar="K",
+        help="only the pairs 1-K of each sequence (default: 2 3 4 5 6)",
+    )
     g = p.add_argument_group("gate of predicted maps")
-    g.add_argument("--gate-pair", type=float, default=None,
-                   help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this "
-                        "(default: CorrectionGate's)")
-    g.add_argument("--gate-deadzone", type=float, default=None,
-                   help="per pixel: |log2 S| below this -> 1 (default: CorrectionGate's)")
+    g.add_argument(
+        "--gate-pair",
+        type=float,
+        default=None,
+        help="pair-level gate: correct only if the 90th pct of |log2 S| reaches this (default: CorrectionGate's)",
+    )
+    g.add_argument(
+        "--gate-deadzone",
+        type=float,
+        default=None,
+        help="per pixel: |log2 S| below this -> 1 (default: CorrectionGate's)",
+    )
     g.add_argument("--no-consistency", action="store_true", help="gate: skip the A<->B median consistency shift")
-    g.add_argument("--gate-min-confidence", type=float, default=None,
-                   help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)")
-    g.add_argument("--gate-weighting", choices=GATE_WEIGHTINGS, default=None,
-                   help="gate: weight the maps' medians by the predicted visibility or reliability "
-                        "(default: CorrectionGate's)")
+    g.add_argument(
+        "--gate-min-confidence",
+        type=float,
+        default=None,
+        help="per pixel: S -> 1 where the confidence is below this (default: CorrectionGate's)",
+    )
+    g.add_argument(
+        "--gate-weighting",
+        choices=GATE_WEIGHTINGS,
+        default=None,
+        help="gate: weight the maps' medians by the predicted visibility or reliability (default: CorrectionGate's)",
+    )
     return p
 
 
@@ -262,7 +390,7 @@ class _LazyArgumentParser(OneLineErrorParser):
     def set_defaults(self, **kwargs):
         if self.__dict__.get("_add_options") is None:
             return super().set_defaults(**kwargs)
-        self.__dict__["_defaults"].update(kwargs)   # options added later take these defaults
+        self.__dict__["_defaults"].update(kwargs)  # options added later take these defaults
 
     def __getattribute__(self, name):
         # code that inspects the options (``parser._actions``, ``get_default``) sees them all
@@ -271,5 +399,3 @@ class _LazyArgumentParser(OneLineErrorParser):
             if add is not None:
                 object.__getattribute__(self, "_populate")()
         return super().__getattribute__(name)
-
-

@@ -1,11 +1,11 @@
 """``localscale predict``: the scale map of a pair (``--search``, ``--refine``); ``--pairs`` runs many."""
+
 from __future__ import annotations
 
 import sys
 
 from ..errors import LocalScaleError
 from ..map_files import scale_map_paths, write_refinement, write_scale_map
-
 from .common import _model, check_output_dir, pair_name
 from .predict_pairs import _predict_pairs
 
@@ -47,8 +47,11 @@ def cmd_predict(args) -> int:
 
         found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
         pred = found.prediction
-        print(f"search: {found.candidates} window pairs scored; kept {found.kept()} "
-              f"(score {found.score:.1f}, whole images {found.base_score:.1f})", file=sys.stderr)
+        print(
+            f"search: {found.candidates} window pairs scored; kept {found.kept()} "
+            f"(score {found.score:.1f}, whole images {found.base_score:.1f})",
+            file=sys.stderr,
+        )
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     import numpy as np
@@ -68,21 +71,38 @@ def cmd_predict(args) -> int:
         for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
             print(p)
         state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
-        print(f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
-              f"inliers, {state}", file=sys.stderr)
+        print(
+            f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
+            f"inliers, {state}",
+            file=sys.stderr,
+        )
     elif getattr(args, "refine", False):
         from ..matching.correction import CorrectionGate
         from ..matching.pipeline import refine_match
 
         back = check.backward
-        if args.search:   # B's map from its own search, as the searched correction of match does
+        if args.search:  # B's map from its own search, as the searched correction of match does
             back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
         first_a, first_b = CorrectionGate().apply_predictions(pred, back)
-        res = refine_match(args.image_a, args.image_b, first_a, first_b, pred.scale, back.scale,
-                           max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift")
+        res = refine_match(
+            args.image_a,
+            args.image_b,
+            first_a,
+            first_b,
+            pred.scale,
+            back.scale,
+            max_passes=args.refine_passes,
+            sift_seed=args.refine_seed == "sift",
+        )
         v = res.verification
-        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None,
-                                  {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")}, inputs):
+        for p in write_refinement(
+            out,
+            pair_name(*inputs) + "_",
+            res.refined_a,
+            None,
+            {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")},
+            inputs,
+        ):
             print(p)
         state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
         print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)

@@ -1,4 +1,5 @@
 """``localscale predict --pairs``: many pairs, resumable, with an index of what happened to each."""
+
 from __future__ import annotations
 
 import json
@@ -8,7 +9,6 @@ from pathlib import Path
 from ..errors import LocalScaleError
 from ..map_files import scale_map_paths, write_scale_map
 from ..outputs import make_dir, resolved_path, write_text
-
 from .common import _model, check_output_dir
 from .pairs_file import pairs_output_names, read_pairs_file
 from .signals import SIGTERM_STATE
@@ -46,13 +46,19 @@ def _file_record(path) -> dict:
 def _pair_record(image_a, image_b, weights, args) -> dict:
     """What a pair's maps were made from: both images, the weights and the read-out options.
     Written beside the maps (``<name>_scale.json``); a rerun redoes a pair whose record differs."""
-    return {"image_a": _file_record(image_a), "image_b": _file_record(image_b), "weights": _file_record(weights),
-            "hard": bool(args.hard), "planar": bool(args.planar), "bf16": bool(args.bf16)}
+    return {
+        "image_a": _file_record(image_a),
+        "image_b": _file_record(image_b),
+        "weights": _file_record(weights),
+        "hard": bool(args.hard),
+        "planar": bool(args.planar),
+        "bf16": bool(args.bf16),
+    }
 
 
 def _shown(text: str, room: int = 300) -> str:
     """``text`` for a message line: a very long path is cut, with its length."""
-    return text if len(text) <= room else f"{text[:room // 2]}... ({len(text)} characters)"
+    return text if len(text) <= room else f"{text[: room // 2]}... ({len(text)} characters)"
 
 
 def _pair_problem(e: Exception, a, b) -> str:
@@ -76,13 +82,43 @@ def _predict_pairs(args, out: Path) -> int:
     or an output cannot be written (a full disk: the run stops, a rerun resumes); 143 after a
     SIGTERM (the pair being written is finished first)."""
     run = _PairsRun(args, out)
+    executor = _executor(args)
     run.check_images()
-    SIGTERM_STATE.defer()   # from here a SIGTERM stops the run after the pair it is on (main resets this)
-    model = _model(args, "local")
-    todo = run.resume(model)
-    make_dir(out)
-    run.predict(model, todo)
+    SIGTERM_STATE.defer()  # from here a SIGTERM stops the run after the pair it is on (main resets this)
+    if executor is None:
+        model = _model(args, "local")
+        todo = run.resume(model)
+        make_dir(out)
+        run.predict(model, todo)
+    else:
+        with executor:
+            from ..engine.pairs import driver_model
+
+            factory = _factory(args)
+            todo = run.resume(driver_model(executor, factory))
+            make_dir(out)
+            run.predict_on(executor, factory, todo)
     return run.finish(todo)
+
+
+def _executor(args):
+    """The Ray executor of ``--engine ray`` (checked before any work), or None for this process."""
+    from ..engine import get_executor
+
+    if args.engine == "local":
+        if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "ray_address")):
+            raise LocalScaleError("--workers, --threads-per-worker and --ray-address need --engine ray")
+        return None
+    if args.device != "cpu":
+        raise LocalScaleError("--engine ray runs the networks on the workers' CPUs: drop --device")
+    return get_executor("ray", args.workers, args.threads_per_worker, args.ray_address)
+
+
+def _factory(args):
+    from ..engine import ModelFactory
+
+    weights = str(resolved_path(args.local_weights)) if args.local_weights else None  # every node reads it
+    return ModelFactory("local", weights, args.device)
 
 
 class _PairsRun:
@@ -96,13 +132,13 @@ class _PairsRun:
         self.paths = {n: scale_map_paths(out, n, True) + [out / f"{n}_scale.json"] for n in self.names}
         check_output_dir(out, ["index.tsv"] + [p.name for n in self.names for p in self.paths[n]])
         inputs = [Path(args.pairs)] + [p for pair in self.pairs for p in pair]
-        taken = {resolved_path(p): p for p in inputs}   # resolved once: 10,000 pairs stay fast
+        taken = {resolved_path(p): p for p in inputs}  # resolved once: 10,000 pairs stay fast
         self.index_path = out / "index.tsv"
         for p in [self.index_path] + [p for n in self.names for p in self.paths[n]]:
             if resolved_path(p) in taken:
                 raise LocalScaleError(f"refusing to overwrite the input {taken[resolved_path(p)]} with an output")
         self.status: dict = {}
-        self.problems: dict = {}   # pair -> what is wrong with one of its images
+        self.problems: dict = {}  # pair -> what is wrong with one of its images
         self.failed = self.written = 0
         self.done: set = set()
         self.stopped = self.terminated = None
@@ -143,12 +179,21 @@ class _PairsRun:
 
         args, out = self.args, self.out
         visible = bool(getattr(model.config, "visibility", False))
-        weights = args.local_weights or WEIGHTS_DIR / getattr(model, "default_weights", "")   # the bundled file
-        self.records = {i: _pair_record(a, b, weights, args) for i, (a, b) in enumerate(self.pairs)
-                        if i not in self.problems}
-        self.done = set() if args.overwrite else {
-            i for i in self.records
-            if _complete(scale_map_paths(out, self.names[i], visible), self.paths[self.names[i]][-1], self.records[i])}
+        weights = args.local_weights or WEIGHTS_DIR / getattr(model, "default_weights", "")  # the bundled file
+        self.records = {
+            i: _pair_record(a, b, weights, args) for i, (a, b) in enumerate(self.pairs) if i not in self.problems
+        }
+        self.done = (
+            set()
+            if args.overwrite
+            else {
+                i
+                for i in self.records
+                if _complete(
+                    scale_map_paths(out, self.names[i], visible), self.paths[self.names[i]][-1], self.records[i]
+                )
+            }
+        )
         self.status.update({i: ("skipped (outputs already complete)", self.names[i]) for i in self.done})
         return [i for i in self.records if i not in self.done]
 
@@ -160,14 +205,41 @@ class _PairsRun:
 
         args = self.args
         self.cache = FeatureCache(model, max_bytes=int(args.cache_mb * 2**20), bf16=args.bf16)
-        results = predict_pairs(model, [self.pairs[i] for i in todo], self.cache, args.batch_size, hard=args.hard,
-                                planar=args.planar)
+        results = predict_pairs(
+            model, [self.pairs[i] for i in todo], self.cache, args.batch_size, hard=args.hard, planar=args.planar
+        )
         for i, (_, pred) in zip(todo, tqdm(results, total=len(todo), desc="pairs", unit="pair", disable=None)):
             if not self.write(i, pred):
                 break
             if SIGTERM_STATE.requested and i != todo[-1]:
                 self.stopped = self.terminated = "terminated by SIGTERM"
                 break
+
+    def predict_on(self, executor, factory, todo: list) -> None:
+        """:meth:`predict` on an executor: pairs come back in the order they finish."""
+        from tqdm import tqdm
+
+        from ..engine import PairStats, predict_pairs_with
+
+        args, stats = self.args, PairStats()
+        results = predict_pairs_with(
+            executor,
+            [self.pairs[i] for i in todo],
+            factory,
+            bf16=args.bf16,
+            hard=args.hard,
+            planar=args.planar,
+            stats=stats,
+        )
+        handled = 0
+        for j, pred in tqdm(results, total=len(todo), desc="pairs", unit="pair", disable=None):
+            handled += 1
+            if not self.write(todo[j], pred):
+                break
+            if SIGTERM_STATE.requested and handled < len(todo):
+                self.stopped = self.terminated = "terminated by SIGTERM"
+                break
+        self.engine_summary = stats.summary()
 
     def write(self, i: int, pred) -> bool:
         """Write pair ``i``'s prediction (or record its failure); False when the run must stop."""
@@ -179,8 +251,10 @@ class _PairsRun:
         name = self.names[i]
         if not isinstance(pred, Exception):
             try:
-                write_scale_map(pred, self.out, name, (self.args.pairs, a, b))   # all inputs were checked above
-                write_text(self.paths[name][-1], json.dumps(self.records[i], indent=1) + "\n")   # last: marks it complete
+                write_scale_map(pred, self.out, name, (self.args.pairs, a, b))  # all inputs were checked above
+                write_text(
+                    self.paths[name][-1], json.dumps(self.records[i], indent=1) + "\n"
+                )  # last: marks it complete
             except LocalScaleError as e:
                 pred = e
         if not isinstance(pred, Exception):
@@ -191,7 +265,7 @@ class _PairsRun:
         msg = _pair_problem(pred, a, b)
         self.status[i] = (f"error: {msg}", "")
         tqdm.write(f"warning: {self.where(i)}: {msg}", file=sys.stderr)
-        if isinstance(pred, OutputError):   # a full disk or a read-only folder: the next pairs would fail too
+        if isinstance(pred, OutputError):  # a full disk or a read-only folder: the next pairs would fail too
             self.stopped = msg
             return False
         return True
@@ -204,22 +278,32 @@ class _PairsRun:
         if not self.written and not self.done and self.failed == n:
             raise LocalScaleError(f"{self.args.pairs}: all {n} pairs failed (see the warnings above); nothing written")
         lines = ["index\tline\timage_a\timage_b\tstatus\toutput"]
-        lines += [f"{i}\t{line}\t{a}\t{b}\t{self.status[i][0]}\t{self.status[i][1]}"
-                  for i, (line, a, b) in enumerate(self.rows)]
+        lines += [
+            f"{i}\t{line}\t{a}\t{b}\t{self.status[i][0]}\t{self.status[i][1]}"
+            for i, (line, a, b) in enumerate(self.rows)
+        ]
         make_dir(self.out)
         write_text(index_path, "\n".join(lines) + "\n")
         c = self.cache
-        print(f"{n} pairs: {self.written} written, {len(self.done)} skipped (outputs already complete; --overwrite "
-              f"redoes them), {self.failed} failed; outputs in {self.out} (index: {index_path}; cache: "
-              f"{c.misses if c else 0} images encoded, {c.hits if c else 0} reused)")
+        if getattr(self, "engine_summary", None):
+            print(f"engine: {self.engine_summary}", file=sys.stderr)
+        print(
+            f"{n} pairs: {self.written} written, {len(self.done)} skipped (outputs already complete; --overwrite "
+            f"redoes them), {self.failed} failed; outputs in {self.out} (index: {index_path}; cache: "
+            f"{c.misses if c else 0} images encoded, {c.hits if c else 0} reused)"
+        )
         if self.terminated:
             left = sum(self.status[i][0].startswith("not run") for i in todo)
-            print(f"stopped: {self.terminated} after {self.written} written pair(s), {left} not run; every written "
-                  f"output is complete, a rerun resumes (see {index_path})", file=sys.stderr)
+            print(
+                f"stopped: {self.terminated} after {self.written} written pair(s), {left} not run; every written "
+                f"output is complete, a rerun resumes (see {index_path})",
+                file=sys.stderr,
+            )
             return 143
         if self.stopped:
-            raise LocalScaleError(f"stopped after {self.written} written pair(s): {self.stopped}; a rerun resumes "
-                                  f"(see {index_path})")
+            raise LocalScaleError(
+                f"stopped after {self.written} written pair(s): {self.stopped}; a rerun resumes (see {index_path})"
+            )
         if self.failed:
             print(f"warning: {self.failed} of {n} pairs failed, see {index_path}", file=sys.stderr)
         return 1 if self.failed else 0

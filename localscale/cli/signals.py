@@ -1,5 +1,6 @@
 """SIGTERM in the commands: raised as :class:`Terminated` (files being written are cleaned up),
 or, where a command stops by itself between units of work, deferred until it does."""
+
 from __future__ import annotations
 
 

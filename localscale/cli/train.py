@@ -1,5 +1,6 @@
-"""``localscale-train`` / ``python -m localscale.training``: the trainer's command line (options mirror
+"""``localscale-train`` (or ``python -m localscale.cli.train``): the trainer's command line (options mirror
 :class:`~localscale.training.TrainConfig`)."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,8 +16,9 @@ from ..training import TrainConfig, TrainingDiverged, train
 def parse_args(argv: list[str] | None = None, model: str | None = None) -> TrainConfig:
     from .options import OneLineErrorParser
 
-    p = OneLineErrorParser(prog="localscale-train",
-                           description="Train Local-ScaleNet or ScaleNet on synthetic homography pairs.")
+    p = OneLineErrorParser(
+        prog="localscale-train", description="Train Local-ScaleNet or ScaleNet on synthetic homography pairs."
+    )
     for f in dataclasses.fields(TrainConfig):
         if model is not None and f.name == "model":
             continue
@@ -30,8 +32,12 @@ def parse_args(argv: list[str] | None = None, model: str | None = None) -> Train
             p.add_argument(flag, type=int, nargs="*", default=list(default))
         else:
             p.add_argument(flag, type=type(default), default=default)
-    p.add_argument("--max-steps-this-run", type=int, default=None,
-                   help="stop after this many steps (resume later with the same command)")
+    p.add_argument(
+        "--max-steps-this-run",
+        type=int,
+        default=None,
+        help="stop after this many steps (resume later with the same command)",
+    )
     a = vars(p.parse_args(argv))
     max_run = a.pop("max_steps_this_run")
     if model is not None:
@@ -49,7 +55,7 @@ def main(argv: list[str] | None = None, model: str | None = None) -> int:
     except (LocalScaleError, TrainingDiverged) as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
-    except OSError as e:   # a file the run reads or writes (full disk, no permission)
+    except OSError as e:  # a file the run reads or writes (full disk, no permission)
         where = f"{e.filename}: " if e.filename else ""
         print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
@@ -59,3 +65,7 @@ def main(argv: list[str] | None = None, model: str | None = None) -> int:
     if res:
         print(json.dumps(res))
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -18,9 +18,9 @@ from .base import (
     LocalExecutor,
     RunStats,
     WorkerLostError,
-    get_executor,
 )
-from .pairs import EncodeImage, ModelFactory, PairStats, PredictPair, predict_pairs_with
+from .choose import get_executor
+from .pairs import EncodeImage, ModelFactory, PairStats, PredictPair, driver_model, predict_pairs_with
 
 __all__ = [
     "ENGINES",
@@ -37,6 +37,7 @@ __all__ = [
     "PairStats",
     "PredictPair",
     "predict_pairs_with",
+    "driver_model",
 ]
 
 

@@ -1,9 +1,35 @@
 """Evaluation protocols: HPatches-style MMA with patch-size correction."""
-from .hpatches import (HIGH_RES, METHODS, PairInfo, evaluate, load_hpatches, make_pairs, perspective_split,
-                       rotation_split, run, scale_split)
+
+from .hpatches import (
+    HIGH_RES,
+    METHODS,
+    PairInfo,
+    evaluate,
+    load_hpatches,
+    make_pairs,
+    perspective_split,
+    rotation_split,
+    run,
+    scale_split,
+)
 from .report import markdown_table, summarise, write_outputs
 from .synthetic import STRONG, make_sequences, random_pair
 
-__all__ = ["load_hpatches", "make_pairs", "evaluate", "summarise", "markdown_table", "write_outputs", "run",
-           "perspective_split", "scale_split", "rotation_split", "PairInfo", "HIGH_RES", "METHODS", "make_sequences", "random_pair",
-           "STRONG"]
+__all__ = [
+    "load_hpatches",
+    "make_pairs",
+    "evaluate",
+    "summarise",
+    "markdown_table",
+    "write_outputs",
+    "run",
+    "perspective_split",
+    "scale_split",
+    "rotation_split",
+    "PairInfo",
+    "HIGH_RES",
+    "METHODS",
+    "make_sequences",
+    "random_pair",
+    "STRONG",
+]

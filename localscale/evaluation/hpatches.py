@@ -43,6 +43,7 @@ Predicted maps go through :class:`localscale.matching.CorrectionGate` (default p
 Outputs in ``--out``: ``results.json`` (per-pair records, summaries, splits), ``splits.csv``
 (the split of every pair), ``results.md`` (tables) and ``mma_<split>.png`` plots.
 """
+
 from __future__ import annotations
 
 import math
@@ -57,24 +58,39 @@ import cv2
 import numpy as np
 
 from ..errors import HomographyError, LocalScaleError
-from ..matching.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
 from ..geometry import covisible_mask, global_scale, homography_rotation, orient_homography, perspective_spread
 from ..io import load_image, read_homography
-from .report import (H_AUC_THRESHOLDS, SOLVED_PX, THRESHOLDS, markdown_table, perspective_split,  # noqa: F401
-                     rotation_split, scale_split, summarise, write_outputs)
+from ..matching.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
+from .report import (
+    THRESHOLDS,
+    markdown_table,
+    perspective_split,  # noqa: F401
+    rotation_split,
+    scale_split,
+    summarise,
+    write_outputs,
+)
 
-HIGH_RES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
-            "v_astronautis", "v_talent")
+HIGH_RES = (
+    "i_contruction",
+    "i_crownnight",
+    "i_dc",
+    "i_pencils",
+    "i_whitebuilding",
+    "v_artisans",
+    "v_astronautis",
+    "v_talent",
+)
 IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-METHODS = CORRECTIONS   #: the correction methods (one registry: localscale.matching.correction)
+METHODS = CORRECTIONS  #: the correction methods (one registry: localscale.matching.correction)
 
 
 @dataclass
 class HSequence:
     name: str
-    images: dict                 #: index -> path
-    homographies: dict           #: k -> H_1_k
-    bad: dict = field(default_factory=dict)   #: k -> why pair (1, k) cannot be evaluated (bad H_1_k)
+    images: dict  #: index -> path
+    homographies: dict  #: k -> H_1_k
+    bad: dict = field(default_factory=dict)  #: k -> why pair (1, k) cannot be evaluated (bad H_1_k)
 
 
 @dataclass
@@ -105,8 +121,13 @@ def _find_image(folder: Path, index: int) -> Optional[Path]:
     return None
 
 
-def load_hpatches(root, include_illumination: bool = False, exclude_hires: bool = False,
-                  exclude: Iterable[str] = (), sequences: Optional[Iterable[str]] = None) -> list[HSequence]:
+def load_hpatches(
+    root,
+    include_illumination: bool = False,
+    exclude_hires: bool = False,
+    exclude: Iterable[str] = (),
+    sequences: Optional[Iterable[str]] = None,
+) -> list[HSequence]:
     """Sequences of an HPatches-layout folder (sorted by name).
 
     A sub-folder counts as a sequence when it has image ``1.*`` and at least one ``H_1_k``
@@ -212,12 +233,17 @@ def make_pairs(seqs: Sequence[HSequence], skipped: Optional[list] = None) -> lis
             H = orient_homography(H, sa)
             covisible = float(covisible_mask(H, sa, sb, 8).mean())
             if not covisible > 0:
-                skip(name, f"H_1_{k} maps all of image 1 outside image {k} ({sb[1]}x{sb[0]}): check that H and "
-                           f"the images belong together")
+                skip(
+                    name,
+                    f"H_1_{k} maps all of image 1 outside image {k} ({sb[1]}x{sb[0]}): check that H and "
+                    f"the images belong together",
+                )
                 continue
             if covisible < MIN_COVISIBLE:
-                _warn(f"pair {name}: H_1_{k} maps only {covisible:.1%} of image 1 into image {k}; "
-                      f"check that H and the image sizes belong together")
+                _warn(
+                    f"pair {name}: H_1_{k} maps only {covisible:.1%} of image 1 into image {k}; "
+                    f"check that H and the image sizes belong together"
+                )
             p = PairInfo(s.name, k, s.images[1], s.images[k], H)
             p.spread = perspective_spread(H, sa, sb)
             try:
@@ -246,10 +272,14 @@ def content_agreement(a: np.ndarray, b: np.ndarray, H: np.ndarray, side: int = 1
     fb = side / max(b.shape[:2])
     S = np.diag([f, f, 1.0]) @ np.asarray(H, np.float64) @ np.diag([1 / f, 1 / f, 1.0])
     S = np.diag([fb / f, fb / f, 1.0]) @ S
-    ga = cv2.cvtColor(cv2.resize(a, (max(1, round(a.shape[1] * f)), max(1, round(a.shape[0] * f))),
-                                 interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    gb = cv2.cvtColor(cv2.resize(b, (max(1, round(b.shape[1] * fb)), max(1, round(b.shape[0] * fb))),
-                                 interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    ga = cv2.cvtColor(
+        cv2.resize(a, (max(1, round(a.shape[1] * f)), max(1, round(a.shape[0] * f))), interpolation=cv2.INTER_AREA),
+        cv2.COLOR_RGB2GRAY,
+    ).astype(np.float32)
+    gb = cv2.cvtColor(
+        cv2.resize(b, (max(1, round(b.shape[1] * fb)), max(1, round(b.shape[0] * fb))), interpolation=cv2.INTER_AREA),
+        cv2.COLOR_RGB2GRAY,
+    ).astype(np.float32)
     size = (ga.shape[1], ga.shape[0])
     warped = cv2.warpPerspective(gb, S, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     cover = cv2.warpPerspective(np.ones_like(gb), S, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
@@ -317,19 +347,30 @@ class _PairScales:
             enc = (self.encoding(pair.image_a), self.encoding(pair.image_b)) if method.local_encodings else None
             # other local uses (the search) make and drop many encodings: keyed by id(), the shared
             # cache could mix them up
-            local = None if "local" not in method.models else \
-                (_SharedLocal(self, self.local_model) if method.local_encodings else self.local_model)
+            local = (
+                None
+                if "local" not in method.models
+                else (_SharedLocal(self, self.local_model) if method.local_encodings else self.local_model)
+            )
             glob = _SharedGlobal(self, self.global_model, pair) if "global" in method.models else None
             sa, sb = method.maps(a, b, H, local, glob, self.gate, enc)
             self._maps[key] = (sa, sb, time.perf_counter() - t0)
         return self._maps[key]
 
 
-def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float, fb: float, methods,
-                   thresholds) -> list[dict]:
+def _evaluate_pair(
+    matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float, fb: float, methods, thresholds
+) -> list[dict]:
     """The records of one pair and one matcher: each method's maps, matches, MMA and corner error."""
-    from ..matching import (get_correction, match_auto, match_refined, match_result, match_with_truth,
-                            matching_accuracy, reprojection_errors)
+    from ..matching import (
+        get_correction,
+        match_auto,
+        match_refined,
+        match_result,
+        match_with_truth,
+        matching_accuracy,
+        reprojection_errors,
+    )
 
     H = np.diag([fb, fb, 1.0]) @ pair.H @ np.diag([1 / fa, 1 / fa, 1.0])
     key_a, key_b = (str(pair.image_a), a.shape), (str(pair.image_b), b.shape)
@@ -348,9 +389,12 @@ def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float
         elif method.refine or matcher.config.refine:
             keyed = _Keyed(matcher, key_a, key_b)
             res = match_refined(keyed, a, b, sa, sb, None, None, H, method)
-            extra = {"verified": bool(res.verification.verified), "passes": res.meta["passes"],
-                     "inlier_counts": res.meta["inlier_counts"],
-                     "seed_inliers": res.meta["seed_inliers"]}
+            extra = {
+                "verified": bool(res.verification.verified),
+                "passes": res.meta["passes"],
+                "inlier_counts": res.meta["inlier_counts"],
+                "seed_inliers": res.meta["seed_inliers"],
+            }
             # every pass's matching on its own, plus verification and refinement
             seconds = time.perf_counter() - t0 - keyed.wall + keyed.standalone
         else:
@@ -360,15 +404,27 @@ def _evaluate_pair(matcher, scales: _PairScales, pair: PairInfo, a, b, fa: float
         ka, kb, idx = res.keypoints_a, res.keypoints_b, res.matches
         err = reprojection_errors(ka, kb, idx, H)
         mma = matching_accuracy(err, thresholds)
-        recs.append({"pair": pair.name, "matcher": matcher.name, "method": m,
-                     "num_features_a": int(len(ka)), "num_features_b": int(len(kb)),
-                     "num_matches": int(len(idx)), "num_correct_3px": int((err < 3).sum()),
-                     "num_correct_5px": int((err < 5).sum()), "mma": [float(v) for v in mma],
-                     "corner_error": homography_corner_error(ka, kb, idx, H, a.shape),
-                     "factors": res.meta["factors"], "seconds": round(seconds, 3),
-                     "scale_seconds": round(map_seconds, 3),
-                     "perspective_split": pair.perspective_split, "scale_split": pair.scale_split,
-                     "rotation_split": pair.rotation_split, **extra})
+        recs.append(
+            {
+                "pair": pair.name,
+                "matcher": matcher.name,
+                "method": m,
+                "num_features_a": int(len(ka)),
+                "num_features_b": int(len(kb)),
+                "num_matches": int(len(idx)),
+                "num_correct_3px": int((err < 3).sum()),
+                "num_correct_5px": int((err < 5).sum()),
+                "mma": [float(v) for v in mma],
+                "corner_error": homography_corner_error(ka, kb, idx, H, a.shape),
+                "factors": res.meta["factors"],
+                "seconds": round(seconds, 3),
+                "scale_seconds": round(map_seconds, 3),
+                "perspective_split": pair.perspective_split,
+                "scale_split": pair.scale_split,
+                "rotation_split": pair.rotation_split,
+                **extra,
+            }
+        )
     return recs
 
 
@@ -378,7 +434,7 @@ class _Keyed:
     def __init__(self, matcher, key_a, key_b):
         self._m, self._keys = matcher, (key_a, key_b)
         self.config, self.name, self.extractor = matcher.config, matcher.name, matcher.extractor
-        self.wall = self.standalone = 0.0     #: seconds spent in match, and what they cost on their own
+        self.wall = self.standalone = 0.0  #: seconds spent in match, and what they cost on their own
 
     def match(self, a, b, scale_a=None, scale_b=None, keys=None):
         t0 = time.perf_counter()
@@ -393,6 +449,7 @@ def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) 
     ``inf`` when none can be estimated."""
     from ..matching.metrics import corner_error
     from ..matching.verification import estimate_homography
+
     m = np.asarray(matches, np.int64).reshape(-1, 2)
     H_est, _ = estimate_homography(np.asarray(keypoints_a)[m[:, 0]], np.asarray(keypoints_b)[m[:, 1]])
     return corner_error(H_est, H_true, shape_a)
@@ -436,9 +493,17 @@ class _SharedGlobal:
         return getattr(self._model, name)
 
 
-def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", local_model=None,
-             global_model=None, max_side: Optional[int] = None, thresholds=THRESHOLDS, progress: bool = True,
-             **options) -> dict:
+def evaluate(
+    pairs: list[PairInfo],
+    methods=("none", "gt"),
+    matcher="hardnet",
+    local_model=None,
+    global_model=None,
+    max_side: Optional[int] = None,
+    thresholds=THRESHOLDS,
+    progress: bool = True,
+    **options,
+) -> dict:
     """Run the protocol on ``pairs`` with one matcher; returns ``{"records", "summary", "skipped",
     "suspicious"}``.
 
@@ -461,10 +526,10 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", l
         if "global" in needs and global_model is None:
             raise LocalScaleError(f"method '{m}' needs a global model")
     if max_side is not None:
-        options["max_side"] = max_side or None         # 0: full resolution
-    if options and hasattr(matcher, "config"):      # a built Matcher with other options: rebuilt
-        from ..matching.matcher import Matcher
+        options["max_side"] = max_side or None  # 0: full resolution
+    if options and hasattr(matcher, "config"):  # a built Matcher with other options: rebuilt
         from ..matching.config import match_config
+        from ..matching.matcher import Matcher
 
         matcher = Matcher(match_config(matcher.config, **options), matcher.device)
         options = {}
@@ -480,18 +545,24 @@ def evaluate(pairs: list[PairInfo], methods=("none", "gt"), matcher="hardnet", l
             agreement = content_agreement(a, b, H)
             if agreement < MIN_AGREEMENT:
                 suspicious[p.name] = round(agreement, 3)
-                _warn(f"pair {p.name}: image {p.k} warped by H_1_{p.k} does not look like image 1 "
-                      f"(correlation {agreement:.2f}); check that H and the image sizes belong together")
+                _warn(
+                    f"pair {p.name}: image {p.k} warped by H_1_{p.k} does not look like image 1 "
+                    f"(correlation {agreement:.2f}); check that H and the image sizes belong together"
+                )
             scales.start(p, a, b)
             records += _evaluate_pair(matcher, scales, p, a, b, fa, fb, methods, list(thresholds))
             done.append(p)
-        except LocalScaleError as e:   # e.g. an image that is truncated after its header
+        except LocalScaleError as e:  # e.g. an image that is truncated after its header
             reason = " ".join(str(e).split())
             _warn(f"pair {p.name} skipped: {reason}")
             skipped.append({"pair": p.name, "reason": reason})
-    return {"matcher": matcher.name, "records": records,
-            "summary": summarise(records, done, methods, list(thresholds)),
-            "skipped": skipped, "suspicious": suspicious}
+    return {
+        "matcher": matcher.name,
+        "records": records,
+        "summary": summarise(records, done, methods, list(thresholds)),
+        "skipped": skipped,
+        "suspicious": suspicious,
+    }
 
 
 def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float]:
@@ -501,15 +572,14 @@ def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float
     return cv2.resize(img, (round(img.shape[1] * f), round(img.shape[0] * f)), interpolation=cv2.INTER_AREA), f
 
 
-def load_scale_models(methods: list, local_weights=None, global_weights=None,
-                      device: str = "cpu") -> tuple[dict, list]:
+def load_scale_models(methods: list, local_weights=None, global_weights=None, device: str = "cpu") -> tuple[dict, list]:
     """Load the models the ``methods`` need (:func:`localscale.loading.load_scale_model`); a method
     whose bundled weights cannot be loaded is removed from ``methods`` (in place) with a note.
     Returns ``({"local"|"global": model}, notes)``."""
-    from ..errors import CheckpointError
-    from ..matching.correction import get_correction
     from ..devices import resolve_device
+    from ..errors import CheckpointError
     from ..loading import load_scale_model
+    from ..matching.correction import get_correction
 
     models, notes = {}, []
     device = resolve_device(device)
@@ -522,7 +592,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None,
             if w:
                 notes.append(f"{kind}: weights {w}")
         except CheckpointError as e:
-            if w is not None:   # weights the user named must load
+            if w is not None:  # weights the user named must load
                 raise
             for x in users:
                 methods.remove(x)
@@ -561,8 +631,17 @@ def result_tag(config) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", tag)
 
 
-def run(pairs: list[PairInfo], methods: list, configs: list, out, models: dict, notes: list,
-        skipped: list, max_side: Optional[int] = None, extra: Optional[dict] = None) -> dict:
+def run(
+    pairs: list[PairInfo],
+    methods: list,
+    configs: list,
+    out,
+    models: dict,
+    notes: list,
+    skipped: list,
+    max_side: Optional[int] = None,
+    extra: Optional[dict] = None,
+) -> dict:
     """Evaluate every matcher config on ``pairs`` and write the results into ``out``:
     ``results_<tag>.{json,md}`` and ``mma_<tag>_*.png`` per matcher, ``splits.csv``, and
     ``results.md`` (all matchers' tables). Returns ``{tag: results}``."""
@@ -575,10 +654,12 @@ def run(pairs: list[PairInfo], methods: list, configs: list, out, models: dict, 
             _warn(f"{len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)")
         conf = getattr(cfg, "config", cfg)
         tag = result_tag(conf)
-        cfg_doc = {k: (v if isinstance(v, (str, int, float, bool, type(None))) else str(v))
-                   for k, v in vars(conf).items()}
-        write_outputs(res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc,
-                                                               **(extra or {})})
+        cfg_doc = {
+            k: (v if isinstance(v, (str, int, float, bool, type(None))) else str(v)) for k, v in vars(conf).items()
+        }
+        write_outputs(
+            res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc, **(extra or {})}
+        )
         table = markdown_table(res["summary"], methods, list(THRESHOLDS), tag)
         print(table)
         tables.append(table)

@@ -1,5 +1,6 @@
 """Reports of an HPatches-style evaluation: summaries per split and method, markdown tables, MMA plots
 and the output files (``results.json``, ``splits.csv``, ``results.md``, ``mma_<split>.png``)."""
+
 from __future__ import annotations
 
 import csv
@@ -51,14 +52,17 @@ def summarise(records: list[dict], pairs: list, methods, thresholds) -> dict:
             rs = [r for r in records if r["method"] == m and r["pair"] in names]
             if not rs:
                 continue
-            out[g][m] = {"mma": [float(np.mean([r["mma"][i] for r in rs])) for i in range(len(thresholds))],
-                         "num_matches": float(np.mean([r["num_matches"] for r in rs])),
-                         "num_correct_3px": float(np.mean([r.get("num_correct_3px", 0) for r in rs])),
-                         "seconds": float(np.mean([r.get("seconds", 0) + r.get("scale_seconds", 0) for r in rs])),
-                         "num_features": float(np.mean([(r["num_features_a"] + r["num_features_b"]) / 2 for r in rs]))}
+            out[g][m] = {
+                "mma": [float(np.mean([r["mma"][i] for r in rs])) for i in range(len(thresholds))],
+                "num_matches": float(np.mean([r["num_matches"] for r in rs])),
+                "num_correct_3px": float(np.mean([r.get("num_correct_3px", 0) for r in rs])),
+                "seconds": float(np.mean([r.get("seconds", 0) + r.get("scale_seconds", 0) for r in rs])),
+                "num_features": float(np.mean([(r["num_features_a"] + r["num_features_b"]) / 2 for r in rs])),
+            }
             ce = [r["corner_error"] for r in rs if "corner_error" in r]
             if ce:
                 from ..matching.metrics import homography_auc
+
                 out[g][m]["h_auc"] = homography_auc(ce, H_AUC_THRESHOLDS)
                 out[g][m]["h_solved"] = float(np.mean(np.asarray(ce) < SOLVED_PX))
                 out[g][m]["corner_error_median"] = float(np.median(ce))
@@ -74,28 +78,38 @@ def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
     ti = [thresholds.index(t) for t in (1, 3, 5, 10) if t in thresholds]
     head = " | ".join(f"MMA@{thresholds[i]}" for i in ti)
     hh = " | ".join(f"H AUC@{t:g}" for t in H_AUC_THRESHOLDS)
-    lines = [f"### {title}" if title else "", "",
-             f"| split (pairs) | method | {head} | matches | correct@3 | features | {hh} | "
-             f"solved (<{SOLVED_PX:g} px) | s/pair |",
-             "|---|---|" + "---|" * len(ti) + "---|---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1) + "---|"]
+    lines = [
+        f"### {title}" if title else "",
+        "",
+        f"| split (pairs) | method | {head} | matches | correct@3 | features | {hh} | "
+        f"solved (<{SOLVED_PX:g} px) | s/pair |",
+        "|---|---|" + "---|" * len(ti) + "---|---|---|" + "---|" * (len(H_AUC_THRESHOLDS) + 1) + "---|",
+    ]
     for g in [s for s in SPLIT_ORDER if s in summary] + [s for s in summary if s not in SPLIT_ORDER]:
         for m in methods:
             if m not in summary[g]:
                 continue
             v = summary[g][m]
             vals = " | ".join(f"{v['mma'][i]:.3f}" for i in ti)
-            hv = " | ".join(f"{x:.3f}" for x in v["h_auc"]) + f" | {v['h_solved']:.3f}" if "h_auc" in v \
+            hv = (
+                " | ".join(f"{x:.3f}" for x in v["h_auc"]) + f" | {v['h_solved']:.3f}"
+                if "h_auc" in v
                 else " | ".join("-" for _ in range(len(H_AUC_THRESHOLDS) + 1))
-            lines.append(f"| {g} ({summary[g]['num_pairs']}) | {m} | {vals} | {v['num_matches']:.0f} | "
-                         f"{v.get('num_correct_3px', 0):.0f} | {v['num_features']:.0f} | {hv} | "
-                         f"{v.get('seconds', 0):.2f} |")
+            )
+            lines.append(
+                f"| {g} ({summary[g]['num_pairs']}) | {m} | {vals} | {v['num_matches']:.0f} | "
+                f"{v.get('num_correct_3px', 0):.0f} | {v['num_features']:.0f} | {hv} | "
+                f"{v.get('seconds', 0):.2f} |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> list[Path]:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     files = []
     for g in summary:
         fig, ax = plt.subplots(figsize=(4.5, 3.5))
@@ -138,14 +152,24 @@ def _plain(x):
     return str(x)
 
 
-def write_outputs(result: dict, pairs: list, methods, out, thresholds=THRESHOLDS, tag: str = "",
-                  extra: Optional[dict] = None) -> dict:
+def write_outputs(
+    result: dict, pairs: list, methods, out, thresholds=THRESHOLDS, tag: str = "", extra: Optional[dict] = None
+) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    splits = [{"pair": p.name, "spread_log2": round(p.spread, 4), "log2_global_scale": round(p.log2_scale, 4),
-               "covisible": round(p.covisible, 3), "rotation_deg": round(p.rotation, 2),
-               "perspective_split": p.perspective_split, "scale_split": p.scale_split,
-               "rotation_split": p.rotation_split} for p in pairs]
+    splits = [
+        {
+            "pair": p.name,
+            "spread_log2": round(p.spread, 4),
+            "log2_global_scale": round(p.log2_scale, 4),
+            "covisible": round(p.covisible, 3),
+            "rotation_deg": round(p.rotation, 2),
+            "perspective_split": p.perspective_split,
+            "scale_split": p.scale_split,
+            "rotation_split": p.rotation_split,
+        }
+        for p in pairs
+    ]
     from ..outputs import write_text
 
     buf = io.StringIO(newline="")
@@ -153,10 +177,18 @@ def write_outputs(result: dict, pairs: list, methods, out, thresholds=THRESHOLDS
     w.writeheader()
     w.writerows(splits)
     write_text(out / "splits.csv", buf.getvalue())
-    doc = {"thresholds": list(thresholds), "methods": list(methods), "splits": splits,
-           "split_rules": {"perspective_edges_std_log2": PERSPECTIVE_EDGES, "scale_edges_abs_log2": SCALE_EDGES,
-                           "rotation_edges_deg": ROTATION_EDGES},
-           **(extra or {}), **result}
+    doc = {
+        "thresholds": list(thresholds),
+        "methods": list(methods),
+        "splits": splits,
+        "split_rules": {
+            "perspective_edges_std_log2": PERSPECTIVE_EDGES,
+            "scale_edges_abs_log2": SCALE_EDGES,
+            "rotation_edges_deg": ROTATION_EDGES,
+        },
+        **(extra or {}),
+        **result,
+    }
     name = f"results{'_' + tag if tag else ''}"
     write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))
     md = markdown_table(result["summary"], methods, list(thresholds), tag)

@@ -11,6 +11,7 @@ from the *whole* photo, so around image 1's content it shows the photo's real su
 as a second real view would (the fill photo only covers what lies beyond the photo).
 Homographies whose co-visible part of image 1 is below ``min_covisible`` are redrawn.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -34,8 +35,13 @@ def resize_max_side(img: np.ndarray, size: int) -> np.ndarray:
     return cv2.resize(img, (max(16, round(img.shape[1] * s)), max(16, round(img.shape[0] * s))), interpolation=interp)
 
 
-def random_homography(rng: np.random.Generator, shape: tuple[int, int], cfg: HomographyConfig = STRONG,
-                      min_covisible: float = 0.25, tries: int = 20) -> np.ndarray:
+def random_homography(
+    rng: np.random.Generator,
+    shape: tuple[int, int],
+    cfg: HomographyConfig = STRONG,
+    min_covisible: float = 0.25,
+    tries: int = 20,
+) -> np.ndarray:
     """A random homography from a ``shape`` image to one of the same shape, redrawn (up to
     ``tries`` times) until at least ``min_covisible`` of the first image stays visible."""
     for _ in range(tries):
@@ -45,16 +51,29 @@ def random_homography(rng: np.random.Generator, shape: tuple[int, int], cfg: Hom
     return H
 
 
-def random_pair(rng: np.random.Generator, img: np.ndarray, fill: np.ndarray | None = None,
-                cfg: HomographyConfig = STRONG, min_covisible: float = 0.25, tries: int = 20):
+def random_pair(
+    rng: np.random.Generator,
+    img: np.ndarray,
+    fill: np.ndarray | None = None,
+    cfg: HomographyConfig = STRONG,
+    min_covisible: float = 0.25,
+    tries: int = 20,
+):
     """``(B, H)``: ``img`` warped by a random homography with enough overlap (B has img's shape)."""
     H = random_homography(rng, img.shape[:2], cfg, min_covisible, tries)
     b, _ = warp_image(img, H, img.shape[:2], fill=fill)
     return b, H
 
 
-def make_sequences(photos: Sequence[Union[str, Path, np.ndarray]], out: Union[str, Path], num_images: int = 6,
-                   size: int = 480, seed: int = 0, cfg: HomographyConfig = STRONG, crop: float = 1.0) -> list[Path]:
+def make_sequences(
+    photos: Sequence[Union[str, Path, np.ndarray]],
+    out: Union[str, Path],
+    num_images: int = 6,
+    size: int = 480,
+    seed: int = 0,
+    cfg: HomographyConfig = STRONG,
+    crop: float = 1.0,
+) -> list[Path]:
     """Write one HPatches-style sequence per photo; returns the sequence folders.
 
     ``crop`` in (0, 1]: image 1 is the central part of this side fraction (longer side ``size``),

@@ -13,6 +13,7 @@
 Patches are gray, any intensity range (both descriptors standardise each patch);
 outputs are L2-normalised float32.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -25,8 +26,14 @@ from kornia.feature import HardNet, SIFTDescriptor
 
 from ..checkpoint import check_format, check_state_dict, safe_load, save_atomic
 from ..errors import CheckpointError, LocalScaleError
-from .quantization import (calibrate_int8, check_int8_ranges, int8_available, int8_describe, int8_features,
-                           standardize_patches)
+from .quantization import (
+    calibrate_int8,
+    check_int8_ranges,
+    int8_available,
+    int8_describe,
+    int8_features,
+    standardize_patches,
+)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DEFAULT_HARDNET = WEIGHTS_DIR / "hardnet.pt"
@@ -50,22 +57,30 @@ class PatchDescriptor(nn.Module):
         module's device (small on CPU, where the activations of a chunk should stay in cache).
         Each descriptor depends only on its own patch, so the chunking does not change results.
         """
-        if not isinstance(patches, torch.Tensor) or patches.dim() != 4 or patches.shape[1] != 1 \
-                or patches.shape[-2:] != (self.patch_size, self.patch_size):
+        if (
+            not isinstance(patches, torch.Tensor)
+            or patches.dim() != 4
+            or patches.shape[1] != 1
+            or patches.shape[-2:] != (self.patch_size, self.patch_size)
+        ):
             shape = tuple(patches.shape) if isinstance(patches, torch.Tensor) else type(patches).__name__
-            raise LocalScaleError(f"{self.name}: expected B x 1 x {self.patch_size} x {self.patch_size} patches, "
-                                  f"got {shape}")
+            raise LocalScaleError(
+                f"{self.name}: expected B x 1 x {self.patch_size} x {self.patch_size} patches, got {shape}"
+            )
         if patches.shape[0] == 0:
             return torch.zeros(0, self.dim)
         dev = next(iter(self.parameters()), torch.empty(0)).device
-        bs = int(batch_size) if batch_size else (self.cpu_batch_size if dev.type == "cpu" and self.cpu_batch_size
-                                                 else default_batch_size(dev))
+        bs = (
+            int(batch_size)
+            if batch_size
+            else (self.cpu_batch_size if dev.type == "cpu" and self.cpu_batch_size else default_batch_size(dev))
+        )
         was_training = self.training
         self.eval()
         try:
             with torch.inference_mode():
                 run = self._inference_fn(dev)
-                out = [run(patches[i:i + bs].to(dev, torch.float32)) for i in range(0, patches.shape[0], bs)]
+                out = [run(patches[i : i + bs].to(dev, torch.float32)) for i in range(0, patches.shape[0], bs)]
         finally:
             self.train(was_training)
         # outside inference mode: the result is an ordinary tensor (in-place edits allowed)
@@ -103,12 +118,23 @@ class SlimHardNet(nn.Module):
         self.widths = (c1, c2, c3)
 
         def block(cin, cout, stride=1):
-            return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
-                    nn.BatchNorm2d(cout, affine=False), nn.ReLU()]
+            return [
+                nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
+                nn.BatchNorm2d(cout, affine=False),
+                nn.ReLU(),
+            ]
 
-        self.features = nn.Sequential(*block(1, c1), *block(c1, c1), *block(c1, c2, 2), *block(c2, c2),
-                                      *block(c2, c3, 2), *block(c3, c3), nn.Dropout(dropout),
-                                      nn.Conv2d(c3, dim, 8, bias=False), nn.BatchNorm2d(dim, affine=False))
+        self.features = nn.Sequential(
+            *block(1, c1),
+            *block(c1, c1),
+            *block(c1, c2, 2),
+            *block(c2, c2),
+            *block(c2, c3, 2),
+            *block(c3, c3),
+            nn.Dropout(dropout),
+            nn.Conv2d(c3, dim, 8, bias=False),
+            nn.BatchNorm2d(dim, affine=False),
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = standardize_patches(x)
@@ -147,7 +173,7 @@ class HardNetDescriptor(PatchDescriptor):
         self.net = HardNet(pretrained=False) if self.widths == HARDNET_WIDTHS else SlimHardNet(self.widths)
         self.meta: dict = {}
         self.int8_ranges: Optional[dict] = None
-        self._int8: list = []   # [quantised snapshot] (a list: not a registered submodule)
+        self._int8: list = []  # [quantised snapshot] (a list: not a registered submodule)
         self.precision = "auto"
         self.set_precision(precision)
 
@@ -159,8 +185,10 @@ class HardNetDescriptor(PatchDescriptor):
         if precision not in PRECISIONS:
             raise LocalScaleError(f"descriptor precision must be one of {PRECISIONS}, got {precision!r}")
         if precision == "int8" and not self.int8_ranges:
-            raise LocalScaleError("int8 descriptor precision needs weights with int8 activation ranges "
-                                  "(train/train_descriptor.py --calibrate-int8 adds them)")
+            raise LocalScaleError(
+                "int8 descriptor precision needs weights with int8 activation ranges "
+                "(train/train_descriptor.py --calibrate-int8 adds them)"
+            )
         if precision == "int8" and not int8_available():
             raise LocalScaleError("int8 descriptor precision: this PyTorch build has no x86 quantised engine")
         self.precision = precision
@@ -175,7 +203,7 @@ class HardNetDescriptor(PatchDescriptor):
 
     def train(self, mode: bool = True) -> "HardNetDescriptor":
         if mode:
-            self._int8.clear()   # the weights may change: the quantised snapshot is rebuilt on use
+            self._int8.clear()  # the weights may change: the quantised snapshot is rebuilt on use
         return super().train(mode)
 
     def _inference_fn(self, device: torch.device) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -188,15 +216,18 @@ class HardNetDescriptor(PatchDescriptor):
             quantised = self._int8[0]
             return lambda x: int8_describe(quantised, x)
         if precision == "bf16":
+
             def bf16(x: torch.Tensor) -> torch.Tensor:
                 with torch.autocast(device.type, dtype=torch.bfloat16):
                     return self(x).float()
+
             return bf16
         return self
 
     @classmethod
-    def from_pretrained(cls, path: Optional[Union[str, Path]] = None, device: str = "cpu",
-                        precision: str = "auto") -> "HardNetDescriptor":
+    def from_pretrained(
+        cls, path: Optional[Union[str, Path]] = None, device: str = "cpu", precision: str = "auto"
+    ) -> "HardNetDescriptor":
         """Load weights: ``None`` = bundled ``weights/hardnet.pt``; also accepts kornia/official
         HardNet checkpoints (``{"state_dict": ...}``) and plain state dicts. ``precision``: of
         :meth:`describe` (see the class; ``int8`` needs weights with ``int8_ranges``).
@@ -206,7 +237,7 @@ class HardNetDescriptor(PatchDescriptor):
         path = Path(path) if path is not None else DEFAULT_HARDNET
         if not path.is_file():
             raise CheckpointError(f"HardNet weights not found: {path}")
-        ckpt = safe_load(path)   # tensors and plain data only (weights_only=True)
+        ckpt = safe_load(path)  # tensors and plain data only (weights_only=True)
         if not isinstance(ckpt, dict):
             raise CheckpointError(f"{path}: not a HardNet checkpoint (got {type(ckpt).__name__})")
         if "localscale_format" in ckpt:
@@ -216,11 +247,12 @@ class HardNetDescriptor(PatchDescriptor):
             raise CheckpointError(f"{path}: checkpoint is a {arch}, expected a HardNet")
         sd = ckpt.get("state_dict", ckpt)
         check_state_dict(sd, path)
-        sd = {k[len("net."):] if k.startswith("net.") else k: v for k, v in sd.items()}
+        sd = {k[len("net.") :] if k.startswith("net.") else k: v for k, v in sd.items()}
         sd = {k: v.float() if torch.is_tensor(v) and v.is_floating_point() else v for k, v in sd.items()}
         widths = ckpt.get("widths", HARDNET_WIDTHS)
-        if not (isinstance(widths, (list, tuple)) and len(widths) == 3 and all(isinstance(w, int) and w > 0
-                                                                                for w in widths)):
+        if not (
+            isinstance(widths, (list, tuple)) and len(widths) == 3 and all(isinstance(w, int) and w > 0 for w in widths)
+        ):
             raise CheckpointError(f"{path}: 'widths' must be three positive integers, got {widths!r}")
         model = cls(tuple(widths), precision="fp32")
         try:
@@ -247,8 +279,13 @@ class HardNetDescriptor(PatchDescriptor):
         sd = {k: (v.half() if half and v.is_floating_point() else v).cpu() for k, v in self.net.state_dict().items()}
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        ckpt = {"localscale_format": 1, "arch": "HardNet", "widths": list(self.widths), "state_dict": sd,
-                "meta": meta or {}}
+        ckpt = {
+            "localscale_format": 1,
+            "arch": "HardNet",
+            "widths": list(self.widths),
+            "state_dict": sd,
+            "meta": meta or {},
+        }
         if self.int8_ranges:
             ckpt["int8_ranges"] = self.int8_ranges
         save_atomic(ckpt, path)
@@ -289,5 +326,6 @@ def get_descriptor(descriptor: Union[str, PatchDescriptor] = "hardnet") -> Patch
         return SIFTPatchDescriptor().eval()
     if isinstance(descriptor, (str, Path)) and Path(descriptor).suffix in (".pt", ".pth"):
         return HardNetDescriptor.from_pretrained(descriptor)
-    raise LocalScaleError(f"unknown descriptor {descriptor!r}: use 'hardnet', 'hardnet-full', 'sift' or a path "
-                          f"to HardNet weights")
+    raise LocalScaleError(
+        f"unknown descriptor {descriptor!r}: use 'hardnet', 'hardnet-full', 'sift' or a path to HardNet weights"
+    )

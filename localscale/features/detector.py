@@ -33,6 +33,7 @@ Example::
     kps, resp = detect_keypoints(rgb_uint8, num_features=1000)   # N x 2 float32, N
     kps, resp = detect(rgb_uint8, "orb", num_features=1000)      # same, with OpenCV ORB
 """
+
 from __future__ import annotations
 
 import cv2
@@ -85,7 +86,7 @@ def hessian_blob_response(gray: torch.Tensor, sigma: float = 2.0) -> torch.Tenso
     k = 2 * int(round(3 * sigma)) + 1
     blurred = gaussian_blur2d(gray, (k, k), (sigma, sigma))
     # sobel second derivatives carry a factor 8 each; sigma**4 normalises the scale
-    return hessian_response(blurred, grads_mode="sobel") * (sigma ** 4)
+    return hessian_response(blurred, grads_mode="sobel") * (sigma**4)
 
 
 def local_max(r: torch.Tensor, radius: int) -> torch.Tensor:
@@ -94,15 +95,20 @@ def local_max(r: torch.Tensor, radius: int) -> torch.Tensor:
     values; a square max-pool is ~100x slower than ``cv2.dilate`` on CPU)."""
     k = 2 * radius + 1
     if r.device.type == "cpu" and r.dtype == torch.float32:
-        out = cv2.dilate(np.ascontiguousarray(r.detach().numpy()), np.ones((k, k), np.uint8),
-                         borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        out = cv2.dilate(
+            np.ascontiguousarray(r.detach().numpy()),
+            np.ones((k, k), np.uint8),
+            borderType=cv2.BORDER_CONSTANT,
+            borderValue=-np.inf,
+        )
         return torch.from_numpy(out)
     x = F.max_pool2d(r[None, None], (1, k), stride=1, padding=(0, radius))
     return F.max_pool2d(x, (k, 1), stride=1, padding=(radius, 0))[0, 0]
 
 
-def nms_topk(response: torch.Tensor, num_features: int, nms_radius: int = 3, border: int = 8,
-             threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+def nms_topk(
+    response: torch.Tensor, num_features: int, nms_radius: int = 3, border: int = 8, threshold: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Local maxima of a ``1 x 1 x H x W`` response, strongest ``num_features`` first.
 
     Returns ``(xy N x 2 float32 with sub-pixel refinement, responses N)``.
@@ -120,11 +126,13 @@ def nms_topk(response: torch.Tensor, num_features: int, nms_radius: int = 3, bor
     vals = r[ys, xs]
     order = torch.argsort(vals, descending=True)[:num_features]
     ys, xs, vals = ys[order], xs[order], vals[order]
+
     # parabola fit per axis (neighbours exist because border >= 1 or clamped)
     def _offset(c, m, p):
         den = m - 2 * c + p
         off = torch.where(den.abs() > 1e-12, 0.5 * (m - p) / den, torch.zeros_like(den))
         return off.clamp(-0.5, 0.5)
+
     xm, xp = (xs - 1).clamp(0, w - 1), (xs + 1).clamp(0, w - 1)
     ym, yp = (ys - 1).clamp(0, h - 1), (ys + 1).clamp(0, h - 1)
     dx = _offset(vals, r[ys, xm], r[ys, xp])
@@ -159,8 +167,9 @@ class HessianDetector(nn.Module):
         return nms_topk(resp, self.num_features, self.nms_radius, border, threshold=1e-8)
 
 
-def detect_keypoints(image, num_features: int = 1000, sigma: float = 2.0, nms_radius: int = 3,
-                     border: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def detect_keypoints(
+    image, num_features: int = 1000, sigma: float = 2.0, nms_radius: int = 3, border: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """Detect up to ``num_features`` keypoints in one image.
 
     Args:
@@ -196,8 +205,9 @@ class ResponseDetector(nn.Module):
         input ``1 x 1 x H x W`` gray in [0, 1]; output ``(N x 2, N)`` with ``N <= K``.
     """
 
-    def __init__(self, response: str, num_features: int = 1000, sigma: float = 2.0, nms_radius: int = 3,
-                 border: int = 8):
+    def __init__(
+        self, response: str, num_features: int = 1000, sigma: float = 2.0, nms_radius: int = 3, border: int = 8
+    ):
         super().__init__()
         if response not in ("harris", "gftt", "dog"):
             raise LocalScaleError(f"unknown response {response!r}; choose from harris, gftt, dog")
@@ -208,6 +218,7 @@ class ResponseDetector(nn.Module):
 
     def response_map(self, gray: torch.Tensor) -> torch.Tensor:
         from kornia.feature import dog_response_single, gftt_response, harris_response
+
         if self.response == "dog":
             # |DoG|: bright and dark blobs; sigma**2 / (k - 1) normalises it like the Laplacian
             k = 2 ** (1 / 3)
@@ -241,8 +252,10 @@ class OpenCVDetector(nn.Module):
         if num_features < 1:
             raise ValueError(f"num_features must be >= 1, got {num_features}")
         if name == "akaze" and not hasattr(cv2, "AKAZE_create"):
-            raise LocalScaleError(f"detector 'akaze' needs cv2.AKAZE_create, which OpenCV {cv2.__version__} lacks "
-                                  "(it is in OpenCV 4.x and in opencv-contrib)")
+            raise LocalScaleError(
+                f"detector 'akaze' needs cv2.AKAZE_create, which OpenCV {cv2.__version__} lacks "
+                "(it is in OpenCV 4.x and in opencv-contrib)"
+            )
         self.name, self.num_features = name, num_features
 
     def keypoints(self, gray_u8: np.ndarray) -> list:
@@ -253,14 +266,14 @@ class OpenCVDetector(nn.Module):
             kps = cv2.AKAZE_create(threshold=1e-4, nOctaves=1).detect(gray_u8, None)
         else:
             kps = cv2.SIFT_create(contrastThreshold=0.01).detect(gray_u8, None)
-            octave = [(k.octave & 255) - 256 * ((k.octave & 255) >= 128) for k in kps]   # -1 .. n
+            octave = [(k.octave & 255) - 256 * ((k.octave & 255) >= 128) for k in kps]  # -1 .. n
             seen, one = set(), []
             for k, o in zip(kps, octave):
                 if o == 0 and k.pt not in seen:
                     seen.add(k.pt)
                     one.append(k)
             kps = one
-        return sorted(kps, key=lambda k: -k.response)[:self.num_features]
+        return sorted(kps, key=lambda k: -k.response)[: self.num_features]
 
     @torch.no_grad()
     def forward(self, gray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

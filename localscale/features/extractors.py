@@ -17,6 +17,7 @@ Example::
     f.keypoints, f.descriptors                 # N x 2 float32, N x 128
     f = aliked.extract(image, factor=0.5)      # extracted at half size, keypoints in the given pixels
 """
+
 from __future__ import annotations
 
 import time
@@ -103,8 +104,10 @@ class Extractor:
     def __init__(self, device: str = "cpu", **conf):
         unknown = sorted(set(conf) - set(self.default_conf))
         if unknown:
-            raise LocalScaleError(f"{type(self).__name__} has no option(s) {', '.join(unknown)}; "
-                                  f"it takes {', '.join(sorted(self.default_conf)) or 'none'}")
+            raise LocalScaleError(
+                f"{type(self).__name__} has no option(s) {', '.join(unknown)}; "
+                f"it takes {', '.join(sorted(self.default_conf)) or 'none'}"
+            )
         self.conf = {**self.default_conf, **conf}
         self.device = resolve_device(device)
 
@@ -114,8 +117,14 @@ class Extractor:
         t0 = time.perf_counter()
         img, fx, fy = resize_image(np.asarray(image), float(factor))
         xy, desc, scores = self._extract(img)
-        return Features(to_given_pixels(xy, fx, fy), desc, scores, tuple(image.shape[:2]),
-                        factor=float(np.sqrt(fx * fy)), seconds=time.perf_counter() - t0)
+        return Features(
+            to_given_pixels(xy, fx, fy),
+            desc,
+            scores,
+            tuple(image.shape[:2]),
+            factor=float(np.sqrt(fx * fy)),
+            seconds=time.perf_counter() - t0,
+        )
 
     def _extract(self, image: np.ndarray):
         raise NotImplementedError
@@ -125,8 +134,11 @@ class Extractor:
 
 
 def _outputs(xy: torch.Tensor, desc: torch.Tensor, scores: torch.Tensor):
-    return (xy.float().cpu().numpy().astype(np.float32), desc.float().cpu(),
-            scores.float().cpu().numpy().reshape(-1).astype(np.float32))
+    return (
+        xy.float().cpu().numpy().astype(np.float32),
+        desc.float().cpu(),
+        scores.float().cpu().numpy().reshape(-1).astype(np.float32),
+    )
 
 
 class SIFT(Extractor):
@@ -137,7 +149,9 @@ class SIFT(Extractor):
 
     def _extract(self, image: np.ndarray):
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-        kps, desc = cv2.SIFT_create(nfeatures=self.conf["num_features"]).detectAndCompute(np.ascontiguousarray(gray), None)
+        kps, desc = cv2.SIFT_create(nfeatures=self.conf["num_features"]).detectAndCompute(
+            np.ascontiguousarray(gray), None
+        )
         xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
         d = torch.from_numpy(np.zeros((0, 128), np.float32) if desc is None else desc)
         return xy, d, np.array([k.response for k in kps], np.float32)
@@ -147,8 +161,13 @@ class ALIKED(Extractor):
     """kornia's ALIKED (``model``: ``aliked-n16``, ``-n16rot``, ``-n32``, ``-t16``); on CPU in the
     channels-last layout (same features, faster there)."""
 
-    default_conf = {"model": "aliked-n16", "num_features": 2048, "detection_threshold": None, "weights": None,
-                    "channels_last": True}
+    default_conf = {
+        "model": "aliked-n16",
+        "num_features": 2048,
+        "detection_threshold": None,
+        "weights": None,
+        "channels_last": True,
+    }
     lightglue = "aliked"
 
     def __init__(self, device: str = "cpu", **conf):
@@ -190,8 +209,12 @@ class DISK(Extractor):
     def _extract(self, image: np.ndarray):
         c = self.conf
         with torch.inference_mode():
-            f = self.net(self._tensor(image), n=c["num_features"], score_threshold=c["detection_threshold"] or 0.0,
-                         pad_if_not_divisible=True)[0]
+            f = self.net(
+                self._tensor(image),
+                n=c["num_features"],
+                score_threshold=c["detection_threshold"] or 0.0,
+                pad_if_not_divisible=True,
+            )[0]
         return _outputs(f.keypoints, f.descriptors, f.detection_scores)
 
 
@@ -212,8 +235,9 @@ class XFeat(Extractor):
     def _extract(self, image: np.ndarray):
         c = self.conf
         with torch.inference_mode():
-            f = self.net.detectAndCompute(self._tensor(image), top_k=c["num_features"],
-                                          detection_threshold=c["detection_threshold"])[0]
+            f = self.net.detectAndCompute(
+                self._tensor(image), top_k=c["num_features"], detection_threshold=c["detection_threshold"]
+            )[0]
         return _outputs(f["keypoints"], f["descriptors"], f["scores"])
 
 
@@ -225,8 +249,14 @@ class PatchExtractor:
     keypoint whose corrected radius is unchanged reuses its descriptor.
     """
 
-    default_conf = {"num_features": 1000, "detector": "hessian", "descriptor": "hardnet",
-                    "descriptor_precision": "auto", "base_radius": 16.0, "orientation": "upright"}
+    default_conf = {
+        "num_features": 1000,
+        "detector": "hessian",
+        "descriptor": "hardnet",
+        "descriptor_precision": "auto",
+        "base_radius": 16.0,
+        "orientation": "upright",
+    }
     lightglue = None
     rectified = False
     ratio_test = "symmetric"
@@ -237,12 +267,12 @@ class PatchExtractor:
             raise LocalScaleError(f"PatchExtractor has no option(s) {', '.join(unknown)}")
         self.conf = c = {**self.default_conf, **conf}
         self.device = resolve_device(device)
-        self.detector = get_detector(c["detector"], c["num_features"])       # an unknown name fails here
+        self.detector = get_detector(c["detector"], c["num_features"])  # an unknown name fails here
         self.descriptor = get_descriptor(c["descriptor"]).to(self.device)
         if isinstance(self.descriptor, HardNetDescriptor):
             self.descriptor.set_precision(c["descriptor_precision"])
         self.cutter = ScaleCorrectedPatches(c["base_radius"], self.descriptor.patch_size, c["orientation"])
-        self.described = 0    #: patches described so far
+        self.described = 0  #: patches described so far
 
     def detect(self, image: np.ndarray):
         """``(gray 1 x H x W, keypoints N x 2, responses N)`` of the detector."""
@@ -290,9 +320,16 @@ class PatchExtractor:
 EXTRACTORS = {"patches": PatchExtractor, "sift": SIFT, "aliked": ALIKED, "disk": DISK, "xfeat": XFeat}
 
 
-def extract(image, scale_map=None, num_features: int = 1000, descriptor: Union[str, PatchDescriptor] = "hardnet",
-            base_radius: float = 16.0, orientation: str = "upright", detector_sigma: float = 2.0,
-            detector: str = "hessian") -> Features:
+def extract(
+    image,
+    scale_map=None,
+    num_features: int = 1000,
+    descriptor: Union[str, PatchDescriptor] = "hardnet",
+    base_radius: float = 16.0,
+    orientation: str = "upright",
+    detector_sigma: float = 2.0,
+    detector: str = "hessian",
+) -> Features:
     """Detect up to ``num_features`` keypoints and describe scale-corrected patches.
 
     Args:
@@ -305,8 +342,9 @@ def extract(image, scale_map=None, num_features: int = 1000, descriptor: Union[s
     """
     gray = image_to_gray_tensor(image)
     desc = get_descriptor(descriptor)
-    det = (HessianDetector(num_features, detector_sigma) if detector == "hessian"
-           else get_detector(detector, num_features))
+    det = (
+        HessianDetector(num_features, detector_sigma) if detector == "hessian" else get_detector(detector, num_features)
+    )
     kps, resp = det(gray)
     patches, lafs, radii = ScaleCorrectedPatches(base_radius, desc.patch_size, orientation)(gray, kps, scale_map)
     return Features(kps.numpy(), desc.describe(patches), resp.numpy(), tuple(gray.shape[-2:]), radii.numpy(), lafs)

@@ -36,6 +36,7 @@ Example::
     kps_b = rescale_keypoints(kps_b, pb.scale)            # cv2.KeyPoint of B
     desc_a = describe_lafs(A, lafs_a, kornia.feature.HardNet(True))
 """
+
 from __future__ import annotations
 
 from typing import Optional, Sequence, Union
@@ -49,11 +50,20 @@ from kornia.feature import get_laf_center, get_laf_orientation, get_laf_scale, l
 from ..errors import LocalScaleError
 from .patches import ScaleMapLike, extract_patches, make_lafs, patch_radii, sample_scale_map
 
-MR_SIZE = 0.5     #: default LAF scale per unit of OpenCV ``size`` (patch side = ``size``)
+MR_SIZE = 0.5  #: default LAF scale per unit of OpenCV ``size`` (patch side = ``size``)
 KeypointsLike = Union[np.ndarray, torch.Tensor, Sequence[cv2.KeyPoint]]
 
-__all__ = ["keypoint_scales", "correction_factors", "rescale_keypoints", "rescale_keypoint_pair",
-           "laf_from_opencv", "opencv_from_laf", "keypoints_to_xy", "describe_lafs", "MR_SIZE"]
+__all__ = [
+    "keypoint_scales",
+    "correction_factors",
+    "rescale_keypoints",
+    "rescale_keypoint_pair",
+    "laf_from_opencv",
+    "opencv_from_laf",
+    "keypoints_to_xy",
+    "describe_lafs",
+    "MR_SIZE",
+]
 
 
 def _is_cv2(keypoints) -> bool:
@@ -99,13 +109,15 @@ def keypoints_to_xy(keypoints: KeypointsLike) -> torch.Tensor:
         return get_laf_center(keypoints)
     kp = keypoints if isinstance(keypoints, torch.Tensor) else torch.as_tensor(np.asarray(keypoints, np.float32))
     if kp.dim() != 2 or kp.shape[1] != 2:
-        raise LocalScaleError("keypoints must be N x 2 (x, y), a list of cv2.KeyPoint or B x N x 2 x 3 LAFs, "
-                              f"got shape {tuple(kp.shape)}")
+        raise LocalScaleError(
+            f"keypoints must be N x 2 (x, y), a list of cv2.KeyPoint or B x N x 2 x 3 LAFs, got shape {tuple(kp.shape)}"
+        )
     return kp.float()
 
 
-def keypoint_scales(keypoints: KeypointsLike, scale_map: ScaleMapLike,
-                    image_shape: Optional[tuple[int, int]] = None) -> torch.Tensor:
+def keypoint_scales(
+    keypoints: KeypointsLike, scale_map: ScaleMapLike, image_shape: Optional[tuple[int, int]] = None
+) -> torch.Tensor:
     """``S_{this->other}`` at each keypoint (bilinear in ``log S``; non-finite samples are 1).
 
     Args:
@@ -120,22 +132,37 @@ def keypoint_scales(keypoints: KeypointsLike, scale_map: ScaleMapLike,
     xy = keypoints_to_xy(keypoints)
     if xy.dim() == 3:
         maps = _maps_per_image(scale_map, xy.shape[0])
-        s = torch.stack([sample_scale_map(m, xy[i].detach().cpu(), _shape(m, image_shape))
-                         for i, m in enumerate(maps)]) if xy.shape[0] else torch.zeros(0, xy.shape[1])
+        s = (
+            torch.stack([sample_scale_map(m, xy[i].detach().cpu(), _shape(m, image_shape)) for i, m in enumerate(maps)])
+            if xy.shape[0]
+            else torch.zeros(0, xy.shape[1])
+        )
         return s.to(xy.device)
     m = _map(scale_map)
     return sample_scale_map(m, xy.detach().cpu(), _shape(m, image_shape)).to(xy.device)
 
 
-def correction_factors(keypoints: KeypointsLike, scale_map: ScaleMapLike,
-                       image_shape: Optional[tuple[int, int]] = None, deadzone_log2: float = 0.0) -> torch.Tensor:
+def correction_factors(
+    keypoints: KeypointsLike,
+    scale_map: ScaleMapLike,
+    image_shape: Optional[tuple[int, int]] = None,
+    deadzone_log2: float = 0.0,
+) -> torch.Tensor:
     """The enlargement ``max(1, 1 / clamp(S, 1/8, 8))`` of each keypoint's radius
     (:func:`.patches.patch_radii` with a unit radius): ``N`` or ``B x N`` for LAFs."""
     xy = keypoints_to_xy(keypoints)
     if xy.dim() == 3:
         maps = _maps_per_image(scale_map, xy.shape[0])
-        f = torch.stack([patch_radii(xy[i].detach().cpu(), m, 1.0, _shape(m, image_shape), deadzone_log2)
-                         for i, m in enumerate(maps)]) if xy.shape[0] else torch.zeros(0, xy.shape[1])
+        f = (
+            torch.stack(
+                [
+                    patch_radii(xy[i].detach().cpu(), m, 1.0, _shape(m, image_shape), deadzone_log2)
+                    for i, m in enumerate(maps)
+                ]
+            )
+            if xy.shape[0]
+            else torch.zeros(0, xy.shape[1])
+        )
         return f.to(xy.device)
     m = _map(scale_map)
     return patch_radii(xy.detach().cpu(), m, 1.0, _shape(m, image_shape), deadzone_log2).to(xy.device)
@@ -149,8 +176,14 @@ def _cap(radius: torch.Tensor, own: torch.Tensor, shape: Optional[tuple[int, int
     return torch.minimum(radius, torch.clamp(own, min=max(shape) / 2.0))
 
 
-def rescale_keypoints(keypoints: KeypointsLike, scale_map: ScaleMapLike, image_shape: Optional[tuple[int, int]] = None,
-                      base_radius: Optional[float] = None, deadzone_log2: float = 0.0, mr_size: float = MR_SIZE):
+def rescale_keypoints(
+    keypoints: KeypointsLike,
+    scale_map: ScaleMapLike,
+    image_shape: Optional[tuple[int, int]] = None,
+    base_radius: Optional[float] = None,
+    deadzone_log2: float = 0.0,
+    mr_size: float = MR_SIZE,
+):
     """Enlarge each keypoint's support so that the pair's patches cover the same content.
 
     Args:
@@ -178,8 +211,16 @@ def rescale_keypoints(keypoints: KeypointsLike, scale_map: ScaleMapLike, image_s
         maps = _maps_per_image(scale_map, lafs.shape[0])
         own = get_laf_scale(lafs)[..., 0, 0]
         target = (torch.full_like(own, float(base_radius)) if base_radius is not None else own) * f
-        target = torch.stack([_cap(target[i], own[i] if base_radius is None else torch.full_like(own[i], base_radius),
-                                   _shape(mp, image_shape)) for i, mp in enumerate(maps)])
+        target = torch.stack(
+            [
+                _cap(
+                    target[i],
+                    own[i] if base_radius is None else torch.full_like(own[i], base_radius),
+                    _shape(mp, image_shape),
+                )
+                for i, mp in enumerate(maps)
+            ]
+        )
         return scale_laf(lafs, (target / own)[..., None, None])
     shape = _shape(m, image_shape)
     if _is_cv2(keypoints):
@@ -189,24 +230,35 @@ def rescale_keypoints(keypoints: KeypointsLike, scale_map: ScaleMapLike, image_s
         own = torch.tensor([kp.size for kp in keypoints], dtype=torch.float32)
         base = own if base_radius is None else torch.full_like(own, base_radius / mr_size)
         size = _cap(base * f * mr_size, base * mr_size, shape) / mr_size
-        return [cv2.KeyPoint(kp.pt[0], kp.pt[1], float(s), kp.angle, kp.response, kp.octave, kp.class_id)
-                for kp, s in zip(keypoints, size.tolist())]
+        return [
+            cv2.KeyPoint(kp.pt[0], kp.pt[1], float(s), kp.angle, kp.response, kp.octave, kp.class_id)
+            for kp, s in zip(keypoints, size.tolist())
+        ]
     xy = keypoints_to_xy(keypoints)
     radii = patch_radii(xy.detach().cpu(), m, 16.0 if base_radius is None else base_radius, shape, deadzone_log2)
     return make_lafs(xy.detach().cpu(), radii).to(xy.device)
 
 
-def rescale_keypoint_pair(keypoints_a: KeypointsLike, keypoints_b: KeypointsLike, scale_a: ScaleMapLike,
-                          scale_b: ScaleMapLike, shape_a: Optional[tuple[int, int]] = None,
-                          shape_b: Optional[tuple[int, int]] = None, **kwargs):
+def rescale_keypoint_pair(
+    keypoints_a: KeypointsLike,
+    keypoints_b: KeypointsLike,
+    scale_a: ScaleMapLike,
+    scale_b: ScaleMapLike,
+    shape_a: Optional[tuple[int, int]] = None,
+    shape_b: Optional[tuple[int, int]] = None,
+    **kwargs,
+):
     """:func:`rescale_keypoints` on both images of a pair: ``scale_a`` = ``S_{A->B}`` on A
     (``predict(A, B)``), ``scale_b`` = ``S_{B->A}`` on B (``predict(B, A)``). Returns ``(a, b)``."""
-    return (rescale_keypoints(keypoints_a, scale_a, shape_a, **kwargs),
-            rescale_keypoints(keypoints_b, scale_b, shape_b, **kwargs))
+    return (
+        rescale_keypoints(keypoints_a, scale_a, shape_a, **kwargs),
+        rescale_keypoints(keypoints_b, scale_b, shape_b, **kwargs),
+    )
 
 
-def laf_from_opencv(keypoints: Sequence[cv2.KeyPoint], mr_size: float = MR_SIZE,
-                    device: Union[str, torch.device] = "cpu") -> torch.Tensor:
+def laf_from_opencv(
+    keypoints: Sequence[cv2.KeyPoint], mr_size: float = MR_SIZE, device: Union[str, torch.device] = "cpu"
+) -> torch.Tensor:
     """OpenCV keypoints -> kornia LAFs ``1 x N x 2 x 3``: scale ``mr_size * size``, angle
     ``-kp.angle`` (an angle of -1, "not applicable", is read as 0)."""
     if not _is_cv2(keypoints):
@@ -227,13 +279,15 @@ def opencv_from_laf(lafs: torch.Tensor, mr_size: float = MR_SIZE, responses=None
     size = (get_laf_scale(lafs)[0, :, 0, 0] / mr_size).detach().cpu().tolist()
     ang = ((-get_laf_orientation(lafs)[0, :, 0]) % 360.0).detach().cpu().tolist()
     resp = [0.0] * len(xy) if responses is None else [float(r) for r in np.asarray(responses).reshape(-1)]
-    return [cv2.KeyPoint(float(p[0]), float(p[1]), float(s), float(a) % 360.0, r)
-            for p, s, a, r in zip(xy, size, ang, resp)]
+    return [
+        cv2.KeyPoint(float(p[0]), float(p[1]), float(s), float(a) % 360.0, r) for p, s, a, r in zip(xy, size, ang, resp)
+    ]
 
 
 @torch.no_grad()
-def describe_lafs(image, lafs: torch.Tensor, descriptor: Union[str, nn.Module] = "hardnet",
-                  patch_size: Optional[int] = None) -> torch.Tensor:
+def describe_lafs(
+    image, lafs: torch.Tensor, descriptor: Union[str, nn.Module] = "hardnet", patch_size: Optional[int] = None
+) -> torch.Tensor:
     """Describe the patches of LAFs with any patch descriptor.
 
     Args:

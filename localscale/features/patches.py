@@ -38,6 +38,7 @@ LAFs follow kornia: ``1 x N x 2 x 3`` with ``A = r * R(angle)``; the patch cover
 ``c + A [-1, 1]^2``, so the patch side is ``2 r`` pixels, resampled to ``32 x 32``
 (from the appropriate pyramid level, i.e. anti-aliased).
 """
+
 from __future__ import annotations
 
 from typing import Optional, Union
@@ -56,8 +57,9 @@ ScaleMapLike = Union[None, float, int, np.ndarray, torch.Tensor]
 
 
 def _as_points(keypoints) -> torch.Tensor:
-    kp = torch.as_tensor(np.asarray(keypoints, dtype=np.float32) if not isinstance(keypoints, torch.Tensor)
-                         else keypoints).float()
+    kp = torch.as_tensor(
+        np.asarray(keypoints, dtype=np.float32) if not isinstance(keypoints, torch.Tensor) else keypoints
+    ).float()
     if kp.dim() != 2 or kp.shape[1] != 2:
         raise LocalScaleError(f"keypoints must be N x 2 (x, y), got shape {tuple(kp.shape)}")
     return kp
@@ -84,8 +86,9 @@ def sample_scale_map(scale_map: ScaleMapLike, keypoints, image_shape: Optional[t
         if not np.isfinite(s) or s <= 0:
             raise LocalScaleError(f"global scale must be finite and > 0, got {s}")
         return torch.full((n,), s)
-    m = torch.as_tensor(np.asarray(scale_map, dtype=np.float32) if not isinstance(scale_map, torch.Tensor)
-                        else scale_map).float()
+    m = torch.as_tensor(
+        np.asarray(scale_map, dtype=np.float32) if not isinstance(scale_map, torch.Tensor) else scale_map
+    ).float()
     if m.dim() == 3 and m.shape[0] == 1:
         m = m[0]
     if m.dim() != 2:
@@ -104,8 +107,12 @@ def sample_scale_map(scale_map: ScaleMapLike, keypoints, image_shape: Optional[t
     return torch.exp(v[0, 0, 0])
 
 
-def gate_scale(scale: torch.Tensor, deadzone_log2: float = 0.0, confidence: Optional[torch.Tensor] = None,
-               min_confidence: float = 0.0) -> torch.Tensor:
+def gate_scale(
+    scale: torch.Tensor,
+    deadzone_log2: float = 0.0,
+    confidence: Optional[torch.Tensor] = None,
+    min_confidence: float = 0.0,
+) -> torch.Tensor:
     """Set scales to 1 where ``|log2 S| < deadzone_log2`` or ``confidence < min_confidence``."""
     s = scale.clone()
     if deadzone_log2 > 0:
@@ -115,8 +122,13 @@ def gate_scale(scale: torch.Tensor, deadzone_log2: float = 0.0, confidence: Opti
     return s
 
 
-def patch_radii(keypoints, scale_map: ScaleMapLike = None, base_radius: float = 16.0,
-                image_shape: Optional[tuple[int, int]] = None, deadzone_log2: float = 0.0) -> torch.Tensor:
+def patch_radii(
+    keypoints,
+    scale_map: ScaleMapLike = None,
+    base_radius: float = 16.0,
+    image_shape: Optional[tuple[int, int]] = None,
+    deadzone_log2: float = 0.0,
+) -> torch.Tensor:
     """Corrected patch radius per keypoint: ``base_radius * max(1, 1 / clamp(S, 0.125, 8))``.
 
     Args:
@@ -172,8 +184,9 @@ class ScaleCorrectedPatches(nn.Module):
         ``(patches N x 1 x PS x PS, lafs 1 x N x 2 x 3, radii N)``.
     """
 
-    def __init__(self, base_radius: float = 16.0, patch_size: int = 32, orientation: str = "upright",
-                 deadzone_log2: float = 0.0):
+    def __init__(
+        self, base_radius: float = 16.0, patch_size: int = 32, orientation: str = "upright", deadzone_log2: float = 0.0
+    ):
         super().__init__()
         if orientation not in ("upright", "gradient"):
             raise LocalScaleError(f"orientation must be 'upright' or 'gradient', got {orientation!r}")

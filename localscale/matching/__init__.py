@@ -12,6 +12,7 @@ Example::
     from localscale.matching import match_pair
     res = match_pair("a.jpg", "b.jpg", "auto", matcher="aliked-lightglue")
 """
+
 import importlib
 
 _EXPORTS = {
@@ -20,20 +21,57 @@ _EXPORTS = {
     ".nearest_neighbour": ("match_descriptors", "ratio_mutual_matches"),
     ".rectification": ("pair_scale", "rectify_factors"),
     ".metrics": ("reprojection_errors", "matching_accuracy", "corner_error", "homography_auc"),
-    ".correction": ("CORRECTIONS", "CORRECTION_METHODS", "Correction", "CorrectionGate", "NO_GATE",
-                    "GATE_WEIGHTINGS", "get_correction", "models_for_correction", "scale_maps_for_pair",
-                    "fuse_local_global"),
+    ".correction": (
+        "CORRECTIONS",
+        "CORRECTION_METHODS",
+        "Correction",
+        "CorrectionGate",
+        "NO_GATE",
+        "GATE_WEIGHTINGS",
+        "get_correction",
+        "models_for_correction",
+        "scale_maps_for_pair",
+        "fuse_local_global",
+    ),
     ".two_view": ("TwoViewConfig", "TwoViewGeometry", "estimate_two_view_geometry", "relative_pose_error", "pose_auc"),
-    ".verification": ("VerificationConfig", "VerificationResult", "verify_matches", "estimate_homography",
-                      "estimate_fundamental", "local_affine_scales"),
-    ".refinement": ("RefinedScale", "RefinedMatching", "refine_scale_map", "refine_pair_maps", "refine_matching",
-                    "describe_and_match", "sift_seed_points"),
-    ".auto": ("AutoConfig", "AutoResult", "Hypothesis", "auto_match", "propose", "nearest_turn", "turn_matrix",
-              "match_turned"),
+    ".verification": (
+        "VerificationConfig",
+        "VerificationResult",
+        "verify_matches",
+        "estimate_homography",
+        "estimate_fundamental",
+        "local_affine_scales",
+    ),
+    ".refinement": (
+        "RefinedScale",
+        "RefinedMatching",
+        "refine_scale_map",
+        "refine_pair_maps",
+        "refine_matching",
+        "describe_and_match",
+        "sift_seed_points",
+    ),
+    ".auto": (
+        "AutoConfig",
+        "AutoResult",
+        "Hypothesis",
+        "auto_match",
+        "propose",
+        "nearest_turn",
+        "turn_matrix",
+        "match_turned",
+    ),
     ".result": ("MatchResult", "save_matches"),
     ".viz": ("draw_matches",),
-    ".pipeline": ("match_pair", "refine_match", "run_match", "match_auto", "match_refined", "match_result",
-                  "match_with_truth"),
+    ".pipeline": (
+        "match_pair",
+        "refine_match",
+        "run_match",
+        "match_auto",
+        "match_refined",
+        "match_result",
+        "match_with_truth",
+    ),
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 __all__ = sorted(_WHERE)

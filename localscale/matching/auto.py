@@ -22,6 +22,7 @@
 
 Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -81,8 +82,9 @@ class AutoConfig:
         if not (0 <= self.window_share <= 1):
             raise LocalScaleError(f"auto window_share must be in [0, 1], got {self.window_share!r}")
         if not (self.same_log2 >= 0 and self.geometry_log2 >= 0):
-            raise LocalScaleError(f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, "
-                                  f"{self.geometry_log2!r}")
+            raise LocalScaleError(
+                f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, {self.geometry_log2!r}"
+            )
         if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
             raise LocalScaleError(f"auto budget must be an integer >= 1, got {self.budget!r}")
         if not (isinstance(self.accept_inliers, int) and self.accept_inliers >= 4):
@@ -127,11 +129,17 @@ class Trial:
 
     def to_dict(self) -> dict:
         h = self.hypothesis
-        return {"source": h.source, "scale": round(float(h.scale), 5), "turn": int(h.turn),
-                "window": None if h.window is None else [int(x) for x in h.window],
-                "num_matches": int(self.num_matches), "num_inliers": int(self.num_inliers),
-                "inlier_ratio": round(float(self.inlier_ratio), 4), "verified": bool(self.verified),
-                "seconds": round(float(self.seconds), 3)}
+        return {
+            "source": h.source,
+            "scale": round(float(h.scale), 5),
+            "turn": int(h.turn),
+            "window": None if h.window is None else [int(x) for x in h.window],
+            "num_matches": int(self.num_matches),
+            "num_inliers": int(self.num_inliers),
+            "inlier_ratio": round(float(self.inlier_ratio), 4),
+            "verified": bool(self.verified),
+            "seconds": round(float(self.seconds), 3),
+        }
 
 
 @dataclass
@@ -149,9 +157,14 @@ class AutoResult:
 
     def to_dict(self) -> dict:
         """JSON-ready: the chosen hypothesis, whether it verified, and every trial."""
-        return {"chosen": self.chosen.describe(), "scale": round(float(self.chosen.scale), 5),
-                "turn": int(self.chosen.turn), "verified": self.verified,
-                "trials": [t.to_dict() for t in self.trials], "seconds": round(self.seconds, 3)}
+        return {
+            "chosen": self.chosen.describe(),
+            "scale": round(float(self.chosen.scale), 5),
+            "turn": int(self.chosen.turn),
+            "verified": self.verified,
+            "trials": [t.to_dict() for t in self.trials],
+            "seconds": round(self.seconds, 3),
+        }
 
     @property
     def verified(self) -> bool:
@@ -159,6 +172,7 @@ class AutoResult:
 
 
 # ---------------------------------------------------------------- quarter turns
+
 
 def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
     """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
@@ -181,6 +195,7 @@ def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------- hypotheses
 
+
 def _level(pred, gate) -> float:
     """The level of a Local-ScaleNet map over the part of A that B shows (weighted median, log2)."""
     from .correction import weighted_quantile
@@ -192,8 +207,15 @@ def _level(pred, gate) -> float:
     return float(2.0 ** weighted_quantile(np.log2(s[ok]), None if w is None else w[ok], 0.5)) if ok.any() else 1.0
 
 
-def propose(image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None, gate=None,
-            patches: bool = False, bf16: bool = False) -> tuple:
+def propose(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    local_model=None,
+    global_model=None,
+    gate=None,
+    patches: bool = False,
+    bf16: bool = False,
+) -> tuple:
     """The hypotheses of the networks, strongest evidence first, and a function that ranks B's
     quarter turns at a scale (called only when the first hypotheses fail).
 
@@ -225,19 +247,30 @@ def propose(image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_m
         ranked = []
         for k in (1, 2, 3):
             p = global_model.predict(image_a, np.rot90(image_b, k), bf16=bf16, turns=False)
-            ranked.append((p.inconsistency_log2 if math.isfinite(p.inconsistency_log2) else math.inf, k,
-                           float(p.scale) if math.isfinite(p.scale) and p.scale > 0 else scale))
+            ranked.append(
+                (
+                    p.inconsistency_log2 if math.isfinite(p.inconsistency_log2) else math.inf,
+                    k,
+                    float(p.scale) if math.isfinite(p.scale) and p.scale > 0 else scale,
+                )
+            )
         return [Hypothesis(s, k, "ScaleNet turn") for _, k, s in sorted(ranked)]
 
     return out, more, maps_ab
 
 
 def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
-    return any(t.turn == h.turn and abs(math.log2(h.scale) - math.log2(t.scale)) < same_log2
-               and (h.maps is None) == (t.maps is None) and (h.window is None) == (t.window is None) for t in tried)
+    return any(
+        t.turn == h.turn
+        and abs(math.log2(h.scale) - math.log2(t.scale)) < same_log2
+        and (h.maps is None) == (t.maps is None)
+        and (h.window is None) == (t.window is None)
+        for t in tried
+    )
 
 
 # ---------------------------------------------------------------- the geometry's own hypothesis
+
 
 def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
     """The quarter turn of B (of ``shape_b``) after which the homography ``H`` (A -> B) rotates
@@ -265,7 +298,7 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
     if v.H is not None:
         turn = nearest_turn(v.H, pa.mean(0), v.shape_b)
         window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
-    else:   # a fundamental or essential matrix: the rotation of a similarity fitted to the inliers
+    else:  # a fundamental or essential matrix: the rotation of a similarity fitted to the inliers
         M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
         if M is not None and np.isfinite(M).all():
             turn = nearest_turn(np.vstack([M, [0.0, 0.0, 1.0]]), pa.mean(0), v.shape_b)
@@ -277,11 +310,13 @@ def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin:
     ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
     if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
         return None
-    wide, M, shape_wide, shape_other = (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
+    wide, M, shape_wide, shape_other = (
+        (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
+    )
     h, w = shape_other[:2]
     corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
     if not (np.isfinite(corners).all() and (corners[:4, 2] * corners[4, 2] > 0).all()):
-        return None       # part of the other image is behind the camera: no bounded window
+        return None  # part of the other image is behind the camera: no bounded window
     xy = corners[:, :2] / corners[:, 2:]
     (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
     mx, my = margin * (x1 - x0), margin * (y1 - y0)
@@ -295,9 +330,19 @@ def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin:
 
 # ---------------------------------------------------------------- the loop
 
-def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=None, global_model=None,
-               config: Optional[AutoConfig] = None, keys: tuple = (None, None), seed_matcher=None,
-               cameras: tuple = (None, None), verification: Optional[VerificationConfig] = None) -> AutoResult:
+
+def auto_match(
+    matcher,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    local_model=None,
+    global_model=None,
+    config: Optional[AutoConfig] = None,
+    keys: tuple = (None, None),
+    seed_matcher=None,
+    cameras: tuple = (None, None),
+    verification: Optional[VerificationConfig] = None,
+) -> AutoResult:
     """Match ``image_a`` and ``image_b`` (``H x W x 3`` uint8) with ``matcher`` under the networks'
     hypotheses, each verified by geometry (module docstring).
 
@@ -316,25 +361,41 @@ def auto_match(matcher, image_a: np.ndarray, image_b: np.ndarray, local_model=No
         with keypoints in the pixels of the images given.
     """
     t_start = time.perf_counter()
-    loop = _Loop(matcher, image_a, image_b, (config or matcher.config.auto).check(), keys, cameras,
-                 verification or matcher.config.verification)
+    loop = _Loop(
+        matcher,
+        image_a,
+        image_b,
+        (config or matcher.config.auto).check(),
+        keys,
+        cameras,
+        verification or matcher.config.verification,
+    )
     network_maps = loop.run(local_model, global_model, seed_matcher)
-    found, v, h = loop.best if loop.best is not None else loop.runs[0]   # nothing verified: the identity's, flagged
+    found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
 
 
 class _Loop:
     """The hypothesis loop of :func:`auto_match` for one pair: what was tried, what each run found."""
 
-    def __init__(self, matcher, image_a: np.ndarray, image_b: np.ndarray, config: AutoConfig, keys: tuple,
-                 cameras: tuple, verification: VerificationConfig):
+    def __init__(
+        self,
+        matcher,
+        image_a: np.ndarray,
+        image_b: np.ndarray,
+        config: AutoConfig,
+        keys: tuple,
+        cameras: tuple,
+        verification: VerificationConfig,
+    ):
         self.matcher, self.a, self.b, self.config, self.keys = matcher, image_a, image_b, config, keys
         self.cameras = cameras
         # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
         # a small part of the wide one, and all of itself
         self.vconf = dataclasses.replace(verification, coverage_of="either")
-        self.geometric_vconf = dataclasses.replace(self.vconf,
-                                                   min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS))
+        self.geometric_vconf = dataclasses.replace(
+            self.vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
+        )
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
@@ -349,8 +410,9 @@ class _Loop:
         # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
         vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
         found, v = _run(self.matcher, self.a, self.b, h, self.keys, vconf, self.cameras)
-        self.trials.append(Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
-                                 time.perf_counter() - t0))
+        self.trials.append(
+            Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
+        )
         self.runs.append((found, v, h))
         if v.verified and (self.best is None or v.num_inliers > self.best[1].num_inliers):
             self.best = (found, v, h)
@@ -361,11 +423,14 @@ class _Loop:
         geometry says it was matched at another scale or turn: that hypothesis is then queued
         first (also after a weak verification), and the loop ends after it if it verifies or
         anything was clear. The identity's clear verification is final."""
-        if h.source.endswith("geometry"):     # the geometry confirmed by the matcher ends the loop
+        if h.source.endswith("geometry"):  # the geometry confirmed by the matcher ends the loop
             return bool(v.verified) or any(self.clear(r[1]) for r in self.runs)
         g = geometry_hypothesis(v, max_share=self.config.window_share)
-        if g is not None and not _same(g, self.tried, self.config.geometry_log2) \
-                and not (self.clear(v) and h is self.identity):
+        if (
+            g is not None
+            and not _same(g, self.tried, self.config.geometry_log2)
+            and not (self.clear(v) and h is self.identity)
+        ):
             self.queue.insert(0, g)
             return False
         return self.clear(v)
@@ -378,17 +443,25 @@ class _Loop:
         if self.settled(self.attempt(self.identity), self.identity):
             return None
         if seed_matcher is not None and seed_matcher.name != m.config.name:
-            g = _seed_hypothesis(seed_matcher, self.a, self.b, self.keys, self.vconf, self.trials, c.window_share,
-                                 self.cameras)
+            g = _seed_hypothesis(
+                seed_matcher, self.a, self.b, self.keys, self.vconf, self.trials, c.window_share, self.cameras
+            )
             if g is not None and not _same(g, self.tried, c.geometry_log2):
                 self.queue.insert(0, g)
-        hyps = more = network_maps = None          # the networks run once the geometry's hypotheses are spent
+        hyps = more = network_maps = None  # the networks run once the geometry's hypotheses are spent
         turns_added = False
         while sum(not t.hypothesis.source.startswith("seed") for t in self.trials) < c.budget:
             if not self.queue:
                 if hyps is None:
-                    hyps, more, network_maps = propose(self.a, self.b, local_model, global_model, m.config.gate,
-                                                       not m.extractor.rectified, m.config.bf16)
+                    hyps, more, network_maps = propose(
+                        self.a,
+                        self.b,
+                        local_model,
+                        global_model,
+                        m.config.gate,
+                        not m.extractor.rectified,
+                        m.config.bf16,
+                    )
                     self.queue += [h for h in hyps if h.source != "identity"]
                     continue
                 if turns_added or not c.turns:
@@ -397,7 +470,7 @@ class _Loop:
                 continue
             h = self.queue.pop(0)
             if h.maps is None and abs(math.log2(h.scale)) < c.same_log2:
-                h = Hypothesis(1.0, h.turn, h.source)     # within the dead zone: the images as they are
+                h = Hypothesis(1.0, h.turn, h.source)  # within the dead zone: the images as they are
             if _same(h, self.tried, c.geometry_log2 if h.source.endswith("geometry") else c.same_log2):
                 continue
             if self.settled(self.attempt(h), h):
@@ -405,8 +478,16 @@ class _Loop:
         return network_maps
 
 
-def _seed_hypothesis(seed_matcher, a: np.ndarray, b: np.ndarray, keys: tuple, vconf, trials: list,
-                     window_share: float, cameras: tuple = (None, None)) -> Optional[Hypothesis]:
+def _seed_hypothesis(
+    seed_matcher,
+    a: np.ndarray,
+    b: np.ndarray,
+    keys: tuple,
+    vconf,
+    trials: list,
+    window_share: float,
+    cameras: tuple = (None, None),
+) -> Optional[Hypothesis]:
     """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
     its verified geometry gives (``None`` if it did not verify)."""
     name = seed_matcher.name
@@ -415,14 +496,23 @@ def _seed_hypothesis(seed_matcher, a: np.ndarray, b: np.ndarray, keys: tuple, vc
     # a proposal only (the matcher's own run at it is verified again): fewer inliers will do
     vconf = dataclasses.replace(vconf, min_inliers=min(vconf.min_inliers, GEOMETRY_MIN_INLIERS))
     found, v = _run(seed_matcher, a, b, seed, tuple(None if k is None else (k, "seed") for k in keys), vconf, cameras)
-    trials.append(Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified),
-                        time.perf_counter() - t0))
+    trials.append(
+        Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
+    )
     g = geometry_hypothesis(v, max_share=window_share)
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 
 
-def match_turned(matcher, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None, turn: int = 0,
-                 keys: tuple = (None, None), maps_turned: bool = False):
+def match_turned(
+    matcher,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    scale_a=None,
+    scale_b=None,
+    turn: int = 0,
+    keys: tuple = (None, None),
+    maps_turned: bool = False,
+):
     """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
     pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
     (``maps_turned``), or a float."""
@@ -450,9 +540,11 @@ def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vcon
         keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
     sa, sb = h.maps if h.maps is not None else (h.scale, 1.0 / h.scale)
     found = match_turned(matcher, images[0], images[1], sa, sb, h.turn, tuple(keys), maps_turned=True)
-    found = dataclasses.replace(found, keypoints_a=found.keypoints_a + offsets[0],
-                                keypoints_b=found.keypoints_b + offsets[1])
+    found = dataclasses.replace(
+        found, keypoints_a=found.keypoints_a + offsets[0], keypoints_b=found.keypoints_b + offsets[1]
+    )
     m = found.matches
-    v = verify_matches(found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf,
-                       *cameras)
+    v = verify_matches(
+        found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf, *cameras
+    )
     return found, v

@@ -20,6 +20,7 @@ Example::
     cfg = match_config("aliked-lightglue", num_features=1024)
     MatchConfig(descriptor="sift", num_features=500)     # patches described by SIFT
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,8 +41,15 @@ from .verification import VerificationConfig
 #: matching rules a :class:`MatchConfig` can name (the extractors: :data:`~localscale.features.extractors.EXTRACTORS`)
 MATCHINGS = ("mnn", "lightglue")
 #: the names of :data:`MATCHERS`
-MATCHER_NAMES = ("hardnet", "sift", "aliked-lightglue", "aliked-n16rot-lightglue", "disk-lightglue",
-                 "xfeat-lighterglue", "xfeat")
+MATCHER_NAMES = (
+    "hardnet",
+    "sift",
+    "aliked-lightglue",
+    "aliked-n16rot-lightglue",
+    "disk-lightglue",
+    "xfeat-lighterglue",
+    "xfeat",
+)
 
 
 @dataclass
@@ -148,8 +156,9 @@ class MatchConfig:
                     raise LocalScaleError(f"{name} must be in (0, 1] or -1 (off), got {v!r}") from None
         _check_int(self.max_passes, "max_passes", 1)
         if self.descriptor_precision not in PRECISIONS:
-            raise LocalScaleError(f"descriptor_precision must be one of {PRECISIONS}, "
-                                  f"got {self.descriptor_precision!r}")
+            raise LocalScaleError(
+                f"descriptor_precision must be one of {PRECISIONS}, got {self.descriptor_precision!r}"
+            )
         if self.orientation not in ("upright", "gradient"):
             raise LocalScaleError(f"orientation must be 'upright' or 'gradient', got {self.orientation!r}")
         if self.extractor == "aliked" and self.model not in ALIKED_MODELS:
@@ -162,8 +171,9 @@ class MatchConfig:
             raise LocalScaleError(f"auto must be an AutoConfig, got {type(self.auto).__name__}")
         self.auto.check()
         if self.auto.seed is not None and self.auto.seed not in MATCHER_NAMES:
-            raise LocalScaleError(f"auto seed must be None or one of {', '.join(MATCHER_NAMES)}, "
-                                  f"got {self.auto.seed!r}")
+            raise LocalScaleError(
+                f"auto seed must be None or one of {', '.join(MATCHER_NAMES)}, got {self.auto.seed!r}"
+            )
         return self
 
     def __post_init__(self):
@@ -176,11 +186,18 @@ def _check_int(value, name: str, low: int) -> None:
 
 
 def _check_number(value, name: str, low: float, high: float = math.inf, inclusive: bool = False) -> None:
-    ok = isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool) \
-        and math.isfinite(value) and (low <= value <= high if inclusive else low < value <= high)
+    ok = (
+        isinstance(value, (int, float, np.floating, np.integer))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and (low <= value <= high if inclusive else low < value <= high)
+    )
     if not ok:
-        span = f"in [{low:g}, {high:g}]" if inclusive else (f"in ({low:g}, {high:g}]" if math.isfinite(high)
-                                                           else f"a finite number > {low:g}")
+        span = (
+            f"in [{low:g}, {high:g}]"
+            if inclusive
+            else (f"in ({low:g}, {high:g}]" if math.isfinite(high) else f"a finite number > {low:g}")
+        )
         raise LocalScaleError(f"{name} must be {span}, got {value!r}")
 
 
@@ -188,14 +205,28 @@ def _check_number(value, name: str, low: float, high: float = math.inf, inclusiv
 MATCHERS = {
     "hardnet": MatchConfig(),
     "sift": MatchConfig(name="sift", extractor="sift", num_features=4096, ratio=0.8),
-    "aliked-lightglue": MatchConfig(name="aliked-lightglue", extractor="aliked", matching="lightglue",
-                                    model="aliked-n16", num_features=512, max_side=1024),
-    "aliked-n16rot-lightglue": MatchConfig(name="aliked-n16rot-lightglue", extractor="aliked", matching="lightglue",
-                                           model="aliked-n16rot", num_features=2048, max_side=1024),
-    "disk-lightglue": MatchConfig(name="disk-lightglue", extractor="disk", matching="lightglue", model="depth",
-                                  num_features=2048, max_side=1024),
-    "xfeat-lighterglue": MatchConfig(name="xfeat-lighterglue", extractor="xfeat", matching="lightglue",
-                                     num_features=4096, max_side=1024),
+    "aliked-lightglue": MatchConfig(
+        name="aliked-lightglue",
+        extractor="aliked",
+        matching="lightglue",
+        model="aliked-n16",
+        num_features=512,
+        max_side=1024,
+    ),
+    "aliked-n16rot-lightglue": MatchConfig(
+        name="aliked-n16rot-lightglue",
+        extractor="aliked",
+        matching="lightglue",
+        model="aliked-n16rot",
+        num_features=2048,
+        max_side=1024,
+    ),
+    "disk-lightglue": MatchConfig(
+        name="disk-lightglue", extractor="disk", matching="lightglue", model="depth", num_features=2048, max_side=1024
+    ),
+    "xfeat-lighterglue": MatchConfig(
+        name="xfeat-lighterglue", extractor="xfeat", matching="lightglue", num_features=4096, max_side=1024
+    ),
     "xfeat": MatchConfig(name="xfeat", extractor="xfeat", num_features=4096, max_side=1024, min_similarity=0.82),
 }
 
@@ -225,5 +256,7 @@ def match_config(matcher: Union[str, MatchConfig, None] = None, **options) -> Ma
     names = {f.name for f in dataclasses.fields(MatchConfig)}
     unknown = sorted(set(options) - names)
     if unknown:
-        raise LocalScaleError(f"unknown match option(s) {', '.join(unknown)}; MatchConfig has {', '.join(sorted(names))}")
+        raise LocalScaleError(
+            f"unknown match option(s) {', '.join(unknown)}; MatchConfig has {', '.join(sorted(names))}"
+        )
     return dataclasses.replace(matcher, **options) if options else dataclasses.replace(matcher)

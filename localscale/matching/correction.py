@@ -36,6 +36,7 @@ Example::
     sa, sb = fused.maps(a, b, local_model=local, global_model=global_)
     sa, sb = scale_maps_for_pair(a, b, "fused")          # the same, functional
 """
+
 from __future__ import annotations
 
 import math
@@ -47,8 +48,6 @@ import numpy as np
 from ..errors import LocalScaleError
 from ..geometry import homography_scale_map
 from ..io import read_homography
-
-
 
 GATE_WEIGHTINGS = ("none", "visible", "reliability")
 
@@ -143,16 +142,24 @@ class CorrectionGate:
                 c = weighted_quantile(la, wa, 0.5) + weighted_quantile(lb, wb, 0.5)
                 scale_a = np.exp2(log_a - c / 2).astype(np.float32)
                 scale_b = np.exp2(log_b - c / 2).astype(np.float32)
-        if self.min_pair_log2 > 0 and max(self.magnitude(scale_a, weights_a),
-                                          self.magnitude(scale_b, weights_b)) < self.min_pair_log2:
+        if (
+            self.min_pair_log2 > 0
+            and max(self.magnitude(scale_a, weights_a), self.magnitude(scale_b, weights_b)) < self.min_pair_log2
+        ):
             return None, None
         return self.apply(scale_a, confidence_a), self.apply(scale_b, confidence_b)
 
     def apply_predictions(self, pred_a, pred_b):
         """:meth:`apply_pair` on two ``LocalScalePrediction``s (A->B and B->A): their scale maps,
         confidences and the weights ``weighting`` names."""
-        return self.apply_pair(pred_a.scale, pred_b.scale, pred_a.confidence, pred_b.confidence,
-                               self.weights_of(pred_a), self.weights_of(pred_b))
+        return self.apply_pair(
+            pred_a.scale,
+            pred_b.scale,
+            pred_a.confidence,
+            pred_b.confidence,
+            self.weights_of(pred_a),
+            self.weights_of(pred_b),
+        )
 
 
 def _finite_log2(scale_map, weights=None):
@@ -231,8 +238,17 @@ class Correction:
     def __str__(self) -> str:
         return self.name
 
-    def maps(self, image_a: np.ndarray, image_b: np.ndarray, H=None, local_model=None, global_model=None,
-             gate: "CorrectionGate" = None, encodings=None, bf16: bool = False):
+    def maps(
+        self,
+        image_a: np.ndarray,
+        image_b: np.ndarray,
+        H=None,
+        local_model=None,
+        global_model=None,
+        gate: "CorrectionGate" = None,
+        encodings=None,
+        bf16: bool = False,
+    ):
         """The maps ``(for A, for B)`` (``S_{A->B}`` on A, ``S_{B->A}`` on B; floats, ``H x W``
         maps or None) of ``H x W x 3`` images.
 
@@ -246,20 +262,34 @@ class Correction:
             raise LocalScaleError(f"correction={self.name!r} needs the homography H (A -> B)")
         if "local" in self.models and local_model is None:
             from ..models import LocalScaleNet
+
             local_model = LocalScaleNet.from_pretrained()
         if "global" in self.models and global_model is None:
             from ..models import ScaleNet
+
             global_model = ScaleNet.from_pretrained()
-        return self.make_maps(_Pair(image_a, image_b, H, local_model, global_model,
-                                    CorrectionGate() if gate is None else gate, encodings, bf16))
+        return self.make_maps(
+            _Pair(
+                image_a,
+                image_b,
+                H,
+                local_model,
+                global_model,
+                CorrectionGate() if gate is None else gate,
+                encodings,
+                bf16,
+            )
+        )
 
     def load_models(self, local_weights=None, global_weights=None, device: str = "cpu"):
         """``(local_model, global_model)`` this method needs (None for the other), loaded by
         :func:`localscale.loading.load_scale_model` (``weights`` None = bundled)."""
         from ..loading import load_scale_model
 
-        return (load_scale_model("local", local_weights, device) if "local" in self.models else None,
-                load_scale_model("global", global_weights, device) if "global" in self.models else None)
+        return (
+            load_scale_model("local", local_weights, device) if "local" in self.models else None,
+            load_scale_model("global", global_weights, device) if "global" in self.models else None,
+        )
 
     def check_models(self, local_model=None, global_model=None) -> None:
         """Raise :class:`LocalScaleError` when a given model is not of the kind this method needs."""
@@ -267,8 +297,9 @@ class Correction:
 
         for kind, model, cls in (("local", local_model, LocalScaleNet), ("global", global_model, ScaleNet)):
             if kind in self.models and model is not None and not isinstance(model, cls):
-                raise LocalScaleError(f"correction {self.name!r}: {kind}_model must be a {cls.__name__}, "
-                                      f"got {type(model).__name__}")
+                raise LocalScaleError(
+                    f"correction {self.name!r}: {kind}_model must be a {cls.__name__}, got {type(model).__name__}"
+                )
 
 
 @dataclass
@@ -291,8 +322,10 @@ class _Pair:
     def local_predictions(self):
         """Local-ScaleNet's predictions A->B and B->A (each image encoded once)."""
         m = self.local_model
-        ea, eb = self.encodings or (m.encode_image(self.a, "image A", self.bf16),
-                                    m.encode_image(self.b, "image B", self.bf16))
+        ea, eb = self.encodings or (
+            m.encode_image(self.a, "image A", self.bf16),
+            m.encode_image(self.b, "image B", self.bf16),
+        )
         return m.predict_from_features(ea, eb, bf16=self.bf16), m.predict_from_features(eb, ea, bf16=self.bf16)
 
 
@@ -321,9 +354,11 @@ def _searched_maps(p: _Pair):
 
 
 def _truth_maps(p: _Pair):
-    H = read_homography(p.H)   # homography_scale_map orients the sign of H itself
-    return (homography_scale_map(H, *p.a.shape[:2]).astype(np.float32),
-            homography_scale_map(np.linalg.inv(H), *p.b.shape[:2]).astype(np.float32))
+    H = read_homography(p.H)  # homography_scale_map orients the sign of H itself
+    return (
+        homography_scale_map(H, *p.a.shape[:2]).astype(np.float32),
+        homography_scale_map(np.linalg.inv(H), *p.b.shape[:2]).astype(np.float32),
+    )
 
 
 def _gated_truth_maps(p: _Pair):
@@ -331,24 +366,57 @@ def _gated_truth_maps(p: _Pair):
 
 
 #: every correction method, by name
-CORRECTION_METHODS = {c.name: c for c in (
-    Correction("none", help="no correction"),
-    Correction("global", ("global",), help="ScaleNet's consistency-checked factor", make_maps=_global_maps),
-    Correction("local", ("local",), local_encodings=True, help="Local-ScaleNet maps, gated", make_maps=_local_maps),
-    Correction("fused", ("local", "global"), local_encodings=True, help="local map shape + global ScaleNet level", make_maps=_fused_maps),
-    Correction("searched", ("local",), help="local maps from the windows sharing the most content "
-                                            "(strong zoom, low overlap; ~30x slower)", make_maps=_searched_maps),
-    Correction("gt", needs_H=True, turns_to_truth=True, make_maps=_truth_maps,
-               help="analytic map of the true homography --H, and B turned by the quarter turn that undoes "
-                    "its rotation (the ceiling of rectification)"),
-    Correction("gt_gated", needs_H=True, turns_to_truth=True, make_maps=_gated_truth_maps,
-               help="the gt map through the gate of local"),
-    Correction("refined", ("local",), refine=True, local_encodings=True, make_maps=_local_maps,
-               help="local maps, verified, refined by the geometry, matched again (as --refine)"),
-    Correction("auto", ("local", "global"), auto=True,
-               help="the networks propose scales and quarter turns of B, each is matched and verified by "
-                    "geometry, the first clear one wins (any matcher)"),
-)}
+CORRECTION_METHODS = {
+    c.name: c
+    for c in (
+        Correction("none", help="no correction"),
+        Correction("global", ("global",), help="ScaleNet's consistency-checked factor", make_maps=_global_maps),
+        Correction("local", ("local",), local_encodings=True, help="Local-ScaleNet maps, gated", make_maps=_local_maps),
+        Correction(
+            "fused",
+            ("local", "global"),
+            local_encodings=True,
+            help="local map shape + global ScaleNet level",
+            make_maps=_fused_maps,
+        ),
+        Correction(
+            "searched",
+            ("local",),
+            help="local maps from the windows sharing the most content (strong zoom, low overlap; ~30x slower)",
+            make_maps=_searched_maps,
+        ),
+        Correction(
+            "gt",
+            needs_H=True,
+            turns_to_truth=True,
+            make_maps=_truth_maps,
+            help="analytic map of the true homography --H, and B turned by the quarter turn that undoes "
+            "its rotation (the ceiling of rectification)",
+        ),
+        Correction(
+            "gt_gated",
+            needs_H=True,
+            turns_to_truth=True,
+            make_maps=_gated_truth_maps,
+            help="the gt map through the gate of local",
+        ),
+        Correction(
+            "refined",
+            ("local",),
+            refine=True,
+            local_encodings=True,
+            make_maps=_local_maps,
+            help="local maps, verified, refined by the geometry, matched again (as --refine)",
+        ),
+        Correction(
+            "auto",
+            ("local", "global"),
+            auto=True,
+            help="the networks propose scales and quarter turns of B, each is matched and verified by "
+            "geometry, the first clear one wins (any matcher)",
+        ),
+    )
+}
 #: the names of :data:`CORRECTION_METHODS`
 CORRECTIONS = tuple(CORRECTION_METHODS)
 
@@ -363,14 +431,23 @@ def get_correction(correction: Union[str, Correction]) -> Correction:
     return CORRECTION_METHODS[correction]
 
 
-def scale_maps_for_pair(image_a: np.ndarray, image_b: np.ndarray, correction: Union[str, Correction], H=None,
-                        local_model=None, global_model=None, gate: Optional[CorrectionGate] = None, encodings=None,
-                        bf16: bool = False):
+def scale_maps_for_pair(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    correction: Union[str, Correction],
+    H=None,
+    local_model=None,
+    global_model=None,
+    gate: Optional[CorrectionGate] = None,
+    encodings=None,
+    bf16: bool = False,
+):
     """The maps ``(for A, for B)`` of a correction method: :meth:`Correction.maps`."""
     return get_correction(correction).maps(image_a, image_b, H, local_model, global_model, gate, encodings, bf16)
 
 
-def models_for_correction(correction: Union[str, Correction], local_weights=None, global_weights=None,
-                          device: str = "cpu"):
+def models_for_correction(
+    correction: Union[str, Correction], local_weights=None, global_weights=None, device: str = "cpu"
+):
     """``(local_model, global_model)`` that ``correction`` needs: :meth:`Correction.load_models`."""
     return get_correction(correction).load_models(local_weights, global_weights, device)

@@ -1,4 +1,5 @@
 """kornia's LightGlue with the pre-trained weights of an extractor, loaded from disk (nothing is downloaded)."""
+
 from __future__ import annotations
 
 from typing import Optional
@@ -11,8 +12,13 @@ from ..features.pretrained import find_weights, load_weights
 LIGHTGLUE_WEIGHTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth", "xfeat": "xfeat-lighterglue.pt"}
 
 
-def load_lightglue(features: str, filter_threshold: float = 0.1, depth_confidence: Optional[float] = None,
-                   width_confidence: Optional[float] = None, weights=None) -> torch.nn.Module:
+def load_lightglue(
+    features: str,
+    filter_threshold: float = 0.1,
+    depth_confidence: Optional[float] = None,
+    width_confidence: Optional[float] = None,
+    weights=None,
+) -> torch.nn.Module:
     """LightGlue for ``features`` (``aliked``, ``disk``: LightGlue; ``xfeat``: LighterGlue) in
     kornia's configuration for them; ``None`` confidences keep kornia's values."""
     import kornia.feature as KF
@@ -29,7 +35,7 @@ def load_lightglue(features: str, filter_threshold: float = 0.1, depth_confidenc
         # what kornia calls "transformers.i.self_attn" / ".cross_attn"
         out = {}
         for k, v in sd.items():
-            k = k[len("matcher."):] if k.startswith("matcher.") else k
+            k = k[len("matcher.") :] if k.startswith("matcher.") else k
             for i in range(n_layers):
                 k = k.replace(f"self_attn.{i}.", f"transformers.{i}.self_attn.")
                 k = k.replace(f"cross_attn.{i}.", f"transformers.{i}.cross_attn.")

@@ -13,6 +13,7 @@ Example::
     m = matcher.match(image_a, image_b)                       # H x W x 3 uint8 arrays
     m.keypoints_a[m.matches[:, 0]], m.keypoints_b[m.matches[:, 1]]
 """
+
 from __future__ import annotations
 
 import math
@@ -82,8 +83,9 @@ class Matcher:
         if c.matching == "lightglue":
             from .lightglue import load_lightglue
 
-            self._lightglue = load_lightglue(self.extractor.lightglue, c.filter_threshold, c.depth_confidence,
-                                             c.width_confidence, c.weights).to(self.device)
+            self._lightglue = load_lightglue(
+                self.extractor.lightglue, c.filter_threshold, c.depth_confidence, c.width_confidence, c.weights
+            ).to(self.device)
 
     @property
     def name(self) -> str:
@@ -131,11 +133,11 @@ class Matcher:
         the strongest."""
         c = self.config
         h, w = image.shape[:2]
-        wanted = np.minimum(_log2_map(scale_map, h, w), 0.0)       # shrink where this image's content is bigger
+        wanted = np.minimum(_log2_map(scale_map, h, w), 0.0)  # shrink where this image's content is bigger
         levels = np.asarray([-0.5 * k for k in range(c.pyramid + 1)])
         kps, descs, resps, seconds = [], [], [], 0.0
         for level in levels:
-            f = self.extract(image, 2.0 ** level, key)
+            f = self.extract(image, 2.0**level, key)
             seconds += f.seconds
             if not len(f.keypoints):
                 continue
@@ -146,10 +148,11 @@ class Matcher:
             descs.append(f.descriptors[torch.from_numpy(keep)])
             resps.append(f.responses[keep])
         if not kps:
-            return Features(np.zeros((0, 2), np.float32), torch.zeros(0, 1), np.zeros(0, np.float32), (h, w),
-                            seconds=seconds)
+            return Features(
+                np.zeros((0, 2), np.float32), torch.zeros(0, 1), np.zeros(0, np.float32), (h, w), seconds=seconds
+            )
         kp, d, r = np.concatenate(kps), torch.cat(descs), np.concatenate(resps)
-        order = np.argsort(-r, kind="stable")[:c.num_features]
+        order = np.argsort(-r, kind="stable")[: c.num_features]
         return Features(kp[order], d[torch.from_numpy(order)], r[order], (h, w), factor=1.0, seconds=seconds)
 
     # ---- matching
@@ -161,7 +164,7 @@ class Matcher:
             return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
         if self._lightglue is not None:
             return self._match_lightglue(fa, fb)
-        if c.ratio is not None and self.extractor.ratio_test == "a_to_b":   # Lowe's test A -> B, then the mutual check
+        if c.ratio is not None and self.extractor.ratio_test == "a_to_b":  # Lowe's test A -> B, then the mutual check
             da, db = fa.descriptors.numpy(), fb.descriptors.numpy()
             m = ratio_mutual_matches(da, db, c.ratio)
             return m, np.linalg.norm(da[m[:, 0]] - db[m[:, 1]], axis=1).astype(np.float32)
@@ -179,9 +182,11 @@ class Matcher:
             # LightGlue normalises by the image size: the working size of the extraction
             fw, fh = max(1, round(w * f.factor)), max(1, round(h * f.factor))
             kp = (f.keypoints + 0.5) * f.factor - 0.5
-            return {"keypoints": torch.from_numpy(kp)[None].to(self.device),
-                    "descriptors": f.descriptors[None].to(self.device),
-                    "image_size": torch.tensor([[fw, fh]], device=self.device)}
+            return {
+                "keypoints": torch.from_numpy(kp)[None].to(self.device),
+                "descriptors": f.descriptors[None].to(self.device),
+                "image_size": torch.tensor([[fw, fh]], device=self.device),
+            }
 
         with torch.inference_mode():
             out = self._lightglue({"image0": side(fa), "image1": side(fb)})
@@ -189,8 +194,9 @@ class Matcher:
         scores = out["scores"][0].float().cpu().numpy().reshape(-1)
         return m, (1.0 - scores).astype(np.float32)
 
-    def match(self, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None,
-              keys: tuple = (None, None)) -> Matches:
+    def match(
+        self, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None, keys: tuple = (None, None)
+    ) -> Matches:
         """Extract and match two images (``H x W x 3`` uint8 RGB) with their scale maps.
 
         ``scale_a`` / ``scale_b``: ``S_{A->B}`` on A and ``S_{B->A}`` on B (maps, floats or None).
@@ -207,8 +213,12 @@ class Matcher:
             fb = self.extract_per_keypoint(image_b, scale_b, keys[1])
             factors = (1.0, 1.0)
         else:
-            factors = rectify_factors(pair_scale(scale_a, scale_b), shapes=(image_a.shape, image_b.shape),
-                                      min_side=c.rectify_min_side, max_side=c.max_side)
+            factors = rectify_factors(
+                pair_scale(scale_a, scale_b),
+                shapes=(image_a.shape, image_b.shape),
+                min_side=c.rectify_min_side,
+                max_side=c.max_side,
+            )
             fa, fb = self.extract(image_a, factors[0], keys[0]), self.extract(image_b, factors[1], keys[1])
         t0 = time.perf_counter()
         m, dist = self.match_features(fa, fb)
@@ -230,7 +240,9 @@ def get_matcher(matcher: Union[str, MatchConfig, Matcher, None] = "hardnet", **o
     (``options`` replace its fields) or a :class:`Matcher` (returned as it is; no options then)."""
     if isinstance(matcher, Matcher):
         if options:
-            raise LocalScaleError(f"match options ({', '.join(sorted(options))}) cannot change a built Matcher; "
-                                  "give a name or a MatchConfig instead")
+            raise LocalScaleError(
+                f"match options ({', '.join(sorted(options))}) cannot change a built Matcher; "
+                "give a name or a MatchConfig instead"
+            )
         return matcher
     return Matcher(match_config(matcher, **options))

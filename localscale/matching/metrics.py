@@ -5,6 +5,7 @@
 * :func:`corner_error`, :func:`homography_auc`: mean error of A's four corners under an
   estimated vs the true homography, and the area under its cumulative curve up to a threshold.
 """
+
 from __future__ import annotations
 
 from typing import Optional, Sequence
@@ -13,8 +14,10 @@ import numpy as np
 
 from ..geometry import project
 
-def reprojection_errors(keypoints_a: np.ndarray, keypoints_b: np.ndarray, matches: np.ndarray,
-                        H: np.ndarray) -> np.ndarray:
+
+def reprojection_errors(
+    keypoints_a: np.ndarray, keypoints_b: np.ndarray, matches: np.ndarray, H: np.ndarray
+) -> np.ndarray:
     """``|| H x_A - x_B ||`` (pixels of B) for each match; ``inf`` where ``H x_A`` is undefined."""
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
     if len(matches) == 0:

@@ -6,6 +6,7 @@
 * :func:`ratio_mutual_matches`: Lowe's test from A to B, then the mutual check (OpenCV's
   brute-force matcher, as OpenCV SIFT users match).
 """
+
 from __future__ import annotations
 
 from typing import Optional
@@ -18,8 +19,9 @@ from kornia.feature import match_mnn, match_smnn
 from ..errors import LocalScaleError
 
 
-def match_descriptors(desc_a: torch.Tensor, desc_b: torch.Tensor, ratio: Optional[float] = None
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
+def match_descriptors(
+    desc_a: torch.Tensor, desc_b: torch.Tensor, ratio: Optional[float] = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mutual nearest-neighbour matching (+ optional ratio test).
 
     Args:
@@ -31,7 +33,9 @@ def match_descriptors(desc_a: torch.Tensor, desc_b: torch.Tensor, ratio: Optiona
     """
     desc_a, desc_b = torch.as_tensor(desc_a).float(), torch.as_tensor(desc_b).float()
     if desc_a.dim() != 2 or desc_b.dim() != 2 or desc_a.shape[1] != desc_b.shape[1]:
-        raise LocalScaleError(f"descriptors must be N x D and M x D, got {tuple(desc_a.shape)} and {tuple(desc_b.shape)}")
+        raise LocalScaleError(
+            f"descriptors must be N x D and M x D, got {tuple(desc_a.shape)} and {tuple(desc_b.shape)}"
+        )
     if len(desc_a) == 0 or len(desc_b) == 0:
         return torch.zeros(0), torch.zeros(0, 2, dtype=torch.long)
     if ratio is None:
@@ -54,6 +58,9 @@ def ratio_mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 
     bf = cv2.BFMatcher(cv2.NORM_L2)
     fwd = bf.knnMatch(desc_a, desc_b, k=2)
     back = {m.queryIdx: m.trainIdx for m in bf.match(desc_b, desc_a)}
-    out = [(m.queryIdx, m.trainIdx) for m, n in (p for p in fwd if len(p) == 2)
-           if m.distance < ratio * n.distance and back.get(m.trainIdx) == m.queryIdx]
+    out = [
+        (m.queryIdx, m.trainIdx)
+        for m, n in (p for p in fwd if len(p) == 2)
+        if m.distance < ratio * n.distance and back.get(m.trainIdx) == m.queryIdx
+    ]
     return np.array(out, np.int64).reshape(-1, 2)

@@ -16,6 +16,7 @@ Example::
     res.accuracy(5.0), len(res.matches), res.verification.verified, res.refined_a.scale
     draw_matches("a.png", "b.png", res, "matches.png"); save_matches(res, "matches.npz")
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,14 +35,24 @@ from .correction import Correction, get_correction
 from .matcher import Matcher, Matches, get_matcher
 from .metrics import reprojection_errors
 from .refinement import refine_matching, refine_pair_maps, sift_seed_points
-from .verification import verify_matches
 from .result import MatchResult, save_matches
+from .verification import verify_matches
 from .viz import draw_matches
 
 
-def match_pair(image_a, image_b, correction: Union[str, Correction] = "none", H=None, local_model=None, global_model=None,
-               matcher: Union[str, MatchConfig, Matcher] = "hardnet", *, camera_a=None, camera_b=None,
-               **options) -> MatchResult:
+def match_pair(
+    image_a,
+    image_b,
+    correction: Union[str, Correction] = "none",
+    H=None,
+    local_model=None,
+    global_model=None,
+    matcher: Union[str, MatchConfig, Matcher] = "hardnet",
+    *,
+    camera_a=None,
+    camera_b=None,
+    **options,
+) -> MatchResult:
     """Correct, extract and match two images (optionally verify, refine and match again).
 
     Images larger than the matcher's ``max_side`` (longer side) are matched at that working
@@ -85,7 +96,9 @@ def match_pair(image_a, image_b, correction: Union[str, Correction] = "none", H=
     if method.auto:
         res = match_auto(m, a, b, local_model, global_model, H, method, cameras=cameras, verification=vconf)
         res = _to_full_frame(res, to_work_a, to_work_b, H_full)
-        if res.refined_a is not None and not (np.array_equal(to_work_a, np.eye(3)) and np.array_equal(to_work_b, np.eye(3))):
+        if res.refined_a is not None and not (
+            np.array_equal(to_work_a, np.eye(3)) and np.array_equal(to_work_b, np.eye(3))
+        ):
             _refine_full_frame(res, image_a, image_b, to_work_a, to_work_b, m.config)
         return res
     sa, sb = method.maps(a, b, H, local_model, global_model, cfg.gate, bf16=cfg.bf16)
@@ -94,10 +107,11 @@ def match_pair(image_a, image_b, correction: Union[str, Correction] = "none", H=
     else:
         res = match_result(m, match_with_truth(m, a, b, sa, sb, H, method), H, method)
     res.scale_a, res.scale_b = sa, sb
-    if any(c is not None for c in cameras):   # the pair's geometry (and pose) with the cameras given
+    if any(c is not None for c in cameras):  # the pair's geometry (and pose) with the cameras given
         k = res.matches
-        res.verification = verify_matches(res.keypoints_a[k[:, 0]], res.keypoints_b[k[:, 1]], a.shape[:2],
-                                          b.shape[:2], None, vconf, *cameras)
+        res.verification = verify_matches(
+            res.keypoints_a[k[:, 0]], res.keypoints_b[k[:, 1]], a.shape[:2], b.shape[:2], None, vconf, *cameras
+        )
     return _to_full_frame(res, to_work_a, to_work_b, H_full)
 
 
@@ -113,8 +127,9 @@ def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
         if cam is not None:
             h, w = image_shape(image, f"image {name}")
             if abs(cam.width / w - cam.height / h) > 0.01 * max(cam.width / w, cam.height / h):
-                raise LocalScaleError(f"camera of image {name} is {cam.width}x{cam.height}, the image {w}x{h}: "
-                                      "not the same shape")
+                raise LocalScaleError(
+                    f"camera of image {name} is {cam.width}x{cam.height}, the image {w}x{h}: not the same shape"
+                )
             cam = cam.scaled(S[0, 0] * w / cam.width, S[1, 1] * h / cam.height)
         out.append(cam)
     return tuple(out)
@@ -127,8 +142,7 @@ def _verification_for(vconf, cameras: tuple):
     return vconf
 
 
-def match_with_truth(m: Matcher, a, b, scale_a, scale_b, H, correction: Correction,
-                     keys=(None, None)) -> Matches:
+def match_with_truth(m: Matcher, a, b, scale_a, scale_b, H, correction: Correction, keys=(None, None)) -> Matches:
     """``m.match`` with the maps of ``correction``; the ground-truth corrections (``gt``,
     ``gt_gated``) also turn B by the quarter turn that undoes the true homography's rotation at
     A's centre (:func:`~.auto.nearest_turn`): the ceiling of scale and rotation rectification."""
@@ -141,14 +155,28 @@ def match_with_truth(m: Matcher, a, b, scale_a, scale_b, H, correction: Correcti
 def match_result(m: Matcher, found: Matches, H, correction: Correction) -> MatchResult:
     """The :class:`MatchResult` of ``m.match``'s output (reprojection errors when ``H`` is given)."""
     errors = None if H is None else reprojection_errors(found.keypoints_a, found.keypoints_b, found.matches, H)
-    res = MatchResult(found.keypoints_a, found.keypoints_b, found.matches, found.distances, errors,
-                      found.radii_a, found.radii_b, correction.name, H)
-    res.meta = {"matcher": m.name, "num_features_a": len(found.keypoints_a),
-                "num_features_b": len(found.keypoints_b), "factors": [float(f) for f in found.factors]}
+    res = MatchResult(
+        found.keypoints_a,
+        found.keypoints_b,
+        found.matches,
+        found.distances,
+        errors,
+        found.radii_a,
+        found.radii_b,
+        correction.name,
+        H,
+    )
+    res.meta = {
+        "matcher": m.name,
+        "num_features_a": len(found.keypoints_a),
+        "num_features_b": len(found.keypoints_b),
+        "factors": [float(f) for f in found.factors],
+    }
     if not m.extractor.rectified:
         desc = m.config.descriptor
-        res.meta.update(descriptor=desc if isinstance(desc, str) else getattr(desc, "name", "custom"),
-                        detector=m.config.detector)
+        res.meta.update(
+            descriptor=desc if isinstance(desc, str) else getattr(desc, "name", "custom"), detector=m.config.detector
+        )
     return res
 
 
@@ -158,8 +186,18 @@ def _seed_matcher(name: str) -> Matcher:
     return Matcher(name)
 
 
-def match_auto(m: Matcher, a, b, local_model, global_model, H, correction: Correction,
-               keys=(None, None), cameras: tuple = (None, None), verification=None) -> MatchResult:
+def match_auto(
+    m: Matcher,
+    a,
+    b,
+    local_model,
+    global_model,
+    H,
+    correction: Correction,
+    keys=(None, None),
+    cameras: tuple = (None, None),
+    verification=None,
+) -> MatchResult:
     """``correction="auto"``: the hypothesis loop (:func:`~.auto.auto_match`); with ``refine``, the
     maps are refined by the winner's verified geometry (Local-ScaleNet's maps, or 1, elsewhere)."""
     from ..models import LocalScaleNet, ScaleNet
@@ -167,25 +205,36 @@ def match_auto(m: Matcher, a, b, local_model, global_model, H, correction: Corre
     local_model = local_model if local_model is not None else LocalScaleNet.from_pretrained()
     global_model = global_model if global_model is not None else ScaleNet.from_pretrained()
     seed = m.config.auto.seed
-    out = auto_match(m, a, b, local_model, global_model, keys=keys,
-                     seed_matcher=None if seed is None else _seed_matcher(seed), cameras=cameras,
-                     verification=verification)
+    out = auto_match(
+        m,
+        a,
+        b,
+        local_model,
+        global_model,
+        keys=keys,
+        seed_matcher=None if seed is None else _seed_matcher(seed),
+        cameras=cameras,
+        verification=verification,
+    )
     res = match_result(m, out.matches, H, correction)
     # unverified: the identity's matches, and no geometry to trust
     res.verification = out.verification if out.verified else dataclasses.replace(out.verification, H=None, F=None)
     res.meta["auto"] = out.to_dict()
     res.meta["seconds"] = out.seconds
-    res.scale_a, res.scale_b = out.network_maps or (None, None)     # Local-ScaleNet's maps, ungated
+    res.scale_a, res.scale_b = out.network_maps or (None, None)  # Local-ScaleNet's maps, ungated
     if m.config.refine:
         if out.network_maps is None and res.verification.H is None:
             # no homography to span the images (the identity settled without the networks):
             # Local-ScaleNet's maps hold away from the inliers
-            out.network_maps = (np.asarray(local_model.predict(a, b).scale, np.float32),
-                                np.asarray(local_model.predict(b, a).scale, np.float32))
+            out.network_maps = (
+                np.asarray(local_model.predict(a, b).scale, np.float32),
+                np.asarray(local_model.predict(b, a).scale, np.float32),
+            )
             res.scale_a, res.scale_b = out.network_maps
         prior_a, prior_b = out.network_maps or (None, None)
-        res.refined_a, res.refined_b = refine_pair_maps(_as_map(prior_a, a.shape[:2]), _as_map(prior_b, b.shape[:2]),
-                                                        res.verification, m.config.verification)
+        res.refined_a, res.refined_b = refine_pair_maps(
+            _as_map(prior_a, a.shape[:2]), _as_map(prior_b, b.shape[:2]), res.verification, m.config.verification
+        )
         res.meta.update(passes=len(out.trials), inlier_counts=[t.num_inliers for t in out.trials], seed_inliers=None)
     return res
 
@@ -203,15 +252,22 @@ def _refine_full_frame(res: MatchResult, image_a, image_b, to_a: np.ndarray, to_
         return (np.asarray(points, np.float64) - S[:2, 2]) / np.diag(S)[:2]
 
     full = dataclasses.replace(
-        v, H=None if v.H is None else np.linalg.inv(to_b) @ v.H @ to_a,
-        F=None if v.F is None else to_b.T @ v.F @ to_a, points_a=back(v.points_a, to_a),
-        points_b=back(v.points_b, to_b), local_scales=v.local_scales * fa / fb, shape_a=shape_a, shape_b=shape_b)
+        v,
+        H=None if v.H is None else np.linalg.inv(to_b) @ v.H @ to_a,
+        F=None if v.F is None else to_b.T @ v.F @ to_a,
+        points_a=back(v.points_a, to_a),
+        points_b=back(v.points_b, to_b),
+        local_scales=v.local_scales * fa / fb,
+        shape_a=shape_a,
+        shape_b=shape_b,
+    )
 
     def prior(net, shape, factor):
         if net is None:
             return None
-        log = cv2.resize(np.log2(np.clip(net, 1e-6, None)).astype(np.float32), (shape[1], shape[0]),
-                         interpolation=cv2.INTER_LINEAR)
+        log = cv2.resize(
+            np.log2(np.clip(net, 1e-6, None)).astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR
+        )
         return np.exp2(log + np.log2(factor)).astype(np.float32)
 
     # the priors: Local-ScaleNet's maps of the working frame, in full-image pixels
@@ -235,14 +291,19 @@ def match_refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, corre
     pa = _as_map(first_a if prior_a is None else prior_a, a.shape[:2])
     pb = _as_map(first_b if prior_b is None else prior_b, b.shape[:2])
     seed = (lambda: sift_seed_points(a, b, max(cfg.num_features, 1000))) if cfg.sift_seed else None
-    out = refine_matching(run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification,
-                          cfg.max_passes, seed)
+    out = refine_matching(
+        run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification, cfg.max_passes, seed
+    )
     found, used_a, used_b = history[out.best_pass]
     res = match_result(m, found, H, correction)
     res.scale_a, res.scale_b = used_a, used_b
     res.verification, res.refined_a, res.refined_b = out.refined_a.verification, out.refined_a, out.refined_b
-    res.meta.update(passes=out.passes, best_pass=out.best_pass, inlier_counts=list(out.inlier_counts),
-                    seed_inliers=None if out.seed is None else int(out.seed.num_inliers))
+    res.meta.update(
+        passes=out.passes,
+        best_pass=out.best_pass,
+        inlier_counts=list(out.inlier_counts),
+        seed_inliers=None if out.seed is None else int(out.seed.num_inliers),
+    )
     return res
 
 
@@ -274,8 +335,17 @@ def _as_map(scale, shape):
     return np.asarray(scale, np.float32)
 
 
-def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, prior_b=None, H=None,
-                 matcher: Union[str, MatchConfig, Matcher] = "hardnet", **options) -> MatchResult:
+def refine_match(
+    image_a,
+    image_b,
+    scale_a=None,
+    scale_b=None,
+    prior_a=None,
+    prior_b=None,
+    H=None,
+    matcher: Union[str, MatchConfig, Matcher] = "hardnet",
+    **options,
+) -> MatchResult:
     """Match with given maps, verify, refine the maps and match again (full resolution).
 
     Args:
@@ -298,9 +368,21 @@ def refine_match(image_a, image_b, scale_a=None, scale_b=None, prior_a=None, pri
     return res
 
 
-def run_match(image_a, image_b, out, correction: Union[str, Correction] = "local", H=None, local_model=None, global_model=None,
-              matcher: Union[str, MatchConfig, Matcher] = "hardnet", verbose: bool = True, *, camera_a=None,
-              camera_b=None, **options) -> MatchResult:
+def run_match(
+    image_a,
+    image_b,
+    out,
+    correction: Union[str, Correction] = "local",
+    H=None,
+    local_model=None,
+    global_model=None,
+    matcher: Union[str, MatchConfig, Matcher] = "hardnet",
+    verbose: bool = True,
+    *,
+    camera_a=None,
+    camera_b=None,
+    **options,
+) -> MatchResult:
     """:func:`match_pair`, then write ``out/matches.npz`` and ``out/matches.png``; returns the result.
 
     With refinement (``refine=True`` or ``correction="refined"``): also ``out/refined_scale.npy`` /
@@ -310,8 +392,18 @@ def run_match(image_a, image_b, out, correction: Union[str, Correction] = "local
     """
     from ..map_files import write_refinement
 
-    res = match_pair(image_a, image_b, correction, H, local_model, global_model, matcher, camera_a=camera_a,
-                     camera_b=camera_b, **options)
+    res = match_pair(
+        image_a,
+        image_b,
+        correction,
+        H,
+        local_model,
+        global_model,
+        matcher,
+        camera_a=camera_a,
+        camera_b=camera_b,
+        **options,
+    )
     out = Path(out)
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
@@ -321,7 +413,7 @@ def run_match(image_a, image_b, out, correction: Union[str, Correction] = "local
         if "auto" in res.meta:
             extra["auto"] = res.meta["auto"]
         write_refinement(out, "", res.refined_a, res.refined_b, extra, inputs)
-    elif res.verification is not None:   # auto, or cameras given: the verified geometry (and pose)
+    elif res.verification is not None:  # auto, or cameras given: the verified geometry (and pose)
         import json
 
         from ..outputs import ensure_not_input, write_text
@@ -330,24 +422,35 @@ def run_match(image_a, image_b, out, correction: Union[str, Correction] = "local
         extra = {"auto": res.meta["auto"]} if "auto" in res.meta else {}
         write_text(geo, json.dumps(res.verification.to_dict() | extra, indent=1) + "\n")
     if verbose:
-        msg = (f"{res.meta['matcher']}: {len(res.matches)} matches "
-               f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)")
+        msg = (
+            f"{res.meta['matcher']}: {len(res.matches)} matches "
+            f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
+        )
         if res.errors is not None:
             msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
         print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
         if "auto" in res.meta:
             auto = res.meta["auto"]
-            tried = "; ".join(f"{t['source']} x{t['scale']:.3g} turn {90 * t['turn']}: {t['num_inliers']} inliers"
-                              f"{'' if t['verified'] else ' (not verified)'}" for t in auto["trials"])
-            print(f"auto: chose {auto['chosen']} after {len(auto['trials'])} run(s) [{tried}]; wrote {out / 'geometry.json'}")
+            tried = "; ".join(
+                f"{t['source']} x{t['scale']:.3g} turn {90 * t['turn']}: {t['num_inliers']} inliers"
+                f"{'' if t['verified'] else ' (not verified)'}"
+                for t in auto["trials"]
+            )
+            print(
+                f"auto: chose {auto['chosen']} after {len(auto['trials'])} run(s) [{tried}]; wrote {out / 'geometry.json'}"
+            )
             if not auto["verified"]:
-                print("warning: no hypothesis verified; the matches of the identity are returned unverified",
-                      file=sys.stderr)
+                print(
+                    "warning: no hypothesis verified; the matches of the identity are returned unverified",
+                    file=sys.stderr,
+                )
         if res.refined_a is not None:
             v = res.verification
             state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"
-            print(f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
-                  f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}")
+            print(
+                f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
+                f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}"
+            )
         _print_two_view(res, out)
     return res
 
@@ -364,8 +467,10 @@ def _print_two_view(res: MatchResult, out: Path) -> None:
         R, t = res.relative_pose
         angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1) / 2))))
         pose = f", pose: rotation {angle:.2f} deg, t {np.round(t, 3).tolist()} (from {g.pose_source})"
-    print(f"two-view geometry: {g.configuration} ({g.model}, {g.num_inliers} inliers){pose}; "
-          f"wrote {out / 'geometry.json'}")
+    print(
+        f"two-view geometry: {g.configuration} ({g.model}, {g.num_inliers} inliers){pose}; "
+        f"wrote {out / 'geometry.json'}"
+    )
     if not (res.verification.verified and g.reliable):
         why = list(res.verification.reasons) + list(g.reasons)
         print(f"warning: the two-view geometry is not reliable: {'; '.join(why) or 'not verified'}", file=sys.stderr)

@@ -3,6 +3,7 @@
 The dense extractors are scale-rectified: the image whose content is bigger is shrunk by the
 pair's level ``S_{A->B}`` (or, for small images, shrunk less and the other one enlarged).
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,13 @@ def pair_scale(scale_a=None, scale_b=None) -> float:
     return float(2.0 ** (sum(levels) / 2))
 
 
-def rectify_factors(scale: float, min_log2: float = 0.0, shapes: Optional[tuple] = None,
-                    min_side: int = 0, max_side: Optional[int] = None) -> tuple[float, float]:
+def rectify_factors(
+    scale: float,
+    min_log2: float = 0.0,
+    shapes: Optional[tuple] = None,
+    min_side: int = 0,
+    max_side: Optional[int] = None,
+) -> tuple[float, float]:
     """Resize factors ``(for A, for B)`` that bring a pair of scale ``S_{A->B}`` to 1.
 
     The image whose content is bigger is shrunk (``S > 1``: B by ``1 / S``; ``S < 1``: A by ``S``).
@@ -37,7 +43,7 @@ def rectify_factors(scale: float, min_log2: float = 0.0, shapes: Optional[tuple]
     """
     if not (math.isfinite(scale) and scale > 0) or abs(math.log2(scale)) <= min_log2:
         return 1.0, 1.0
-    ratio = scale if scale < 1 else 1.0 / scale        # applied to the image whose content is bigger
+    ratio = scale if scale < 1 else 1.0 / scale  # applied to the image whose content is bigger
     big_first = scale < 1
     f_big, f_small = ratio, 1.0
     if shapes is not None and max_side is not None:

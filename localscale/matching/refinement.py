@@ -19,6 +19,7 @@ Example::
     ref = refine_scale_map(net_a, v, a.shape[:2], b.shape[:2])
     ref.scale, ref.source, ref.verified
 """
+
 from __future__ import annotations
 
 import math
@@ -32,6 +33,7 @@ from ..errors import LocalScaleError
 from ..geometry import covisible_mask, homography_scale_map, orient_homography
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches
 from .verification import VerificationConfig, VerificationResult, verify_matches
+
 
 @dataclass
 class RefinedScale:
@@ -116,8 +118,12 @@ def _interpolate_log_scales(points: np.ndarray, log_scales: np.ndarray, shape, n
     return full.astype(np.float64), _distance_to(mask)
 
 
-def refine_scale_map(scale_map, verification: VerificationResult, shape: Optional[tuple] = None,
-                     config: VerificationConfig = VerificationConfig()) -> RefinedScale:
+def refine_scale_map(
+    scale_map,
+    verification: VerificationResult,
+    shape: Optional[tuple] = None,
+    config: VerificationConfig = VerificationConfig(),
+) -> RefinedScale:
     """The network's map refined by a verified geometry (module docstring).
 
     Args:
@@ -159,14 +165,18 @@ def refine_scale_map(scale_map, verification: VerificationResult, shape: Optiona
     return RefinedScale(np.exp2(out).astype(np.float32), weight.astype(np.float32), verification, True)
 
 
-def refine_pair_maps(scale_a, scale_b, verification: VerificationResult,
-                     config: VerificationConfig = VerificationConfig()) -> tuple[RefinedScale, RefinedScale]:
+def refine_pair_maps(
+    scale_a, scale_b, verification: VerificationResult, config: VerificationConfig = VerificationConfig()
+) -> tuple[RefinedScale, RefinedScale]:
     """Refined maps of both images: A's from ``verification``, B's from its swapped view."""
-    return (refine_scale_map(scale_a, verification, verification.shape_a, config),
-            refine_scale_map(scale_b, verification.swapped(), verification.shape_b, config))
+    return (
+        refine_scale_map(scale_a, verification, verification.shape_a, config),
+        refine_scale_map(scale_b, verification.swapped(), verification.shape_b, config),
+    )
 
 
 # ---------------------------------------------------------------- second pass
+
 
 @dataclass
 class RefinedMatching:
@@ -194,10 +204,18 @@ class RefinedMatching:
     seed: Optional[VerificationResult] = None
 
 
-def refine_matching(match: Callable, shape_a: tuple, shape_b: tuple,
-                    first_a=None, first_b=None, prior_a=None, prior_b=None,
-                    config: VerificationConfig = VerificationConfig(), max_passes: int = 2,
-                    seed: Optional[Callable] = None) -> RefinedMatching:
+def refine_matching(
+    match: Callable,
+    shape_a: tuple,
+    shape_b: tuple,
+    first_a=None,
+    first_b=None,
+    prior_a=None,
+    prior_b=None,
+    config: VerificationConfig = VerificationConfig(),
+    max_passes: int = 2,
+    seed: Optional[Callable] = None,
+) -> RefinedMatching:
     """Match, verify, refine both maps and match again with them while the inlier count grows.
 
     Args:
@@ -246,8 +264,11 @@ def refine_matching(match: Callable, shape_a: tuple, shape_b: tuple,
         maps = (ra.scale, rb.scale)
         best.refined_a, best.refined_b = ra, rb
     if best.refined_a is None:
-        best.refined_a, best.refined_b = refine_pair_maps(prior_a, prior_b, best.verification, config) \
-            if geometry is None else refine_pair_maps(prior_a, prior_b, geometry, config)
+        best.refined_a, best.refined_b = (
+            refine_pair_maps(prior_a, prior_b, best.verification, config)
+            if geometry is None
+            else refine_pair_maps(prior_a, prior_b, geometry, config)
+        )
     best.passes, best.inlier_counts, best.seed = len(counts), counts, seeded
     return best
 
@@ -255,6 +276,7 @@ def refine_matching(match: Callable, shape_a: tuple, shape_b: tuple,
 def describe_and_match(describe_a: Callable, describe_b: Callable, ratio: Optional[float] = None) -> Callable:
     """The ``match`` of :func:`refine_matching` from two describers ``f(scale_map) -> (keypoints
     N x 2, descriptors N x D)``: mutual nearest neighbours (with Lowe's ``ratio`` if given)."""
+
     def match(map_a, map_b):
         ka, da = describe_a(map_a)
         kb, db = describe_b(map_b)

@@ -1,4 +1,5 @@
 """What matching two images returns (:class:`MatchResult`), and writing it to ``.npz``."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -70,9 +71,14 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
-    data = dict(keypoints_a=result.keypoints_a, keypoints_b=result.keypoints_b, matches=result.matches,
-                distances=result.distances, correction=np.array(result.correction),
-                matcher=np.array(str(result.meta.get("matcher", ""))))
+    data = dict(
+        keypoints_a=result.keypoints_a,
+        keypoints_b=result.keypoints_b,
+        matches=result.matches,
+        distances=result.distances,
+        correction=np.array(result.correction),
+        matcher=np.array(str(result.meta.get("matcher", ""))),
+    )
     if result.radii_a is not None:
         data.update(radii_a=result.radii_a, radii_b=result.radii_b)
     if result.errors is not None:
@@ -81,6 +87,6 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         data["H"] = result.H
     from ..outputs import atomic_path
 
-    with atomic_path(path) as tmp:   # complete file or none
+    with atomic_path(path) as tmp:  # complete file or none
         with open(tmp, "wb") as f:
             np.savez(f, **data)

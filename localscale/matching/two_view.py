@@ -30,6 +30,7 @@ Example::
     g.configuration, g.num_inliers, g.R, g.t
     rot_err, trans_err = relative_pose_error(g.R_E, g.t_E, R_gt, t_gt)
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
@@ -45,8 +46,14 @@ from ..errors import LocalScaleError
 CONFIGURATIONS = ("DEGENERATE", "CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
 
 #: the model whose inliers each configuration reports
-CONFIGURATION_MODEL = {"DEGENERATE": "none", "CALIBRATED": "essential", "UNCALIBRATED": "fundamental",
-                       "PLANAR": "homography", "PANORAMIC": "homography", "PLANAR_OR_PANORAMIC": "homography"}
+CONFIGURATION_MODEL = {
+    "DEGENERATE": "none",
+    "CALIBRATED": "essential",
+    "UNCALIBRATED": "fundamental",
+    "PLANAR": "homography",
+    "PANORAMIC": "homography",
+    "PLANAR_OR_PANORAMIC": "homography",
+}
 
 
 class TwoViewError(LocalScaleError):
@@ -157,14 +164,23 @@ class TwoViewGeometry:
 
     def swapped(self) -> "TwoViewGeometry":
         """The same geometry seen from B (B -> A): inverse ``H``, transposed ``F`` and ``E``, inverse poses."""
+
         def inverse(R, t):
             return (None, None) if R is None or t is None else (R.T, -R.T @ t)
 
         R, t = inverse(self.R, self.t)
         R_E, t_E = inverse(self.R_E, self.t_E)
-        return replace(self, H=None if self.H is None else np.linalg.inv(self.H),
-                       F=None if self.F is None else self.F.T, E=None if self.E is None else self.E.T,
-                       R=R, t=t, R_E=R_E, t_E=t_E, reasons=list(self.reasons))
+        return replace(
+            self,
+            H=None if self.H is None else np.linalg.inv(self.H),
+            F=None if self.F is None else self.F.T,
+            E=None if self.E is None else self.E.T,
+            R=R,
+            t=t,
+            R_E=R_E,
+            t_E=t_E,
+            reasons=list(self.reasons),
+        )
 
     def pycolmap_configuration(self):
         """The configuration as ``pycolmap.TwoViewGeometryConfiguration`` (needs pycolmap)."""
@@ -186,8 +202,9 @@ class TwoViewGeometry:
         return out
 
 
-def estimate_two_view_geometry(points_a, points_b, camera_a=None, camera_b=None,
-                               config: Optional[TwoViewConfig] = None) -> TwoViewGeometry:
+def estimate_two_view_geometry(
+    points_a, points_b, camera_a=None, camera_b=None, config: Optional[TwoViewConfig] = None
+) -> TwoViewGeometry:
     """Two-view geometry of ``N`` matches, classified as COLMAP does (module docstring).
 
     Args:
@@ -229,7 +246,9 @@ def estimate_two_view_geometry(points_a, points_b, camera_a=None, camera_b=None,
     if both:
         na, nb = cam_a.normalize(pa), cam_b.normalize(pb)
     if calibrated:
-        thr = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error))
+        thr = 0.5 * (
+            cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error)
+        )
         E, mask_E = _fit_essential(na, nb, thr, cfg)
     geo.H, geo.F, geo.E = H, F, E
     nH, nF, nE = int(mask_H.sum()), int(mask_F.sum()), int(mask_E.sum())
@@ -249,8 +268,10 @@ def estimate_two_view_geometry(points_a, points_b, camera_a=None, camera_b=None,
     if E is not None and nE >= m:
         geo.R_E, geo.t_E, _ = _pose_from_essential(E, na[mask_E], nb[mask_E])
         if geo.R_E is not None and cfg.refine_pose:
-            scale = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.refine_loss_scale)
-                           + cam_b.pixel_threshold_to_normalized(cfg.refine_loss_scale))
+            scale = 0.5 * (
+                cam_a.pixel_threshold_to_normalized(cfg.refine_loss_scale)
+                + cam_b.pixel_threshold_to_normalized(cfg.refine_loss_scale)
+            )
             geo.R_E, geo.t_E = refine_relative_pose(geo.R_E, geo.t_E, na[mask_E], nb[mask_E], scale)
             geo.E = _skew(geo.t_E) @ geo.R_E
     if not both:
@@ -282,8 +303,9 @@ def estimate_two_view_geometry(points_a, points_b, camera_a=None, camera_b=None,
         return geo
     geo.tri_angle = _median_tri_angle(geo.R, geo.t, na[geo.inliers], nb[geo.inliers])
     if geo.tri_angle is not None and geo.tri_angle < cfg.min_tri_angle:
-        geo.reasons.append(f"median triangulation angle {geo.tri_angle:.2f} deg < {cfg.min_tri_angle}: "
-                           "translation weakly observed")
+        geo.reasons.append(
+            f"median triangulation angle {geo.tri_angle:.2f} deg < {cfg.min_tri_angle}: translation weakly observed"
+        )
     return geo
 
 
@@ -311,8 +333,9 @@ def _fit_homography(pa, pb, cfg):
     if n < 4:
         return None, np.zeros(n, bool)
     try:
-        H, mask = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, cfg.max_error, maxIters=cfg.max_iters,
-                                     confidence=cfg.confidence)
+        H, mask = cv2.findHomography(
+            pa, pb, cv2.USAC_MAGSAC, cfg.max_error, maxIters=cfg.max_iters, confidence=cfg.confidence
+        )
     except cv2.error:
         return None, np.zeros(n, bool)
     if H is None or mask is None or not np.all(np.isfinite(H)):
@@ -338,8 +361,9 @@ def _fit_essential(na, nb, threshold, cfg):
     if n < 5:
         return None, np.zeros(n, bool)
     try:
-        E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_MAGSAC, prob=cfg.confidence,
-                                       threshold=threshold, maxIters=cfg.max_iters)
+        E, mask = cv2.findEssentialMat(
+            na, nb, np.eye(3), method=cv2.USAC_MAGSAC, prob=cfg.confidence, threshold=threshold, maxIters=cfg.max_iters
+        )
     except cv2.error:
         return None, np.zeros(n, bool)
     if E is None or mask is None or E.shape[0] < 3 or not np.all(np.isfinite(E[:3])):
@@ -390,7 +414,7 @@ def refine_relative_pose(R, t, na, nb, threshold: float, iterations: int = 20):
 
     def cost(r):
         a = np.abs(r)
-        return float(np.sum(np.where(a <= threshold, 0.5 * a ** 2, threshold * (a - 0.5 * threshold))))
+        return float(np.sum(np.where(a <= threshold, 0.5 * a**2, threshold * (a - 0.5 * threshold))))
 
     t = np.asarray(t, np.float64).ravel() / np.linalg.norm(t)
     r = residuals(R, t)
@@ -457,7 +481,9 @@ def _pose_from_homography(H, cam_a, cam_b, na, nb, mask_H, cfg):
         _, Rs, ts, normals = cv2.decomposeHomographyMat(Hn, np.eye(3))
     except cv2.error:
         return None
-    thr = 0.5 * (cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error))
+    thr = 0.5 * (
+        cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error)
+    )
     ia, ib = na[mask_H], nb[mask_H]
     best, best_key = None, None
     for R, t in zip(Rs, ts):
@@ -466,7 +492,7 @@ def _pose_from_homography(H, cam_a, cam_b, na, nb, mask_H, cfg):
             continue
         tn = t / np.linalg.norm(t)
         front = _count_in_front(R, tn, ia, ib)
-        support = int(np.sum(_sampson(_skew(tn) @ R, na, nb) <= thr ** 2))
+        support = int(np.sum(_sampson(_skew(tn) @ R, na, nb) <= thr**2))
         key = (front, support)
         if best_key is None or key > best_key:
             best, best_key = (R, tn), key
@@ -515,7 +541,7 @@ def _median_tri_angle(R, t, na, nb) -> Optional[float]:
     if len(na) == 0 or np.linalg.norm(t) < 1e-12:
         return None
     X = _triangulate(R, t, na, nb)
-    c_b = -R.T @ t                      # B's centre in A's frame
+    c_b = -R.T @ t  # B's centre in A's frame
     X = X[np.all(np.isfinite(X), axis=1)]
     if len(X) == 0:
         return None

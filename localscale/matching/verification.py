@@ -15,6 +15,7 @@ Example::
     v = verify_matches(pts_a, pts_b, a.shape[:2], b.shape[:2], scale_map=net_a)
     v.verified, v.model, v.H, v.num_inliers, v.reasons
 """
+
 from __future__ import annotations
 
 import math
@@ -27,7 +28,6 @@ import numpy as np
 from ..errors import LocalScaleError
 from ..geometry import homography_scale_at, orient_homography
 from .two_view import TwoViewConfig, TwoViewGeometry, estimate_two_view_geometry
-
 
 #: what :attr:`VerificationConfig.model` can name
 VERIFICATION_MODELS = ("homography", "fundamental", "auto", "two_view")
@@ -101,8 +101,9 @@ class VerificationConfig:
 
     def check(self) -> "VerificationConfig":
         if self.model not in VERIFICATION_MODELS:
-            raise LocalScaleError(f"verification model must be one of {', '.join(VERIFICATION_MODELS)}, "
-                                  f"got {self.model!r}")
+            raise LocalScaleError(
+                f"verification model must be one of {', '.join(VERIFICATION_MODELS)}, got {self.model!r}"
+            )
         if not isinstance(self.two_view, TwoViewConfig):
             raise LocalScaleError(f"verification two_view must be a TwoViewConfig, got {type(self.two_view).__name__}")
         self.two_view.check()
@@ -154,14 +155,21 @@ class VerificationResult:
     def to_dict(self) -> dict:
         """JSON-ready summary (geometry, counts, decision; no per-match arrays)."""
         f = lambda x: None if x is None or not np.isfinite(x) else round(float(x), 6)  # noqa: E731
-        return {"model": self.model, "verified": bool(self.verified), "reasons": list(self.reasons),
-                "H": None if self.H is None else np.asarray(self.H).tolist(),
-                "F": None if self.F is None else np.asarray(self.F).tolist(),
-                "num_matches": int(len(self.inliers)), "num_inliers": int(self.num_inliers),
-                "inlier_ratio": f(self.inlier_ratio), "coverage": f(self.coverage),
-                "scale_disagreement_log2": f(self.scale_disagreement_log2),
-                "shape_a": list(self.shape_a), "shape_b": list(self.shape_b),
-                **({} if self.two_view is None else {"two_view": _two_view_summary(self.two_view)})}
+        return {
+            "model": self.model,
+            "verified": bool(self.verified),
+            "reasons": list(self.reasons),
+            "H": None if self.H is None else np.asarray(self.H).tolist(),
+            "F": None if self.F is None else np.asarray(self.F).tolist(),
+            "num_matches": int(len(self.inliers)),
+            "num_inliers": int(self.num_inliers),
+            "inlier_ratio": f(self.inlier_ratio),
+            "coverage": f(self.coverage),
+            "scale_disagreement_log2": f(self.scale_disagreement_log2),
+            "shape_a": list(self.shape_a),
+            "shape_b": list(self.shape_b),
+            **({} if self.two_view is None else {"two_view": _two_view_summary(self.two_view)}),
+        }
 
     def swapped(self) -> "VerificationResult":
         """The same verification seen from B (B -> A): inverse ``H``, transposed ``F``, inverse scales."""
@@ -169,39 +177,87 @@ class VerificationResult:
         F = None if self.F is None else self.F.T
         with np.errstate(divide="ignore", invalid="ignore"):
             ls = 1.0 / self.local_scales
-        return VerificationResult(self.model, H, F, self.inliers, self.verified, list(self.reasons), self.points_b,
-                                  self.points_a, ls, self.num_inliers, self.inlier_ratio, self.coverage,
-                                  self.scale_disagreement_log2, self.shape_b, self.shape_a,
-                                  None if self.two_view is None else self.two_view.swapped())
+        return VerificationResult(
+            self.model,
+            H,
+            F,
+            self.inliers,
+            self.verified,
+            list(self.reasons),
+            self.points_b,
+            self.points_a,
+            ls,
+            self.num_inliers,
+            self.inlier_ratio,
+            self.coverage,
+            self.scale_disagreement_log2,
+            self.shape_b,
+            self.shape_a,
+            None if self.two_view is None else self.two_view.swapped(),
+        )
 
 
 def _empty(points_a, points_b, shape_a, shape_b, reason) -> VerificationResult:
     k = len(points_a)
-    return VerificationResult("none", None, None, np.zeros(k, bool), False, [reason], points_a, points_b,
-                              np.full(k, np.nan), 0, 0.0, 0.0, float("nan"), tuple(shape_a), tuple(shape_b))
+    return VerificationResult(
+        "none",
+        None,
+        None,
+        np.zeros(k, bool),
+        False,
+        [reason],
+        points_a,
+        points_b,
+        np.full(k, np.nan),
+        0,
+        0.0,
+        0.0,
+        float("nan"),
+        tuple(shape_a),
+        tuple(shape_b),
+    )
 
 
-def estimate_homography(points_a: np.ndarray, points_b: np.ndarray, threshold: float = 3.0,
-                        confidence: float = 0.999, max_iters: int = 10000):
+def estimate_homography(
+    points_a: np.ndarray,
+    points_b: np.ndarray,
+    threshold: float = 3.0,
+    confidence: float = 0.999,
+    max_iters: int = 10000,
+):
     """Robust homography A -> B of ``K x 2`` point sets with OpenCV ``USAC_MAGSAC``.
 
     Returns ``(H 3 x 3 or None, inlier mask K bool)``.
     """
-    return _robust_fit(points_a, points_b, 4,
-                       lambda pa, pb: cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, threshold, maxIters=max_iters,
-                                                         confidence=confidence),
-                       lambda H: abs(np.linalg.det(H)) >= 1e-12)
+    return _robust_fit(
+        points_a,
+        points_b,
+        4,
+        lambda pa, pb: cv2.findHomography(
+            pa, pb, cv2.USAC_MAGSAC, threshold, maxIters=max_iters, confidence=confidence
+        ),
+        lambda H: abs(np.linalg.det(H)) >= 1e-12,
+    )
 
 
-def estimate_fundamental(points_a: np.ndarray, points_b: np.ndarray, threshold: float = 1.0,
-                         confidence: float = 0.999, max_iters: int = 10000):
+def estimate_fundamental(
+    points_a: np.ndarray,
+    points_b: np.ndarray,
+    threshold: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 10000,
+):
     """Robust fundamental matrix (``x_B^T F x_A = 0``) with OpenCV ``USAC_MAGSAC``.
 
     Returns ``(F 3 x 3 or None, inlier mask K bool)``.
     """
-    return _robust_fit(points_a, points_b, 8,
-                       lambda pa, pb: cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, threshold, confidence, max_iters),
-                       lambda F: F.shape == (3, 3))
+    return _robust_fit(
+        points_a,
+        points_b,
+        8,
+        lambda pa, pb: cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, threshold, confidence, max_iters),
+        lambda F: F.shape == (3, 3),
+    )
 
 
 def _robust_fit(points_a, points_b, min_points: int, fit, valid):
@@ -222,8 +278,9 @@ def _robust_fit(points_a, points_b, min_points: int, fit, valid):
     return M, mask.reshape(-1).astype(bool)
 
 
-def local_affine_scales(points_a: np.ndarray, points_b: np.ndarray, neighbours: int = 8,
-                        threshold: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def local_affine_scales(
+    points_a: np.ndarray, points_b: np.ndarray, neighbours: int = 8, threshold: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Scale ``sqrt|det A|`` of a least-squares affine map fitted to each point and its nearest
     neighbours (in A), and whether the fit is consistent (max residual <= ``threshold`` px of B).
 
@@ -276,9 +333,16 @@ def sample_map(scale_map, points: np.ndarray) -> np.ndarray:
     return m[y, x].astype(np.float64)
 
 
-def verify_matches(points_a: np.ndarray, points_b: np.ndarray, shape_a: tuple, shape_b: tuple,
-                   scale_map=None, config: VerificationConfig = VerificationConfig(), camera_a=None,
-                   camera_b=None) -> VerificationResult:
+def verify_matches(
+    points_a: np.ndarray,
+    points_b: np.ndarray,
+    shape_a: tuple,
+    shape_b: tuple,
+    scale_map=None,
+    config: VerificationConfig = VerificationConfig(),
+    camera_a=None,
+    camera_b=None,
+) -> VerificationResult:
     """Estimate the geometry of a match set and decide whether it is verified.
 
     Args:
@@ -328,8 +392,10 @@ def _decide(result: VerificationResult, scales_in: np.ndarray, net_in, config: V
     if result.inlier_ratio < config.min_inlier_ratio:
         reasons.append(f"inlier ratio {result.inlier_ratio:.3f} < {config.min_inlier_ratio}")
     if result.coverage < config.min_coverage:
-        reasons.append(f"inliers cover {result.coverage:.3f} of {'A' if config.coverage_of == 'a' else 'A or B'} "
-                       f"< {config.min_coverage}")
+        reasons.append(
+            f"inliers cover {result.coverage:.3f} of {'A' if config.coverage_of == 'a' else 'A or B'} "
+            f"< {config.min_coverage}"
+        )
     ls = np.log2(scales_in) if len(scales_in) else np.zeros(0)
     if len(ls) and not (np.isfinite(ls).all() and np.abs(ls).max() <= config.scale_range_log2):
         reasons.append(f"degenerate geometry (scale beyond 2^+-{config.scale_range_log2} or behind the camera)")
@@ -340,8 +406,10 @@ def _decide(result: VerificationResult, scales_in: np.ndarray, net_in, config: V
         if dis.size:
             result.scale_disagreement_log2 = float(np.median(dis))
             if result.scale_disagreement_log2 > config.max_scale_disagreement_log2:
-                reasons.append(f"geometry and network scales disagree by {result.scale_disagreement_log2:.2f} "
-                               f"log2 > {config.max_scale_disagreement_log2}")
+                reasons.append(
+                    f"geometry and network scales disagree by {result.scale_disagreement_log2:.2f} "
+                    f"log2 > {config.max_scale_disagreement_log2}"
+                )
     result.reasons = reasons
     result.verified = not reasons
 
@@ -410,7 +478,17 @@ def _fundamental_from_essential(E, camera_a, camera_b) -> np.ndarray:
 
 def _two_view_summary(g: TwoViewGeometry) -> dict:
     """The JSON fields of a two-view geometry that a verification record keeps (no per-match arrays)."""
-    keep = ("configuration", "model", "R", "t", "pose_source", "num_inliers_H", "num_inliers_F", "num_inliers_E",
-            "tri_angle", "reasons")
+    keep = (
+        "configuration",
+        "model",
+        "R",
+        "t",
+        "pose_source",
+        "num_inliers_H",
+        "num_inliers_F",
+        "num_inliers_E",
+        "tri_angle",
+        "reasons",
+    )
     d = g.to_dict()
     return {k: d[k] for k in keep} | {"reliable": d["reliable"]}

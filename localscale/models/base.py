@@ -1,4 +1,5 @@
 """Shared plumbing of the two scale models: image preparation, encoding, loading."""
+
 from __future__ import annotations
 
 import copy
@@ -34,8 +35,12 @@ class EncodedImage:
 
     @property
     def nbytes(self) -> int:
-        extra = sum(t.numel() * t.element_size() for v in self.terms.values()
-                    for t in (v if isinstance(v, tuple) else (v,)) if isinstance(t, torch.Tensor))
+        extra = sum(
+            t.numel() * t.element_size()
+            for v in self.terms.values()
+            for t in (v if isinstance(v, tuple) else (v,))
+            if isinstance(t, torch.Tensor)
+        )
         return self.features.numel() * self.features.element_size() + extra
 
 
@@ -48,7 +53,7 @@ class ScaleModel(nn.Module):
 
     def __init__(self, config):
         super().__init__()
-        self._folded: list = []   # [eval copy with BatchNorm folded] (a list: not a submodule)
+        self._folded: list = []  # [eval copy with BatchNorm folded] (a list: not a submodule)
         self._is_inference_copy = False
         self.config = config
         self.extractor = FeatureExtractor(config.width, config.feature_dim, config.batch_norm, config.backbone)
@@ -80,8 +85,10 @@ class ScaleModel(nn.Module):
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         """``B x 3 x P x P`` in [0, 1] (P = ``config.image_size``) -> ``B x D x P/8 x P/8``."""
         if images.dim() != 4 or images.shape[1] != 3 or images.shape[-2:] != (self.config.image_size,) * 2:
-            raise ValueError(f"encode: expected B x 3 x {self.config.image_size} x {self.config.image_size}, "
-                             f"got {tuple(images.shape)}")
+            raise ValueError(
+                f"encode: expected B x 3 x {self.config.image_size} x {self.config.image_size}, "
+                f"got {tuple(images.shape)}"
+            )
         if self._channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
         return self._inference_model().extractor(images)
@@ -101,7 +108,7 @@ class ScaleModel(nn.Module):
 
     def train(self, mode: bool = True):
         if mode:
-            self._folded.clear()   # the weights may change: the folded copy is rebuilt on use
+            self._folded.clear()  # the weights may change: the folded copy is rebuilt on use
         return super().train(mode)
 
     def load_state_dict(self, *args, **kwargs):
@@ -117,8 +124,12 @@ class ScaleModel(nn.Module):
         """Whether the convolution weights are stored channels-last (as :func:`~.registry.load_model`
         stores them on CPU, where oneDNN's convolutions and pooling are faster in that layout)."""
         w = next((p for p in self.extractor.parameters() if p.dim() == 4), None)
-        return w is not None and w.device.type == "cpu" and not w.is_contiguous() \
+        return (
+            w is not None
+            and w.device.type == "cpu"
+            and not w.is_contiguous()
             and w.is_contiguous(memory_format=torch.channels_last)
+        )
 
     @property
     def input_side(self) -> int:
@@ -131,8 +142,9 @@ class ScaleModel(nn.Module):
         of more than 8 bits (16-bit, float) as float32 in [0, 1], without rounding to 8 bits."""
         return load_image_reduced(image, name, self.input_side, precise=True)
 
-    def prepare(self, image: ImageLike, name: str = "image", original_shape: tuple[int, int] | None = None,
-                turns: int = 0) -> tuple[torch.Tensor, Letterbox]:
+    def prepare(
+        self, image: ImageLike, name: str = "image", original_shape: tuple[int, int] | None = None, turns: int = 0
+    ) -> tuple[torch.Tensor, Letterbox]:
         """Load/validate an image and letterbox it: ``1 x 3 x P x P`` tensor + placement.
 
         ``original_shape``: the full ``(H, W)`` when ``image`` is an array reduced by :meth:`load`.
@@ -142,7 +154,7 @@ class ScaleModel(nn.Module):
             rgb, original_shape = self.load(image, name)
         elif isinstance(image, (str, Path)):
             rgb = self.load(image, name)[0]
-        else:   # a reduced copy: the size limits apply to the full image
+        else:  # a reduced copy: the size limits apply to the full image
             rgb = load_image_array(image, name, precise=True, full_shape=tuple(original_shape))
         if turns % 4:
             rgb = np.ascontiguousarray(np.rot90(rgb, turns))
@@ -158,8 +170,9 @@ class ScaleModel(nn.Module):
         t = torch.from_numpy(np.asarray(images)) if fmt.numpy else images.detach()
         t = t[None] if fmt.single else t
         if t.dim() != 4 or t.shape[1] not in (1, 3):
-            raise ImageError(f"{name}: expected a B x 3 x H x W batch (or one 3 x H x W image), "
-                             f"got shape {tuple(np.shape(images))}")
+            raise ImageError(
+                f"{name}: expected a B x 3 x H x W batch (or one 3 x H x W image), got shape {tuple(np.shape(images))}"
+            )
         if t.shape[0] == 0:
             raise ImageError(f"{name}: empty batch")
         hwc = t.cpu().permute(0, 2, 3, 1).numpy()
@@ -199,13 +212,19 @@ class ScaleModel(nn.Module):
         chunks = []
         for i in range(0, xa.shape[0], step):
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
-                chunks.append(head(self.encode(xa[i:i + step]), self.encode(xb[i:i + step])))
+                chunks.append(head(self.encode(xa[i : i + step]), self.encode(xb[i : i + step])))
         outs = tuple(None if parts[0] is None else torch.cat(parts).float() for parts in zip(*chunks))
         return lb_a, lb_b, fmt, outs
 
     @torch.inference_mode()
-    def encode_image(self, image: ImageLike, name: str = "image", bf16: bool = False,
-                     original_shape: tuple[int, int] | None = None, turns: int = 0) -> EncodedImage:
+    def encode_image(
+        self,
+        image: ImageLike,
+        name: str = "image",
+        bf16: bool = False,
+        original_shape: tuple[int, int] | None = None,
+        turns: int = 0,
+    ) -> EncodedImage:
         """Encode one image for later pairing (the feature cache's unit); ``original_shape`` and
         ``turns`` as in :meth:`prepare`."""
         x, lb = self.prepare(image, name, original_shape, turns)
@@ -222,7 +241,9 @@ class ScaleModel(nn.Module):
             a, b = to_gray3(a), to_gray3(b)
         return (a, shape_a), (b, shape_b)
 
-    def encode_pair(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False) -> tuple[EncodedImage, EncodedImage]:
+    def encode_pair(
+        self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False
+    ) -> tuple[EncodedImage, EncodedImage]:
         """Encode both images of a pair (:meth:`load_pair`: a gray image makes the pair gray)."""
         (a, shape_a), (b, shape_b) = self.load_pair(image_a, image_b)
         return self.encode_image(a, "image A", bf16, shape_a), self.encode_image(b, "image B", bf16, shape_b)
@@ -261,7 +282,7 @@ def upsample_to_original(grid: torch.Tensor, lb: Letterbox) -> torch.Tensor:
     batched = grid.dim() == 4
     x = grid.float() if batched else grid[None].float()
     x = F.interpolate(x, size=(lb.size, lb.size), mode="bilinear", align_corners=False)
-    x = x[..., lb.top:lb.top + lb.new_height, lb.left:lb.left + lb.new_width]
+    x = x[..., lb.top : lb.top + lb.new_height, lb.left : lb.left + lb.new_width]
     x = F.interpolate(x, size=(lb.height, lb.width), mode="bilinear", align_corners=False)
     return x if batched else x[0]
 
@@ -287,8 +308,9 @@ class BatchFormat:
             return cls(False, images.dim() == 3, images.device)
         if isinstance(images, np.ndarray):
             return cls(True, images.ndim == 3, torch.device("cpu"))
-        raise ImageError(f"{name}: expected a torch tensor or a numpy array (B x 3 x H x W), "
-                         f"got {type(images).__name__}")
+        raise ImageError(
+            f"{name}: expected a torch tensor or a numpy array (B x 3 x H x W), got {type(images).__name__}"
+        )
 
     def out(self, t: torch.Tensor | None):
         """A ``B x ...`` result in this format (None passes through)."""

@@ -6,6 +6,7 @@
 * :func:`correlation`: dense (self- or cross-) correlation volume, ReLU + L2 norm.
 * :class:`ReductionBlock`: four Conv-BN-ReLU layers that reduce a correlation volume.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -99,7 +100,7 @@ class VGGBackbone(nn.Module):
             sd = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:
             raise CheckpointError(f"{path}: cannot read VGG16 weights ({type(e).__name__})") from None
-        src_convs = [k[:-len(".weight")] for k, v in sd.items() if k.endswith(".weight") and v.dim() == 4]
+        src_convs = [k[: -len(".weight")] for k, v in sd.items() if k.endswith(".weight") and v.dim() == 4]
         dst_convs = [m for m in self.features if isinstance(m, nn.Conv2d)]
         dst_bns = [m for m in self.features if isinstance(m, nn.BatchNorm2d)]
         if len(src_convs) < len(dst_convs):
@@ -107,8 +108,10 @@ class VGGBackbone(nn.Module):
         for i, (name, conv) in enumerate(zip(src_convs, dst_convs)):
             w = sd[name + ".weight"]
             if w.shape != conv.weight.shape:
-                raise CheckpointError(f"{path}: {name} has shape {tuple(w.shape)}, model wants "
-                                      f"{tuple(conv.weight.shape)} (ImageNet weights need width=1)")
+                raise CheckpointError(
+                    f"{path}: {name} has shape {tuple(w.shape)}, model wants "
+                    f"{tuple(conv.weight.shape)} (ImageNet weights need width=1)"
+                )
             conv.weight.data.copy_(w)
             if conv.bias is not None and name + ".bias" in sd:
                 conv.bias.data.copy_(sd[name + ".bias"])
@@ -139,8 +142,7 @@ class FeatureExtractor(nn.Module):
 
     stride = 8
 
-    def __init__(self, width: float = 0.25, feature_dim: int = 128, batch_norm: bool = True,
-                 backbone: str = "vgg"):
+    def __init__(self, width: float = 0.25, feature_dim: int = 128, batch_norm: bool = True, backbone: str = "vgg"):
         super().__init__()
         if backbone == "vgg":
             self.backbone = VGGBackbone(width, batch_norm)
@@ -180,7 +182,9 @@ def topk_profile(raw_cross: torch.Tensor, raw_self: torch.Tensor, k: int) -> tor
     return torch.cat([raw_cross.topk(k, 1).values, raw_self.topk(k, 1).values], 1)
 
 
-def warped_pair_features(raw: torch.Tensor, fa: torch.Tensor, fb: torch.Tensor, temperature: float = 20.0) -> torch.Tensor:
+def warped_pair_features(
+    raw: torch.Tensor, fa: torch.Tensor, fb: torch.Tensor, temperature: float = 20.0
+) -> torch.Tensor:
     """B's features soft-warped onto A through the raw correlation ``raw`` (``B x Hb*Wb x Ha x Wa``),
     next to A's own: ``B x 3D x Ha x Wa`` = ``[f_A, f_B->A, f_A * f_B->A]``."""
     att = torch.softmax(raw.float() * temperature, 1)

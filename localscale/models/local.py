@@ -24,6 +24,7 @@ Example::
     pred = net.predict("a.jpg", "b.jpg")
     pred.scale  # H_A x W_A, > 1 where content looks bigger in B
 """
+
 from __future__ import annotations
 
 import math
@@ -48,9 +49,9 @@ from .registry import register
 
 @dataclass
 class LocalScaleNetConfig:
-    width: float = 0.25            #: VGG16 channel multiplier
-    feature_dim: int = 128         #: ASPP output channels
-    image_size: int = 192          #: processing frame P (multiple of 8)
+    width: float = 0.25  #: VGG16 channel multiplier
+    feature_dim: int = 128  #: ASPP output channels
+    image_size: int = 192  #: processing frame P (multiple of 8)
     reduction: tuple[int, ...] = (128, 64, 64, 32)
     head_channels: int = 96
     batch_norm: bool = True
@@ -128,8 +129,15 @@ class LocalScalePrediction:
         maps: the :class:`~localscale.maps.GridMaps` behind them (channels in :attr:`channels`).
     """
 
-    def __init__(self, grid: torch.Tensor, channels: tuple[str, ...], probs: torch.Tensor,
-                 letterbox_a: Letterbox, letterbox_b: Letterbox, meta: dict | None = None):
+    def __init__(
+        self,
+        grid: torch.Tensor,
+        channels: tuple[str, ...],
+        probs: torch.Tensor,
+        letterbox_a: Letterbox,
+        letterbox_b: Letterbox,
+        meta: dict | None = None,
+    ):
         self.channels = tuple(channels)
         self.maps = GridMaps(grid, letterbox_a, [_CHANNELS[c] for c in self.channels])
         self.probs = probs
@@ -153,7 +161,7 @@ class LocalScalePrediction:
         if name in self._full:
             step = self.maps.band_rows()
             for y0 in range(0, self._full[name].shape[0], step):
-                yield y0, self._full[name][y0:y0 + step]
+                yield y0, self._full[name][y0 : y0 + step]
         else:
             yield from self.maps.bands(self.channels.index(name))
 
@@ -240,11 +248,12 @@ class LocalScaleNet(ScaleModel):
     def __init__(self, config: LocalScaleNetConfig | None = None, **overrides):
         config = config or LocalScaleNetConfig(**overrides)
         super().__init__(config)
-        n = self.grid_size ** 2
+        n = self.grid_size**2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
-        self.head = DenseHead(2 * config.reduction[-1] + self._build_cue_branches(n), config.head_channels,
-                              config.visibility)
+        self.head = DenseHead(
+            2 * config.reduction[-1] + self._build_cue_branches(n), config.head_channels, config.visibility
+        )
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> torch.Tensor:
         """Logits from encoded features: ``B x D x h x w`` (x2) -> ``B x 13 x h x w``."""
@@ -261,9 +270,9 @@ class LocalScaleNet(ScaleModel):
         top = raw_a.topk(self.topk, 1).values if self.topk else None
         return self.reduce_self(normalise_correlation(raw_a)), top
 
-    def forward_features_all(self, fa: torch.Tensor, fb: torch.Tensor,
-                             terms_a: tuple[torch.Tensor, torch.Tensor | None] | None = None
-                             ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def forward_features_all(
+        self, fa: torch.Tensor, fb: torch.Tensor, terms_a: tuple[torch.Tensor, torch.Tensor | None] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Scale logits ``B x 13 x h x w`` and visibility logits ``B x 1 x h x w`` (None without the
         visibility output) from encoded features; ``terms_a``: :meth:`self_terms` of ``fa``
         when already computed."""
@@ -286,8 +295,9 @@ class LocalScaleNet(ScaleModel):
         return out if all_outputs else out[0]
 
     @torch.inference_mode()
-    def predict_from_features(self, ea: EncodedImage, eb: EncodedImage, hard: bool = False,
-                              bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
+    def predict_from_features(
+        self, ea: EncodedImage, eb: EncodedImage, hard: bool = False, bf16: bool = False, planar: bool = False
+    ) -> LocalScalePrediction:
         """Scale map from two cached encodings (see :meth:`encode_image`); A's :meth:`self_terms`
         are kept in ``ea.terms`` for its later pairs."""
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -305,8 +315,9 @@ class LocalScaleNet(ScaleModel):
         return enc.terms[key]
 
     @torch.inference_mode()
-    def predict(self, image_a: ImageLike, image_b: ImageLike, hard: bool = False,
-                bf16: bool = False, planar: bool = False) -> LocalScalePrediction:
+    def predict(
+        self, image_a: ImageLike, image_b: ImageLike, hard: bool = False, bf16: bool = False, planar: bool = False
+    ) -> LocalScalePrediction:
         """Per-pixel scale ``S_{A->B}`` between two images (paths or arrays, any size).
 
         Args:
@@ -321,8 +332,9 @@ class LocalScaleNet(ScaleModel):
         return self.predict_from_features(ea, eb, hard, bf16, planar)
 
     @torch.inference_mode()
-    def predict_batch(self, images_a, images_b, hard: bool = False, bf16: bool = False,
-                      batch_size: int | None = None) -> LocalScaleBatch:
+    def predict_batch(
+        self, images_a, images_b, hard: bool = False, bf16: bool = False, batch_size: int | None = None
+    ) -> LocalScaleBatch:
         """Per-pixel ``S_{A->B}`` for a batch of pairs, in one network pass per ``batch_size`` pairs.
 
         Args:
@@ -337,8 +349,9 @@ class LocalScaleNet(ScaleModel):
             ``images_a`` for tensor input, numpy arrays for numpy input. Equal (to float
             precision) to :meth:`predict` on each pair.
         """
-        lb_a, lb_b, fmt, (logits, vis) = self._forward_batch(images_a, images_b, self.forward_features_all,
-                                                             bf16, batch_size)
+        lb_a, lb_b, fmt, (logits, vis) = self._forward_batch(
+            images_a, images_b, self.forward_features_all, bf16, batch_size
+        )
         probs = F.softmax(logits, 1)
         visible = torch.sigmoid(vis)[:, 0] if vis is not None else None
         log_s = torch.log(scales.hard_scale(probs, 1)) if hard else scales.soft_log_scale(probs, 1)
@@ -348,13 +361,22 @@ class LocalScaleNet(ScaleModel):
             grids.append(reliability(probs, visible, self.config.calibration, 1))
         maps = upsample_to_original(torch.stack(grids, 1), lb_a)
         return LocalScaleBatch(
-            scale=fmt.out(torch.exp(maps[:, 0])), confidence=fmt.out(maps[:, 1].clamp(0, 1)),
+            scale=fmt.out(torch.exp(maps[:, 0])),
+            confidence=fmt.out(maps[:, 1].clamp(0, 1)),
             visible=fmt.out(maps[:, 2].clamp(0, 1)) if visible is not None else None,
             reliability=fmt.out(maps[:, -1].clamp(0, 1)) if self.config.calibration else None,
-            probs=fmt.out(probs))
+            probs=fmt.out(probs),
+        )
 
-    def _readout(self, probs: torch.Tensor, lb_a: Letterbox, lb_b: Letterbox, hard: bool,
-                 planar: bool = False, visible: torch.Tensor | None = None) -> LocalScalePrediction:
+    def _readout(
+        self,
+        probs: torch.Tensor,
+        lb_a: Letterbox,
+        lb_b: Letterbox,
+        hard: bool,
+        planar: bool = False,
+        visible: torch.Tensor | None = None,
+    ) -> LocalScalePrediction:
         log_s = torch.log(scales.hard_scale(probs, 0)) if hard else scales.soft_log_scale(probs, 0)
         log_s = log_s + math.log(lb_a.factor / lb_b.factor)
         conf = scales.confidence(probs, 0)
@@ -383,8 +405,9 @@ def reliability_features(probs: torch.Tensor, visible: torch.Tensor | None, dim:
     return torch.stack([conf, vis.to(conf), spread], dim % probs.dim())
 
 
-def reliability(probs: torch.Tensor, visible: torch.Tensor | None, calibration: tuple[float, ...],
-                dim: int = 1) -> torch.Tensor:
+def reliability(
+    probs: torch.Tensor, visible: torch.Tensor | None, calibration: tuple[float, ...], dim: int = 1
+) -> torch.Tensor:
     """Calibrated ``P(r < 1.25)`` per pixel from :func:`reliability_features`."""
     f = reliability_features(probs, visible, dim)
     w = torch.tensor(calibration[1:], dtype=f.dtype, device=f.device)
@@ -392,8 +415,9 @@ def reliability(probs: torch.Tensor, visible: torch.Tensor | None, calibration: 
     return torch.sigmoid(calibration[0] + (f * w).sum(dim % f.dim()))
 
 
-def predict_scale_map(image_a: ImageLike, image_b: ImageLike, model: LocalScaleNet | None = None,
-                      hard: bool = False, planar: bool = False) -> LocalScalePrediction:
+def predict_scale_map(
+    image_a: ImageLike, image_b: ImageLike, model: LocalScaleNet | None = None, hard: bool = False, planar: bool = False
+) -> LocalScalePrediction:
     """Functional form: per-pixel ``S_{A->B}`` with the default (or given) Local-ScaleNet."""
     model = model or LocalScaleNet.from_pretrained()
     return model.predict(image_a, image_b, hard=hard, planar=planar)

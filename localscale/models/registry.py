@@ -8,6 +8,7 @@ config and loads the weights::
     from localscale.models import load_model
     model = load_model("model.pt", arch="LocalScaleNet")
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -51,19 +52,22 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
     try:
         config = cls.config_class(**ckpt["config"])
         model = cls(config)
-    except CheckpointError as e:     # a pre-trained backbone's weights are missing or unreadable
+    except CheckpointError as e:  # a pre-trained backbone's weights are missing or unreadable
         raise type(e)(f"{path}: {e}") from None
     except Exception as e:
         msg = str(e).strip().splitlines()
-        raise CheckpointError(f"{path}: config does not fit {found} "
-                              f"({type(e).__name__}: {msg[0][:160] if msg else ''})") from None
+        raise CheckpointError(
+            f"{path}: config does not fit {found} ({type(e).__name__}: {msg[0][:160] if msg else ''})"
+        ) from None
     sd = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
     try:
         model.load_state_dict(sd)
     except RuntimeError as e:
         first = [line.strip() for line in str(e).splitlines() if line.strip()][1:2]
-        raise CheckpointError(f"{path}: weights do not match the {found} architecture "
-                              f"({first[0][:160] if first else 'state_dict mismatch'})") from None
+        raise CheckpointError(
+            f"{path}: weights do not match the {found} architecture "
+            f"({first[0][:160] if first else 'state_dict mismatch'})"
+        ) from None
     check_record(model, ckpt.get("backbone"), path)
     model.meta = ckpt.get("meta", {})
     model = model.to(device).eval()

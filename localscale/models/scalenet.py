@@ -18,6 +18,7 @@ scale does not depend on a turn). Turning A as well as B keeps swapping A and B 
 inversion. The rule was chosen on held-out synthetic pairs, where it is no worse than the upright
 prediction on any of four sets (``docs/DECISIONS.md``, "ScaleNet: quarter turns").
 """
+
 from __future__ import annotations
 
 import math
@@ -32,8 +33,14 @@ from .. import scales
 from ..io import ImageLike
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel
-from .common import (ReductionBlock, correlation, normalise_correlation, topk_profile,
-                     transpose_correlation, warped_pair_features)
+from .common import (
+    ReductionBlock,
+    correlation,
+    normalise_correlation,
+    topk_profile,
+    transpose_correlation,
+    warped_pair_features,
+)
 from .registry import register
 
 
@@ -43,7 +50,7 @@ class ScaleNetConfig:
     feature_dim: int = 128
     image_size: int = 192
     reduction: tuple[int, ...] = (128, 64, 64, 32)
-    pooled_size: int = 6           #: reduced maps are average-pooled to this grid before the FC
+    pooled_size: int = 6  #: reduced maps are average-pooled to this grid before the FC
     fc_channels: int = 256
     batch_norm: bool = True
     #: position-invariant cues (as in Local-ScaleNet), average-pooled into the FC input
@@ -109,13 +116,14 @@ class ScaleNet(ScaleModel):
     def __init__(self, config: ScaleNetConfig | None = None, **overrides):
         config = config or ScaleNetConfig(**overrides)
         super().__init__(config)
-        n = self.grid_size ** 2
+        n = self.grid_size**2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
         self.pool = nn.AdaptiveAvgPool2d(config.pooled_size)
-        c = 3 * config.reduction[-1] * config.pooled_size ** 2 + self._build_cue_branches(n)
-        self.fc = nn.Sequential(nn.Linear(c, config.fc_channels), nn.ReLU(inplace=True),
-                                nn.Linear(config.fc_channels, scales.NUM_BINS))
+        c = 3 * config.reduction[-1] * config.pooled_size**2 + self._build_cue_branches(n)
+        self.fc = nn.Sequential(
+            nn.Linear(c, config.fc_channels), nn.ReLU(inplace=True), nn.Linear(config.fc_channels, scales.NUM_BINS)
+        )
 
     def forward_features(self, fa: torch.Tensor, fb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of both directions from encoded features: ``(B x 13, B x 13)`` for A->B, B->A."""
@@ -155,8 +163,12 @@ class ScaleNet(ScaleModel):
         hard = math.log(float(scales.hard_scale(p_ab, 0))) + corr
         return GlobalScalePrediction(
             scale=math.exp(float(scales.consistent_log_scale(torch.tensor(ls_ab), torch.tensor(ls_ba)))),
-            scale_ab=math.exp(ls_ab), scale_ba=math.exp(ls_ba), hard_scale=math.exp(hard),
-            probs_ab=p_ab.cpu().numpy(), probs_ba=p_ba.cpu().numpy())
+            scale_ab=math.exp(ls_ab),
+            scale_ba=math.exp(ls_ba),
+            hard_scale=math.exp(hard),
+            probs_ab=p_ab.cpu().numpy(),
+            probs_ba=p_ba.cpu().numpy(),
+        )
 
     @torch.inference_mode()
     def predict_batch(self, images_a, images_b, bf16: bool = False, batch_size: int | None = None):
@@ -172,8 +184,9 @@ class ScaleNet(ScaleModel):
         return fmt.out(torch.exp(scales.consistent_log_scale(ls_ab, ls_ba)))
 
     @torch.inference_mode()
-    def predict(self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False,
-                turns: bool = True) -> GlobalScalePrediction:
+    def predict(
+        self, image_a: ImageLike, image_b: ImageLike, bf16: bool = False, turns: bool = True
+    ) -> GlobalScalePrediction:
         """Global ``S_{A->B}`` between two images (paths or arrays, any size); when exactly one
         image is gray, the other is turned gray before encoding.
 
@@ -186,9 +199,17 @@ class ScaleNet(ScaleModel):
         return self.retry_turned(first, a, b, ea, eb, bf16, shape_a, shape_b) if turns else first
 
     @torch.inference_mode()
-    def retry_turned(self, first: GlobalScalePrediction, a: np.ndarray, b: np.ndarray, ea: EncodedImage,
-                     eb: EncodedImage, bf16: bool = False, shape_a: tuple[int, int] | None = None,
-                     shape_b: tuple[int, int] | None = None) -> GlobalScalePrediction:
+    def retry_turned(
+        self,
+        first: GlobalScalePrediction,
+        a: np.ndarray,
+        b: np.ndarray,
+        ea: EncodedImage,
+        eb: EncodedImage,
+        bf16: bool = False,
+        shape_a: tuple[int, int] | None = None,
+        shape_b: tuple[int, int] | None = None,
+    ) -> GlobalScalePrediction:
         """``first`` (the upright prediction from the encodings ``ea``, ``eb`` of the arrays ``a``,
         ``b``) when it is reliable; else the most consistent of it and the predictions with B, then A,
         turned by 1, 2 and 3 quarter turns, if its two directions agree better than the upright

@@ -19,17 +19,31 @@ Example::
     from localscale.sfm import reconstruct
     summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
 """
+
 import importlib
 
 _EXPORTS = {
     ".images": ("ImageInfo", "find_images", "names_to_pair", "IMAGE_SUFFIXES", "ImageFolderError"),
     ".extract": ("FeatureConf", "CONFS", "LevelMatcher", "extract_features", "read_features", "snap_factor"),
-    ".pairs": ("pairs_exhaustive", "pairs_from_file", "pairs_from_retrieval", "write_pairs", "read_pairs",
-               "PairsFileError"),
+    ".pairs": (
+        "pairs_exhaustive",
+        "pairs_from_file",
+        "pairs_from_retrieval",
+        "write_pairs",
+        "read_pairs",
+        "PairsFileError",
+    ),
     ".match": ("KeypointSet", "match_pairs", "read_all_matches", "SFM_CORRECTIONS"),
     ".geometry": ("verify_pairs", "read_geometries", "estimate_pair"),
-    ".database": ("CAMERA_MODES", "CameraSetup", "CameraFileError", "image_cameras", "read_camera_file",
-                  "write_database", "read_database"),
+    ".database": (
+        "CAMERA_MODES",
+        "CameraSetup",
+        "CameraFileError",
+        "image_cameras",
+        "read_camera_file",
+        "write_database",
+        "read_database",
+    ),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
     ".reconstruct": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),

@@ -19,6 +19,7 @@ COLMAP's keypoints have the pixel centre at ``(0.5, 0.5)``; ``keypoints.h5`` has
 The database is written under a temporary name and renamed: it is complete or absent.
 :func:`read_database` reads it back (the tests' round trip).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -62,8 +63,9 @@ def read_camera_file(path):
         except CameraError:
             raise CameraFileError(str(e)) from None
         if len(cams) != 1:
-            raise CameraFileError(f"{path}: {len(cams)} cameras; --camera takes a file with one camera, used "
-                                  "for every image") from None
+            raise CameraFileError(
+                f"{path}: {len(cams)} cameras; --camera takes a file with one camera, used for every image"
+            ) from None
         return next(iter(cams.values()))
 
 
@@ -73,8 +75,10 @@ def _fit_camera(camera, shape: tuple, what: str):
     if (camera.width, camera.height) == (w, h):
         return camera
     if abs(camera.width / camera.height - w / h) > 0.01:
-        raise CameraFileError(f"{what} is {camera.width}x{camera.height}, the images are {w}x{h} "
-                              "(another aspect ratio): give the camera of these images")
+        raise CameraFileError(
+            f"{what} is {camera.width}x{camera.height}, the images are {w}x{h} "
+            "(another aspect ratio): give the camera of these images"
+        )
     return camera.scaled(w / camera.width, h / camera.height)
 
 
@@ -94,7 +98,7 @@ class CameraSetup:
 
 def image_cameras(images: list, mode: str = "auto", camera_file=None) -> CameraSetup:
     """The cameras of ``images`` (:class:`~.images.ImageInfo`) under ``mode`` (module docstring)."""
-    from ..cameras import CameraError, Camera
+    from ..cameras import Camera, CameraError
 
     if mode not in CAMERA_MODES:
         raise LocalScaleError(f"camera mode must be one of {', '.join(CAMERA_MODES)}, got {mode!r}")
@@ -105,15 +109,17 @@ def image_cameras(images: list, mode: str = "auto", camera_file=None) -> CameraS
             return CameraSetup(cams, {im.name: i + 1 for i, im in enumerate(images)}, "per_image", str(camera_file))
         shapes = {im.shape for im in images}
         if len(shapes) > 1:
-            raise CameraFileError(f"--camera {camera_file}: the images have {len(shapes)} sizes; one camera fits one "
-                                  "size (use --camera-mode per_image to rescale it per image)")
+            raise CameraFileError(
+                f"--camera {camera_file}: the images have {len(shapes)} sizes; one camera fits one "
+                "size (use --camera-mode per_image to rescale it per image)"
+            )
         cam = _fit_camera(given, images[0].shape, f"camera of {camera_file}")
         return CameraSetup({1: cam}, {im.name: 1 for im in images}, "single", str(camera_file))
     guessed = []
     for im in images:
         h, w = im.shape
         try:
-            cam = Camera.from_exif(im.path)            # EXIF focal length, else COLMAP's prior 1.2 x side
+            cam = Camera.from_exif(im.path)  # EXIF focal length, else COLMAP's prior 1.2 x side
         except CameraError:
             cam = Camera.from_prior(w, h)
         if (cam.width, cam.height) != (w, h):
@@ -123,15 +129,19 @@ def image_cameras(images: list, mode: str = "auto", camera_file=None) -> CameraS
         mode = "single" if all(c == guessed[0] for c in guessed) else "per_image"
     if mode == "single":
         if len({im.shape for im in images}) > 1:
-            raise LocalScaleError("--camera-mode single: the images have different sizes; one camera cannot fit "
-                                  "them (use auto or per_image)")
+            raise LocalScaleError(
+                "--camera-mode single: the images have different sizes; one camera cannot fit "
+                "them (use auto or per_image)"
+            )
         return CameraSetup({1: guessed[0]}, {im.name: 1 for im in images}, "single", "exif")
-    return CameraSetup({i + 1: c for i, c in enumerate(guessed)}, {im.name: i + 1 for i, im in enumerate(images)},
-                       "per_image", "exif")
+    return CameraSetup(
+        {i + 1: c for i, c in enumerate(guessed)}, {im.name: i + 1 for i, im in enumerate(images)}, "per_image", "exif"
+    )
 
 
-def write_database(database_path, images: list, cameras: CameraSetup, keypoints_path, matches_path,
-                   geometries_path=None) -> dict:
+def write_database(
+    database_path, images: list, cameras: CameraSetup, keypoints_path, matches_path, geometries_path=None
+) -> dict:
     """Write the COLMAP database (module docstring); returns ``{image name: image id}``.
 
     ``keypoints_path`` / ``matches_path``: :mod:`.match`'s files; ``geometries_path``: the verified
@@ -164,8 +174,11 @@ def write_database(database_path, images: list, cameras: CameraSetup, keypoints_
                 frame = pycolmap.Frame(frame_id=i, rig_id=cid)
                 frame.add_data_id(image.data_id)
                 db.write_frame(frame, use_frame_id=True)
-                kps = read_group(keypoints_path, im.name, ("keypoints",))["keypoints"] if im.name in kp_names \
+                kps = (
+                    read_group(keypoints_path, im.name, ("keypoints",))["keypoints"]
+                    if im.name in kp_names
                     else np.zeros((0, 2), np.float32)
+                )
                 db.write_keypoints(ids[im.name], np.ascontiguousarray(kps, np.float32) + 0.5)
             for (a, b), (m, _) in matches.items():
                 if a in ids and b in ids:

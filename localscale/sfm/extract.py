@@ -17,6 +17,7 @@ Example::
     images = find_images("photos/")
     extract_features(images, "out/features.h5", matcher="aliked-lightglue", num_keypoints=2048)
 """
+
 from __future__ import annotations
 
 import math
@@ -51,6 +52,7 @@ class FeatureConf:
 
     def match_config(self):
         from ..matching import match_config
+
         return match_config(self.matcher, **self.options())
 
 
@@ -68,6 +70,7 @@ CONFS = {
 def load_working(image, max_side: Optional[int]):
     """``(rgb at the working resolution, S)``: S maps full-image pixels to working pixels."""
     from ..io import load_working_image
+
     return load_working_image(image.path, max_side, image.name)
 
 
@@ -84,12 +87,20 @@ def to_working(points: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def build_matcher(conf: FeatureConf, device: str = "cpu", num_images: int = 8, levels_per_octave: int = 2):
     """The :class:`LevelMatcher` of ``conf``, with room in its cache for every image's levels."""
-    return LevelMatcher(conf.match_config(), device, cache_size=max(8, 2 * num_images),
-                        levels_per_octave=levels_per_octave)
+    return LevelMatcher(
+        conf.match_config(), device, cache_size=max(8, 2 * num_images), levels_per_octave=levels_per_octave
+    )
 
 
-def extract_features(images: list, features_path, conf: FeatureConf = FeatureConf(), device: str = "cpu",
-                     matcher=None, overwrite: bool = False, show_progress: bool = True) -> Path:
+def extract_features(
+    images: list,
+    features_path,
+    conf: FeatureConf = FeatureConf(),
+    device: str = "cpu",
+    matcher=None,
+    overwrite: bool = False,
+    show_progress: bool = True,
+) -> Path:
     """Extract every image of ``images`` (:class:`~.images.ImageInfo`) not yet in ``features_path``
     (all of them with ``overwrite``) and write the file (hloc layout, :mod:`.h5io`).
 
@@ -106,12 +117,20 @@ def extract_features(images: list, features_path, conf: FeatureConf = FeatureCon
             rgb, S = load_working(im, conf.max_side)
             f = matcher.extract(rgb, None if not matcher.extractor.rectified else 1.0, im.name)
             desc = f.descriptors.detach().float().cpu().numpy()
-            writer.add(im.name, {"keypoints": to_full(f.keypoints, S),
-                                 "scores": np.asarray(f.responses, np.float32).reshape(-1),
-                                 "descriptors": np.ascontiguousarray(desc.T.astype(np.float32)),
-                                 "image_size": np.array([im.shape[1], im.shape[0]], np.int64)},
-                       {"matcher": conf.matcher, "to_working": np.asarray(S, np.float64),
-                        "working_size": np.array([rgb.shape[1], rgb.shape[0]], np.int64)})
+            writer.add(
+                im.name,
+                {
+                    "keypoints": to_full(f.keypoints, S),
+                    "scores": np.asarray(f.responses, np.float32).reshape(-1),
+                    "descriptors": np.ascontiguousarray(desc.T.astype(np.float32)),
+                    "image_size": np.array([im.shape[1], im.shape[0]], np.int64),
+                },
+                {
+                    "matcher": conf.matcher,
+                    "to_working": np.asarray(S, np.float64),
+                    "working_size": np.array([rgb.shape[1], rgb.shape[0]], np.int64),
+                },
+            )
             writer.maybe_flush()
     if writer.pending or not features_path.exists():
         writer.flush()
@@ -128,6 +147,7 @@ def features_for_matcher(features_path, name: str):
     at the working resolution (keypoints in working pixels, as the matcher extracted them), and
     the ``3 x 3`` map from full-image to working pixels."""
     import torch
+
     from ..features.extractors import Features
 
     d = read_group(features_path, name, ("keypoints", "scores", "descriptors", "image_size"))
@@ -159,6 +179,7 @@ class LevelMatcher(Matcher):
         def counted():
             self.extractions[key] += 1
             return fn()
+
         return super()._cached(key, counted)
 
     def seed(self, name: str, features) -> None:

@@ -12,6 +12,7 @@ Example::
     cams = image_cameras(images, "auto")
     verify_pairs(images, pairs, "out/keypoints.h5", "out/matches.h5", cams, "out/geometries.h5")
 """
+
 from __future__ import annotations
 
 import time
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .h5io import H5Writer, open_h5, groups_with, read_group
+from .h5io import H5Writer, groups_with, open_h5, read_group
 from .images import names_to_pair
 from .match import read_all_matches
 from .progress import progress
@@ -34,13 +35,17 @@ class GeometryStats:
     """Pairs verified, their configurations and inlier counts (by ``(a, b)``), seconds."""
 
     verified: int = 0
-    pairs: dict = field(default_factory=dict)      # (a, b) -> {"config": name, "inliers": n, "matches": m}
+    pairs: dict = field(default_factory=dict)  # (a, b) -> {"config": name, "inliers": n, "matches": m}
     seconds: float = 0.0
     estimator: str = "pycolmap"
 
     def to_dict(self) -> dict:
-        return {"verified": self.verified, "pairs": len(self.pairs), "estimator": self.estimator,
-                "seconds": round(self.seconds, 2)}
+        return {
+            "verified": self.verified,
+            "pairs": len(self.pairs),
+            "estimator": self.estimator,
+            "seconds": round(self.seconds, 2),
+        }
 
 
 def _two_view_module():
@@ -59,8 +64,9 @@ def _as_pycolmap(tv, matches: np.ndarray):
     g = pycolmap.TwoViewGeometry()
     config = getattr(tv, "configuration", getattr(tv, "config", "UNDEFINED"))
     name = config if isinstance(config, str) else getattr(config, "name", str(config))
-    g.config = pycolmap.TwoViewGeometryConfiguration.__members__.get(str(name).upper(),
-                                                                     pycolmap.TwoViewGeometryConfiguration.UNDEFINED)
+    g.config = pycolmap.TwoViewGeometryConfiguration.__members__.get(
+        str(name).upper(), pycolmap.TwoViewGeometryConfiguration.UNDEFINED
+    )
     mask = getattr(tv, "inlier_mask", getattr(tv, "inliers", None))
     mask = np.zeros(len(matches), bool) if mask is None else np.asarray(mask, bool).reshape(-1)
     g.inlier_matches = np.ascontiguousarray(matches[mask], np.uint32).reshape(-1, 2)
@@ -70,8 +76,9 @@ def _as_pycolmap(tv, matches: np.ndarray):
             setattr(g, k, np.asarray(v, np.float64))
     R, t = getattr(tv, "R", None), getattr(tv, "t", None)
     if R is not None and t is not None:
-        g.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R, np.float64)),
-                                            np.asarray(t, np.float64).reshape(3))
+        g.cam2_from_cam1 = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.asarray(R, np.float64)), np.asarray(t, np.float64).reshape(3)
+        )
     return g
 
 
@@ -87,8 +94,9 @@ def config_name(g) -> str:
     return c.name if hasattr(c, "name") else pycolmap.TwoViewGeometryConfiguration(int(c)).name
 
 
-def estimate_pair(points_a: np.ndarray, points_b: np.ndarray, matches: np.ndarray, camera_a, camera_b,
-                  min_inliers: int = 15):
+def estimate_pair(
+    points_a: np.ndarray, points_b: np.ndarray, matches: np.ndarray, camera_a, camera_b, min_inliers: int = 15
+):
     """The ``pycolmap.TwoViewGeometry`` of one pair: ``points_*`` are the images' keypoints
     (keypoints.h5's convention), ``matches`` ``K x 2`` indices into them."""
     import pycolmap
@@ -101,23 +109,37 @@ def estimate_pair(points_a: np.ndarray, points_b: np.ndarray, matches: np.ndarra
         opts = pycolmap.TwoViewGeometryOptions()
         opts.min_num_inliers = min_inliers
         opts.ransac.random_seed = 0
-        g = pycolmap.estimate_two_view_geometry(_to_pycolmap(camera_a), np.asarray(points_a, np.float64) + 0.5,
-                                                _to_pycolmap(camera_b),
-                                                np.asarray(points_b, np.float64) + 0.5,
-                                                np.ascontiguousarray(matches, np.uint32), opts)
+        g = pycolmap.estimate_two_view_geometry(
+            _to_pycolmap(camera_a),
+            np.asarray(points_a, np.float64) + 0.5,
+            _to_pycolmap(camera_b),
+            np.asarray(points_b, np.float64) + 0.5,
+            np.ascontiguousarray(matches, np.uint32),
+            opts,
+        )
     if config_name(g) not in VERIFIED_CONFIGS or len(g.inlier_matches) < min_inliers:
         g.inlier_matches = np.zeros((0, 2), np.uint32)
     return g
 
 
-def verify_pairs(images: list, keypoints_path, matches_path, cameras, geometries_path,
-                 min_inliers: int = 15, show_progress: bool = True) -> GeometryStats:
+def verify_pairs(
+    images: list,
+    keypoints_path,
+    matches_path,
+    cameras,
+    geometries_path,
+    min_inliers: int = 15,
+    show_progress: bool = True,
+) -> GeometryStats:
     """Verify every pair of ``matches_path`` and write ``geometries_path`` (anew, atomically)."""
     t0 = time.perf_counter()
     stats = GeometryStats(estimator="localscale.matching.two_view" if _two_view_module() else "pycolmap")
     names = {im.name for im in images}
-    kps = {n: read_group(keypoints_path, n, ("keypoints",))["keypoints"]
-           for n in groups_with(keypoints_path, "keypoints") if n in names}
+    kps = {
+        n: read_group(keypoints_path, n, ("keypoints",))["keypoints"]
+        for n in groups_with(keypoints_path, "keypoints")
+        if n in names
+    }
     writer = H5Writer(geometries_path, fresh=True)
     matches = read_all_matches(matches_path)
     for (a, b), (m, _) in progress(list(matches.items()), "verify", unit="pair", disable=not show_progress):
@@ -131,12 +153,14 @@ def verify_pairs(images: list, keypoints_path, matches_path, cameras, geometries
         inl = np.zeros((0, 2), np.int32) if g is None else np.asarray(g.inlier_matches, np.int32).reshape(-1, 2)
         data = {"inlier_matches": inl}
         if g is not None:
-            data.update({k: np.asarray(getattr(g, k), np.float64) for k in ("F", "E", "H")
-                         if getattr(g, k, None) is not None})
+            data.update(
+                {k: np.asarray(getattr(g, k), np.float64) for k in ("F", "E", "H") if getattr(g, k, None) is not None}
+            )
             pose = getattr(g, "cam2_from_cam1", None)
             if pose is not None and np.linalg.norm(np.asarray(pose.translation)) > 0:
-                data.update(R=np.asarray(pose.rotation.matrix(), np.float64),
-                            t=np.asarray(pose.translation, np.float64))
+                data.update(
+                    R=np.asarray(pose.rotation.matrix(), np.float64), t=np.asarray(pose.translation, np.float64)
+                )
         writer.add(names_to_pair(a, b), data, {"config": config, "name0": a, "name1": b})
         stats.pairs[(a, b)] = {"config": config, "inliers": int(len(inl)), "matches": int(len(m))}
         stats.verified += int(len(inl) > 0)

@@ -18,6 +18,7 @@
 anew under a temporary name and renames it: the file on disk is always complete (an interrupted
 run keeps what was flushed, and a rerun resumes from there).
 """
+
 from __future__ import annotations
 
 import shutil
@@ -61,9 +62,11 @@ def groups_with(path, dataset: str) -> list:
         return []
     found = []
     with open_h5(path) as f:
+
         def visit(name, obj):
             if hasattr(obj, "keys") and dataset in obj:
                 found.append(name)
+
         f.visititems(visit)
     return found
 
@@ -88,7 +91,7 @@ class H5Writer:
         self.path = Path(path)
         self.every_s = every_s
         self.pending: dict = {}
-        self.fresh = fresh                 # ignore (and replace) an existing file
+        self.fresh = fresh  # ignore (and replace) an existing file
         self._last = time.monotonic()
 
     def add(self, name: str, datasets: dict, attrs: Optional[dict] = None) -> None:

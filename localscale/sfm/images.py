@@ -11,6 +11,7 @@ Files whose extension is not an image format's are listed in one ``warning:`` an
 image files that cannot be decoded each get a ``warning:`` and are skipped; hidden files and
 folders (``.name``) are ignored. Fewer than two usable images is an error.
 """
+
 from __future__ import annotations
 
 import os
@@ -82,7 +83,7 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
                 continue
             try:
                 if check:
-                    load_working_image(path, max_side, name)      # decodes: a corrupt file fails here
+                    load_working_image(path, max_side, name)  # decodes: a corrupt file fails here
                 shape = image_shape(path, name)
             except ImageError as e:
                 unreadable.append((name, str(e)))
@@ -96,11 +97,13 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
     images.sort(key=lambda im: im.name)
     if not images:
         extra = f" ({len(unreadable)} unreadable)" if unreadable else ""
-        raise ImageFolderError(f"no usable images in {root}{extra}; images are files ending in "
-                               f"{', '.join(IMAGE_SUFFIXES)}")
+        raise ImageFolderError(
+            f"no usable images in {root}{extra}; images are files ending in {', '.join(IMAGE_SUFFIXES)}"
+        )
     if len(images) == 1:
-        raise ImageFolderError(f"only one usable image in {root} ({images[0].name}): a reconstruction needs "
-                               "at least two views")
+        raise ImageFolderError(
+            f"only one usable image in {root} ({images[0].name}): a reconstruction needs at least two views"
+        )
     check_names(images)
     return images
 
@@ -114,9 +117,13 @@ def check_names(images: list) -> None:
         by_stem[im.name.rsplit(".", 1)[0]].append(im.name)
     clash = [names for names in by_key.values() if len(names) > 1]
     if clash:
-        raise ImageFolderError(f"image names {' and '.join(clash[0])} clash: hloc's pair names write '/' as '-', "
-                               "so their matches would mix; rename one of them")
-    for stem, names in by_stem.items():
+        raise ImageFolderError(
+            f"image names {' and '.join(clash[0])} clash: hloc's pair names write '/' as '-', "
+            "so their matches would mix; rename one of them"
+        )
+    for _stem, names in by_stem.items():
         if len(names) > 1:
-            warn(f"{' and '.join(names)} differ only in their extension: both are used, as separate images "
-                 "(remove one if they are the same photo)")
+            warn(
+                f"{' and '.join(names)} differ only in their extension: both are used, as separate images "
+                "(remove one if they are the same photo)"
+            )

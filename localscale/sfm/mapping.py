@@ -8,6 +8,7 @@ Example::
     result = run_mapping("out/database.db", "photos/", "out/sparse")
     result.stats[0]     # images registered, points, observations, mean track length, reprojection error
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -35,10 +36,14 @@ def model_stats(rec) -> dict:
     reprojection error (pixels) of a ``pycolmap.Reconstruction``."""
     names = sorted(im.name for im in rec.images.values() if im.has_pose)
     points = rec.num_points3D()
-    return {"registered": len(names), "points": int(points), "observations": int(rec.compute_num_observations()),
-            "mean_track_length": float(rec.compute_mean_track_length()) if points else 0.0,
-            "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if points else None,
-            "registered_images": names}
+    return {
+        "registered": len(names),
+        "points": int(points),
+        "observations": int(rec.compute_num_observations()),
+        "mean_track_length": float(rec.compute_mean_track_length()) if points else 0.0,
+        "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if points else None,
+        "registered_images": names,
+    }
 
 
 def mapping_options(num_threads: int = -1, min_model_size: int = 3):
@@ -47,7 +52,7 @@ def mapping_options(num_threads: int = -1, min_model_size: int = 3):
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = num_threads
     opts.min_model_size = min_model_size
-    opts.random_seed = 0            # the same run gives the same model
+    opts.random_seed = 0  # the same run gives the same model
     return opts
 
 
@@ -64,8 +69,9 @@ def colmap_log(verbose: bool = False):
         pycolmap.logging.minloglevel = before
 
 
-def run_mapping(database_path, image_dir, sparse_dir, options=None, num_threads: int = -1,
-                verbose: bool = False) -> MappingResult:
+def run_mapping(
+    database_path, image_dir, sparse_dir, options=None, num_threads: int = -1, verbose: bool = False
+) -> MappingResult:
     """Incremental mapping of ``database_path``; writes ``sparse_dir/<i>`` (largest model first).
     ``image_dir`` gives the points their colours (COLMAP reads the images)."""
     import pycolmap
@@ -103,8 +109,11 @@ def read_models(sparse_dir) -> list:
     import pycolmap
 
     d = Path(sparse_dir)
-    subs = sorted((p for p in d.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name)) \
-        if d.is_dir() else []
+    subs = (
+        sorted((p for p in d.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+        if d.is_dir()
+        else []
+    )
     return [pycolmap.Reconstruction(p) for p in subs]
 
 

@@ -20,6 +20,7 @@ keypoints (with ``none`` it is exactly them).
 A pair already in ``matches.h5`` (either order) is skipped: a rerun resumes. ``matches.h5`` and
 ``keypoints.h5`` are flushed together (keypoints first) every ``flush_s`` seconds and at the end.
 """
+
 from __future__ import annotations
 
 import time
@@ -67,7 +68,7 @@ class KeypointSet:
     def index(self, points: np.ndarray) -> np.ndarray:
         """The index of each point in the set (added when no keypoint is within ``merge_px``)."""
         out = np.empty(len(points), np.int64)
-        r2 = self.merge_px ** 2
+        r2 = self.merge_px**2
         for k, p in enumerate(np.asarray(points, np.float64).reshape(-1, 2)):
             cx, cy = self._cell(p)
             best, best_d = -1, r2
@@ -115,34 +116,58 @@ class PairRecord:
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"a": self.a, "b": self.b, "num_matches": self.num_matches, "verified": self.verified,
-                "chosen": self.chosen, "seconds": round(self.seconds, 3)}
+        return {
+            "a": self.a,
+            "b": self.b,
+            "num_matches": self.num_matches,
+            "verified": self.verified,
+            "chosen": self.chosen,
+            "seconds": round(self.seconds, 3),
+        }
 
 
 @dataclass
 class MatchStats:
-    pairs: list = field(default_factory=list)       # PairRecord, resumed ones included
-    matched: int = 0                                 # pairs matched in this run
-    resumed: int = 0                                 # pairs found in matches.h5
-    feature_sets: int = 0                            # feature sets the level cache computed
-    added_keypoints: int = 0                         # keypoints beyond features.h5's, all images
+    pairs: list = field(default_factory=list)  # PairRecord, resumed ones included
+    matched: int = 0  # pairs matched in this run
+    resumed: int = 0  # pairs found in matches.h5
+    feature_sets: int = 0  # feature sets the level cache computed
+    added_keypoints: int = 0  # keypoints beyond features.h5's, all images
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"matched": self.matched, "resumed": self.resumed, "feature_sets_computed": self.feature_sets,
-                "added_keypoints": self.added_keypoints, "seconds": round(self.seconds, 2),
-                "pairs": [p.to_dict() for p in self.pairs]}
+        return {
+            "matched": self.matched,
+            "resumed": self.resumed,
+            "feature_sets_computed": self.feature_sets,
+            "added_keypoints": self.added_keypoints,
+            "seconds": round(self.seconds, 2),
+            "pairs": [p.to_dict() for p in self.pairs],
+        }
 
 
 def _costs_to_scores(costs: np.ndarray, lightglue: bool) -> np.ndarray:
     c = np.asarray(costs, np.float32)
-    return (1.0 - c) if lightglue else (1.0 - 0.5 * c ** 2)
+    return (1.0 - c) if lightglue else (1.0 - 0.5 * c**2)
 
 
-def match_pairs(images: list, pairs: list, features_path, matches_path, keypoints_path,
-                conf: FeatureConf = FeatureConf(), correction: str = "none", device: str = "cpu",
-                matcher=None, local_model=None, global_model=None, merge_px: float = 1.0,
-                overwrite: bool = False, flush_s: float = 30.0, show_progress: bool = True) -> MatchStats:
+def match_pairs(
+    images: list,
+    pairs: list,
+    features_path,
+    matches_path,
+    keypoints_path,
+    conf: FeatureConf = FeatureConf(),
+    correction: str = "none",
+    device: str = "cpu",
+    matcher=None,
+    local_model=None,
+    global_model=None,
+    merge_px: float = 1.0,
+    overwrite: bool = False,
+    flush_s: float = 30.0,
+    show_progress: bool = True,
+) -> MatchStats:
     """Match ``pairs`` (``[(name_a, name_b), ...]``) of ``images`` and write ``matches_path`` and
     ``keypoints_path`` (module docstring). ``features_path`` must hold every image of the pairs
     (:func:`~.extract.extract_features` with the same ``conf``).
@@ -152,15 +177,18 @@ def match_pairs(images: list, pairs: list, features_path, matches_path, keypoint
     ``overwrite``: rematch every pair (else pairs in ``matches_path`` are skipped).
     """
     if correction not in SFM_CORRECTIONS:
-        raise LocalScaleError(f"correction must be one of {', '.join(SFM_CORRECTIONS)} for reconstruction, "
-                              f"got {correction!r}")
+        raise LocalScaleError(
+            f"correction must be one of {', '.join(SFM_CORRECTIONS)} for reconstruction, got {correction!r}"
+        )
     t_start = time.perf_counter()
     by_name = {im.name: im for im in images}
     have = set(groups_with(features_path, "keypoints"))
     missing = sorted({n for p in pairs for n in p} - have)
     if missing:
-        raise H5FileError(f"{features_path} lacks the features of {missing[0]}"
-                          f"{f' and {len(missing) - 1} more' if len(missing) > 1 else ''}: run the extraction first")
+        raise H5FileError(
+            f"{features_path} lacks the features of {missing[0]}"
+            f"{f' and {len(missing) - 1} more' if len(missing) > 1 else ''}: run the extraction first"
+        )
     sets = _keypoint_sets(images, features_path, keypoints_path, merge_px, fresh=overwrite)
     done = {} if overwrite else _done_pairs(matches_path)
     stats = MatchStats()
@@ -178,18 +206,24 @@ def match_pairs(images: list, pairs: list, features_path, matches_path, keypoint
 
     def flush():
         for n in sorted(changed):
-            k_writer.add(n, {"keypoints": sets[n].keypoints,
-                             "image_size": np.array([by_name[n].shape[1], by_name[n].shape[0]], np.int64)},
-                         {"num_base": sets[n].num_base})
+            k_writer.add(
+                n,
+                {
+                    "keypoints": sets[n].keypoints,
+                    "image_size": np.array([by_name[n].shape[1], by_name[n].shape[0]], np.int64),
+                },
+                {"num_base": sets[n].num_base},
+            )
         changed.clear()
         if k_writer.pending or not Path(keypoints_path).exists():
-            k_writer.flush()          # first: the matches index only keypoints it holds
+            k_writer.flush()  # first: the matches index only keypoints it holds
         if m_writer.pending or not Path(matches_path).exists():
             m_writer.flush()
 
     if todo:
-        runner = _PairRunner(by_name, features_path, conf, correction, device, matcher, local_model,
-                             global_model, len(images))
+        runner = _PairRunner(
+            by_name, features_path, conf, correction, device, matcher, local_model, global_model, len(images)
+        )
         last = time.monotonic()
         try:
             for a, b in progress(todo, f"match ({correction})", unit="pair", disable=not show_progress):
@@ -197,13 +231,21 @@ def match_pairs(images: list, pairs: list, features_path, matches_path, keypoint
                 kp_a, kp_b, m, scores, verified, chosen = runner.run(a, b)
                 ia = sets[a].index(kp_a[m[:, 0]]) if len(m) else np.zeros(0, np.int64)
                 ib = sets[b].index(kp_b[m[:, 1]]) if len(m) else np.zeros(0, np.int64)
-                mm, ss = one_to_one(ia, ib, scores[:len(m)]) if len(m) else (np.zeros((0, 2), np.int64),
-                                                                             np.zeros(0, np.float32))
+                mm, ss = (
+                    one_to_one(ia, ib, scores[: len(m)])
+                    if len(m)
+                    else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+                )
                 changed.update((a, b))
                 m0, s0 = matches0_from_matches(mm, ss, len(sets[a]))
                 rec = PairRecord(a, b, int(len(mm)), verified, chosen, time.perf_counter() - t0)
-                attrs = {"num_matches": rec.num_matches, "chosen": chosen, "seconds": rec.seconds,
-                         "name0": a, "name1": b}
+                attrs = {
+                    "num_matches": rec.num_matches,
+                    "chosen": chosen,
+                    "seconds": rec.seconds,
+                    "name0": a,
+                    "name1": b,
+                }
                 if verified is not None:
                     attrs["verified"] = bool(verified)
                 m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
@@ -213,7 +255,7 @@ def match_pairs(images: list, pairs: list, features_path, matches_path, keypoint
                     flush()
                     last = time.monotonic()
         finally:
-            flush()                   # also when interrupted: what was matched is kept
+            flush()  # also when interrupted: what was matched is kept
         stats.feature_sets = runner.feature_sets
     else:
         flush()
@@ -233,8 +275,14 @@ def _done_pairs(matches_path) -> dict:
         at = g["attrs"]
         a, b = str(at.get("name0", "")), str(at.get("name1", ""))
         v = at.get("verified")
-        out[key] = PairRecord(a, b, int(np.sum(g["matches0"] >= 0)), None if v is None else bool(v),
-                              str(at.get("chosen", "")), float(at.get("seconds", 0.0)))
+        out[key] = PairRecord(
+            a,
+            b,
+            int(np.sum(g["matches0"] >= 0)),
+            None if v is None else bool(v),
+            str(at.get("chosen", "")),
+            float(at.get("seconds", 0.0)),
+        )
     return out
 
 
@@ -244,18 +292,25 @@ def _keypoint_sets(images, features_path, keypoints_path, merge_px: float, fresh
     extracted = set(groups_with(features_path, "keypoints"))
     sets = {}
     for im in images:
-        base = read_group(features_path, im.name, ("keypoints",))["keypoints"] if im.name in extracted \
+        base = (
+            read_group(features_path, im.name, ("keypoints",))["keypoints"]
+            if im.name in extracted
             else np.zeros((0, 2), np.float32)
+        )
         s = KeypointSet(base, merge_px)
         if im.name in have:
             stored = read_group(keypoints_path, im.name, ("keypoints",))["keypoints"]
-            if len(stored) < len(base) or not np.array_equal(stored[:len(base)], base):
-                raise H5FileError(f"{keypoints_path}: the keypoints of {im.name} do not start with those of "
-                                  f"{features_path} (written by another extraction): rerun with overwrite")
-            s.index(stored[len(base):])
+            if len(stored) < len(base) or not np.array_equal(stored[: len(base)], base):
+                raise H5FileError(
+                    f"{keypoints_path}: the keypoints of {im.name} do not start with those of "
+                    f"{features_path} (written by another extraction): rerun with overwrite"
+                )
+            s.index(stored[len(base) :])
             if len(s) != len(stored):
-                raise H5FileError(f"{keypoints_path}: the keypoints of {im.name} were merged with another "
-                                  "merge distance: rerun with overwrite")
+                raise H5FileError(
+                    f"{keypoints_path}: the keypoints of {im.name} were merged with another "
+                    "merge distance: rerun with overwrite"
+                )
         sets[im.name] = s
     return sets
 
@@ -264,8 +319,9 @@ class _PairRunner:
     """Matches one pair with the correction: ``run(a, b) -> (keypoints A, keypoints B (full-image
     pixels), K x 2 matches, K scores, verified or None, chosen hypothesis)``."""
 
-    def __init__(self, by_name, features_path, conf, correction, device, matcher, local_model, global_model,
-                 num_images):
+    def __init__(
+        self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images
+    ):
         from ..matching import get_correction
 
         self.by_name, self.features_path, self.conf, self.correction = by_name, features_path, conf, correction
@@ -273,9 +329,11 @@ class _PairRunner:
         self.lightglue = self.matcher.config.matching == "lightglue"
         self.method = get_correction(correction)
         self.local_model, self.global_model = local_model, global_model
-        if correction != "none" and ((local_model is None and "local" in self.method.models)
-                                     or (global_model is None and "global" in self.method.models)):
-            loaded = self.method.load_models(device=device)      # the bundled weights of what is missing
+        if correction != "none" and (
+            (local_model is None and "local" in self.method.models)
+            or (global_model is None and "global" in self.method.models)
+        ):
+            loaded = self.method.load_models(device=device)  # the bundled weights of what is missing
             self.local_model = local_model if local_model is not None else loaded[0]
             self.global_model = global_model if global_model is not None else loaded[1]
         self.seed = None
@@ -283,8 +341,8 @@ class _PairRunner:
         if correction == "auto" and seed_name is not None and seed_name != self.matcher.config.name:
             from ..matching import match_config
             from .extract import LevelMatcher
-            self.seed = LevelMatcher(match_config(seed_name, max_side=None), device,
-                                     cache_size=max(8, 2 * num_images))
+
+            self.seed = LevelMatcher(match_config(seed_name, max_side=None), device, cache_size=max(8, 2 * num_images))
         self._features: OrderedDict = OrderedDict()
         self._images: OrderedDict = OrderedDict()
         self._seeded: set = set()
@@ -315,13 +373,19 @@ class _PairRunner:
         (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
         if self.correction == "none":
             matches, costs = m.match_features(fa, fb)
-            return (to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb), matches,
-                    _costs_to_scores(costs, self.lightglue), None, "")
+            return (
+                to_full(fa.keypoints, Sa),
+                to_full(fb.keypoints, Sb),
+                matches,
+                _costs_to_scores(costs, self.lightglue),
+                None,
+                "",
+            )
         (ia, Sa), (ib, Sb) = self._image(a), self._image(b)
         if m.extractor.rectified:
             for name, f in ((a, fa), (b, fb)):
                 if name not in self._seeded:
-                    m.seed(name, f)          # level 1 of every pair is features.h5's
+                    m.seed(name, f)  # level 1 of every pair is features.h5's
                     self._seeded.add(name)
         if self.correction == "auto":
             from ..matching import auto_match
@@ -331,13 +395,16 @@ class _PairRunner:
             h = out.chosen
             kp_a, kp_b = found.keypoints_a, found.keypoints_b
             matches, scores = found.matches, _costs_to_scores(found.distances, self.lightglue)
-            if m.extractor.rectified and verified and (h.turn % 4 or h.window is not None
-                                                       or abs(np.log2(h.scale)) >= m.config.auto.same_log2):
+            if (
+                m.extractor.rectified
+                and verified
+                and (h.turn % 4 or h.window is not None or abs(np.log2(h.scale)) >= m.config.auto.same_log2)
+            ):
                 # the winner matched at another level, turn or window: match again with the image whose
                 # content is smaller at its stored level, so its keypoints are those the other pairs use
                 kp_a, kp_b, matches, scores = _union(
-                    (kp_a, kp_b, matches, scores),
-                    self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn))
+                    (kp_a, kp_b, matches, scores), self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn)
+                )
                 chosen += "; anchored"
         else:
             cfg = m.config
@@ -349,7 +416,7 @@ class _PairRunner:
                 level = pair_scale(sa, sb)
                 kp_a, kp_b, matches, scores = self._anchored(a, b, ia, ib, fa, fb, level, 0)
                 chosen = f"level {level:.3g}"
-            else:            # patches: the keypoints stay, each patch's size follows the maps
+            else:  # patches: the keypoints stay, each patch's size follows the maps
                 found = m.match(ia, ib, sa, sb, (a, b))
                 kp_a, kp_b, matches = found.keypoints_a, found.keypoints_b, found.matches
                 scores, chosen = _costs_to_scores(found.distances, self.lightglue), "maps"
@@ -386,14 +453,18 @@ def _union(first: tuple, second: tuple):
     ka1, kb1, m1, s1 = first
     ka2, kb2, m2, s2 = second
     m2 = np.asarray(m2, np.int64).reshape(-1, 2) + np.array([len(ka1), len(kb1)], np.int64)
-    return (np.concatenate([ka1, ka2]), np.concatenate([kb1, kb2]),
-            np.concatenate([np.asarray(m1, np.int64).reshape(-1, 2), m2]), np.concatenate([s1, s2]))
+    return (
+        np.concatenate([ka1, ka2]),
+        np.concatenate([kb1, kb2]),
+        np.concatenate([np.asarray(m1, np.int64).reshape(-1, 2), m2]),
+        np.concatenate([s1, s2]),
+    )
 
 
 def read_all_matches(matches_path) -> dict:
     """``{(name_a, name_b): (K x 2 matches, K scores)}`` of ``matches.h5`` (indices into
     ``keypoints.h5``; the names as matched, from the groups' ``name0`` / ``name1``)."""
-    from .h5io import open_h5, matches_from_matches0
+    from .h5io import matches_from_matches0, open_h5
 
     out = {}
     keys = groups_with(matches_path, "matches0")
@@ -402,6 +473,6 @@ def read_all_matches(matches_path) -> dict:
             g = f[key]
             a, b = str(g.attrs.get("name0", "")), str(g.attrs.get("name1", ""))
             if not a or not b:
-                a, b = key.split("/", 1)      # written by another tool: names without '/'
+                a, b = key.split("/", 1)  # written by another tool: names without '/'
             out[(a, b)] = matches_from_matches0(g["matches0"][()], g["matching_scores0"][()])
     return out

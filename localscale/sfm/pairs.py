@@ -12,6 +12,7 @@ Example::
     pairs = pairs_from_retrieval(images, "out/features.h5", num_nearest=10)
     write_pairs("out/pairs.txt", pairs)
 """
+
 from __future__ import annotations
 
 import itertools
@@ -89,8 +90,10 @@ def pairs_from_file(path, names: list, images_dir=None) -> list:
         resolved = [name_of(p) for p in parts]
         if None in resolved:
             bad = parts[resolved.index(None)]
-            raise PairsFileError(f"{path}:{i}: {bad!r} is not one of the usable images "
-                                 f"(names are paths relative to the images folder, e.g. {sorted(known)[0]!r})")
+            raise PairsFileError(
+                f"{path}:{i}: {bad!r} is not one of the usable images "
+                f"(names are paths relative to the images folder, e.g. {sorted(known)[0]!r})"
+            )
         pairs.append(tuple(resolved))
     pairs = _unique(pairs)
     if not pairs:
@@ -103,7 +106,7 @@ def global_descriptors(features_path, names: list, p: float = 3.0) -> np.ndarray
     (GeM, power ``p``, of their absolute values after L2 normalisation), L2-normalised."""
     out = []
     for name in names:
-        d = read_group(features_path, name, ("descriptors",))["descriptors"].astype(np.float32)   # D x N
+        d = read_group(features_path, name, ("descriptors",))["descriptors"].astype(np.float32)  # D x N
         d = d / np.maximum(np.linalg.norm(d, axis=0, keepdims=True), 1e-12)
         g = np.mean(np.abs(d) ** p, axis=1) ** (1.0 / p) if d.shape[1] else np.zeros(d.shape[0], np.float32)
         out.append(g / max(float(np.linalg.norm(g)), 1e-12))

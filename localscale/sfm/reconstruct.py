@@ -22,6 +22,7 @@ Example::
     summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
     summary["registered"], summary["points"], summary["seconds"]
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -35,11 +36,31 @@ from ..outputs import check_writable_dir
 from .report import collecting_warnings, markdown_table, read_json, warn, write_json
 
 #: the files and folders a run writes into its output folder
-OUTPUTS = ("run.json", "features.h5", "pairs.txt", "matches.h5", "keypoints.h5", "geometries.h5", "database.db",
-           "sparse", "summary.json", "reconstruction.png")
+OUTPUTS = (
+    "run.json",
+    "features.h5",
+    "pairs.txt",
+    "matches.h5",
+    "keypoints.h5",
+    "geometries.h5",
+    "database.db",
+    "sparse",
+    "summary.json",
+    "reconstruction.png",
+)
 #: options that change the result: a resumed run must have the same
-RESULT_OPTIONS = ("matcher", "correction", "num_keypoints", "max_side", "pairs", "pairs_file_sha1", "pairs_nearest",
-                  "camera_mode", "camera_file_sha1", "merge_px")
+RESULT_OPTIONS = (
+    "matcher",
+    "correction",
+    "num_keypoints",
+    "max_side",
+    "pairs",
+    "pairs_file_sha1",
+    "pairs_nearest",
+    "camera_mode",
+    "camera_file_sha1",
+    "merge_px",
+)
 
 
 class OutputFolderError(LocalScaleError):
@@ -70,8 +91,9 @@ def _check_options(matcher, correction, pairs, pairs_nearest, camera_mode, max_s
             raise LocalScaleError(f"--pairs-nearest must be an integer >= 1, got {pairs_nearest!r}")
     if max_side is not None and (isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 16):
         raise LocalScaleError(f"--max-side must be an integer >= 16, got {max_side!r}")
-    if num_keypoints is not None and (isinstance(num_keypoints, bool) or not isinstance(num_keypoints, int)
-                                      or num_keypoints < 1):
+    if num_keypoints is not None and (
+        isinstance(num_keypoints, bool) or not isinstance(num_keypoints, int) or num_keypoints < 1
+    ):
         raise LocalScaleError(f"--num-keypoints must be an integer >= 1, got {num_keypoints!r}")
 
 
@@ -91,8 +113,10 @@ def _output_state(out: Path, options: dict, overwrite: bool) -> str:
         return "overwrite"
     run = out / "run.json"
     if not run.is_file():
-        raise OutputFolderError(f"output folder {out} is not empty and holds no run of ours (no run.json): "
-                                "give an empty or new folder, or --overwrite to write our files into it")
+        raise OutputFolderError(
+            f"output folder {out} is not empty and holds no run of ours (no run.json): "
+            "give an empty or new folder, or --overwrite to write our files into it"
+        )
     try:
         previous = read_json(run)["options"]
     except (OSError, ValueError, KeyError, TypeError):
@@ -100,16 +124,34 @@ def _output_state(out: Path, options: dict, overwrite: bool) -> str:
     changed = [k for k in RESULT_OPTIONS if previous.get(k) != options.get(k)]
     if changed:
         k = changed[0]
-        raise OutputFolderError(f"{out} holds a run with other options ({k}: {previous.get(k)!r} there, "
-                                f"{options.get(k)!r} now): use another folder, the same options, or --overwrite")
+        raise OutputFolderError(
+            f"{out} holds a run with other options ({k}: {previous.get(k)!r} there, "
+            f"{options.get(k)!r} now): use another folder, the same options, or --overwrite"
+        )
     return "resume"
 
 
-def reconstruct(images_dir, out_dir, matcher: str = "aliked-lightglue", correction: str = "none",
-                pairs: str = "exhaustive", pairs_nearest: Optional[int] = None, camera_mode: str = "auto",
-                camera_file=None, max_side: Optional[int] = 1024, num_keypoints: Optional[int] = 2048,
-                device: str = "cpu", overwrite: bool = False, merge_px: float = 1.0, num_threads: int = -1,
-                show_progress: bool = True, verbose: bool = False, plot: bool = True) -> dict:
+def reconstruct(
+    images_dir,
+    out_dir,
+    matcher: str = "aliked-lightglue",
+    correction: str = "none",
+    pairs: str = "exhaustive",
+    pairs_nearest: Optional[int] = None,
+    camera_mode: str = "auto",
+    camera_file=None,
+    max_side: Optional[int] = 1024,
+    num_keypoints: Optional[int] = 2048,
+    device: str = "cpu",
+    overwrite: bool = False,
+    merge_px: float = 1.0,
+    num_threads: int = -1,
+    show_progress: bool = True,
+    verbose: bool = False,
+    plot: bool = True,
+    local_model=None,
+    global_model=None,
+) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
 
@@ -117,6 +159,7 @@ def reconstruct(images_dir, out_dir, matcher: str = "aliked-lightglue", correcti
         matcher: a name of :data:`localscale.matching.MATCHERS` (its extractor and matching rule).
         correction: :data:`~.match.SFM_CORRECTIONS` (``none``: the cached features matched as they
             are; ``auto``: the scale and quarter-turn hypothesis loop per pair).
+        local_model, global_model: the networks of the correction (default: the bundled weights).
         pairs: ``"exhaustive"`` or a pairs file (``A B`` names per line, :func:`~.pairs.pairs_from_file`).
         pairs_nearest: with ``"exhaustive"``: each image with its ``N`` most similar instead
             (:func:`~.pairs.pairs_from_retrieval`).
@@ -141,31 +184,42 @@ def reconstruct(images_dir, out_dir, matcher: str = "aliked-lightglue", correcti
     if out.resolve() == images_dir.resolve():
         raise OutputFolderError(f"the output folder is the images folder ({out}): give another folder")
     check_writable_dir(out)
-    options = {"matcher": matcher, "correction": correction, "num_keypoints": num_keypoints, "max_side": max_side,
-               "pairs": "exhaustive" if pairs == "exhaustive" else "file", "pairs_file_sha1": None,
-               "pairs_nearest": pairs_nearest, "camera_mode": camera_mode, "camera_file_sha1": None,
-               "merge_px": merge_px}
+    options = {
+        "matcher": matcher,
+        "correction": correction,
+        "num_keypoints": num_keypoints,
+        "max_side": max_side,
+        "pairs": "exhaustive" if pairs == "exhaustive" else "file",
+        "pairs_file_sha1": None,
+        "pairs_nearest": pairs_nearest,
+        "camera_mode": camera_mode,
+        "camera_file_sha1": None,
+        "merge_px": merge_px,
+    }
     with collecting_warnings() as warnings_seen:
         if pairs != "exhaustive":
             options["pairs_file_sha1"] = _sha1(pairs)
         if camera_file is not None:
             if not Path(camera_file).is_file():
                 from .database import CameraFileError
+
                 raise CameraFileError(f"camera file not found: {camera_file}")
             options["camera_file_sha1"] = _sha1(camera_file)
         state = _output_state(out, options, overwrite)
         images = find_images(images_dir, exclude=[out], max_side=max_side)
         names = [im.name for im in images]
-        cameras = image_cameras(images, camera_mode, camera_file)          # a bad camera file fails here
+        cameras = image_cameras(images, camera_mode, camera_file)  # a bad camera file fails here
         pair_list = pairs_from_file(pairs, names, images_dir) if pairs != "exhaustive" else None
         stamps = {im.name: _image_stamp(im) for im in images}
         if state == "resume":
             before = read_json(out / "run.json").get("images", {})
             changed = [n for n, s in stamps.items() if n in before and list(before[n]) != s]
             if changed:
-                raise OutputFolderError(f"{changed[0]} changed since the run in {out}"
-                                        f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: "
-                                        "use --overwrite to start again")
+                raise OutputFolderError(
+                    f"{changed[0]} changed since the run in {out}"
+                    f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: "
+                    "use --overwrite to start again"
+                )
         # ---- everything is checked: from here on, files are written
         if state == "overwrite":
             for name in OUTPUTS:
@@ -181,36 +235,56 @@ def reconstruct(images_dir, out_dir, matcher: str = "aliked-lightglue", correcti
         level_matcher = build_matcher(conf, device, len(images))
 
         t = time.perf_counter()
-        extract_features(images, out / "features.h5", conf, device, matcher=level_matcher,
-                         show_progress=show_progress)
+        extract_features(images, out / "features.h5", conf, device, matcher=level_matcher, show_progress=show_progress)
         seconds["extract"] = time.perf_counter() - t
 
         t = time.perf_counter()
         if pair_list is None:
-            pair_list = pairs_from_retrieval(names, out / "features.h5", pairs_nearest) if pairs_nearest \
+            pair_list = (
+                pairs_from_retrieval(names, out / "features.h5", pairs_nearest)
+                if pairs_nearest
                 else pairs_exhaustive(names)
+            )
         write_pairs(out / "pairs.txt", pair_list)
         seconds["pairs"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        mstats = match_pairs(images, pair_list, out / "features.h5", out / "matches.h5", out / "keypoints.h5", conf,
-                             correction, device, matcher=level_matcher, merge_px=merge_px,
-                             show_progress=show_progress)
+        mstats = match_pairs(
+            images,
+            pair_list,
+            out / "features.h5",
+            out / "matches.h5",
+            out / "keypoints.h5",
+            conf,
+            correction,
+            device,
+            matcher=level_matcher,
+            merge_px=merge_px,
+            show_progress=show_progress,
+            local_model=local_model,
+            global_model=global_model,
+        )
         seconds["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        gstats = verify_pairs(images, out / "keypoints.h5", out / "matches.h5", cameras, out / "geometries.h5",
-                              show_progress=show_progress)
+        gstats = verify_pairs(
+            images,
+            out / "keypoints.h5",
+            out / "matches.h5",
+            cameras,
+            out / "geometries.h5",
+            show_progress=show_progress,
+        )
         seconds["geometry"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        write_database(out / "database.db", images, cameras, out / "keypoints.h5", out / "matches.h5",
-                       out / "geometries.h5")
+        write_database(
+            out / "database.db", images, cameras, out / "keypoints.h5", out / "matches.h5", out / "geometries.h5"
+        )
         seconds["database"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        mapping = run_mapping(out / "database.db", images_dir, out / "sparse", num_threads=num_threads,
-                              verbose=verbose)
+        mapping = run_mapping(out / "database.db", images_dir, out / "sparse", num_threads=num_threads, verbose=verbose)
         seconds["mapping"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t_total
 
@@ -218,29 +292,56 @@ def reconstruct(images_dir, out_dir, matcher: str = "aliked-lightglue", correcti
         _flag(summary)
         if plot:
             from .viz import plot_reconstruction
+
             status = {k: v["inliers"] > 0 for k, v in gstats.pairs.items()}
-            plot_reconstruction(out / "reconstruction.png", mapping.models[0] if mapping.models else None, names,
-                                status, f"{images_dir.name}: {matcher}, correction {correction}")
+            plot_reconstruction(
+                out / "reconstruction.png",
+                mapping.models[0] if mapping.models else None,
+                names,
+                status,
+                f"{images_dir.name}: {matcher}, correction {correction}",
+            )
         summary["warnings"] = list(warnings_seen)
     write_json(out / "summary.json", summary)
     return summary
 
 
 def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, seconds, state) -> dict:
-    best = mapping.stats[0] if mapping.stats else {"registered": 0, "points": 0, "observations": 0,
-                                                   "mean_track_length": 0.0, "mean_reprojection_error": None,
-                                                   "registered_images": []}
+    best = (
+        mapping.stats[0]
+        if mapping.stats
+        else {
+            "registered": 0,
+            "points": 0,
+            "observations": 0,
+            "mean_track_length": 0.0,
+            "mean_reprojection_error": None,
+            "registered_images": [],
+        }
+    )
     names = [im.name for im in images]
-    return {"images": len(images), "registered": best["registered"], "points": best["points"],
-            "observations": best["observations"], "mean_track_length": best["mean_track_length"],
-            "mean_reprojection_error": best["mean_reprojection_error"],
-            "unregistered_images": sorted(set(names) - set(best["registered_images"])),
-            "images_in_other_models": sorted({n for s in mapping.stats[1:] for n in s["registered_images"]}
-                                             - set(best["registered_images"])),
-            "models": [{k: v for k, v in s.items() if k != "registered_images"} for s in mapping.stats],
-            "pairs": len(pair_list), "pairs_verified": gstats.verified, "geometry_estimator": gstats.estimator,
-            "matching": mstats.to_dict(), "camera_mode": cameras.mode, "camera_source": cameras.source,
-            "options": options, "run": state, "seconds": {k: round(v, 2) for k, v in seconds.items()}}
+    return {
+        "images": len(images),
+        "registered": best["registered"],
+        "points": best["points"],
+        "observations": best["observations"],
+        "mean_track_length": best["mean_track_length"],
+        "mean_reprojection_error": best["mean_reprojection_error"],
+        "unregistered_images": sorted(set(names) - set(best["registered_images"])),
+        "images_in_other_models": sorted(
+            {n for s in mapping.stats[1:] for n in s["registered_images"]} - set(best["registered_images"])
+        ),
+        "models": [{k: v for k, v in s.items() if k != "registered_images"} for s in mapping.stats],
+        "pairs": len(pair_list),
+        "pairs_verified": gstats.verified,
+        "geometry_estimator": gstats.estimator,
+        "matching": mstats.to_dict(),
+        "camera_mode": cameras.mode,
+        "camera_source": cameras.source,
+        "options": options,
+        "run": state,
+        "seconds": {k: round(v, 2) for k, v in seconds.items()},
+    }
 
 
 def _flag(summary: dict) -> None:
@@ -250,20 +351,29 @@ def _flag(summary: dict) -> None:
         warn("no model: the mapper registered no images (too few verified pairs?)")
     elif r < n:
         shown = ", ".join(summary["unregistered_images"][:6])
-        warn(f"only {r} of {n} images registered in the largest model (not: {shown}"
-             f"{', ...' if len(summary['unregistered_images']) > 6 else ''})")
+        warn(
+            f"only {r} of {n} images registered in the largest model (not: {shown}"
+            f"{', ...' if len(summary['unregistered_images']) > 6 else ''})"
+        )
     if summary["images_in_other_models"]:
         shown = ", ".join(summary["images_in_other_models"][:6])
-        warn(f"the images split into {len(summary['models'])} models: {len(summary['images_in_other_models'])} "
-             f"image(s) are only in smaller models, not aligned with the largest ({shown})")
+        warn(
+            f"the images split into {len(summary['models'])} models: {len(summary['images_in_other_models'])} "
+            f"image(s) are only in smaller models, not aligned with the largest ({shown})"
+        )
     err = summary["mean_reprojection_error"]
     if err is not None and err > 2.0:
         warn(f"mean reprojection error {err:.2f} px is high: wrong matches or a wrong camera model")
 
 
-SUMMARY_COLUMNS = [("registered", "registered"), ("points", "points"), ("observations", "observations"),
-                   ("mean_track_length", "mean track"), ("mean_reprojection_error", "reproj. error (px)"),
-                   ("pairs_verified", "verified pairs")]
+SUMMARY_COLUMNS = [
+    ("registered", "registered"),
+    ("points", "points"),
+    ("observations", "observations"),
+    ("mean_track_length", "mean track"),
+    ("mean_reprojection_error", "reproj. error (px)"),
+    ("pairs_verified", "verified pairs"),
+]
 
 
 def summary_table(summary: dict) -> str:

@@ -4,6 +4,7 @@
 :func:`collecting_warnings` gathers (the summary lists them), so a result that should not be
 trusted is flagged both on the terminal and in ``summary.json``.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -46,7 +47,7 @@ def _jsonable(value):
         return [_jsonable(v) for v in value]
     if isinstance(value, Path):
         return str(value)
-    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:   # numpy scalars
+    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:  # numpy scalars
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
         return None
@@ -65,6 +66,7 @@ def read_json(path) -> dict:
 
 def markdown_table(rows: list, columns: list) -> str:
     """A markdown table of ``rows`` (dicts) with ``columns`` ``[(key, title), ...]``; floats with 3 digits."""
+
     def cell(v):
         if v is None:
             return "-"

@@ -9,6 +9,7 @@ perspective are exact. Used by the tests of :mod:`localscale.sfm` and as a smoke
     from localscale.sfm.synthetic import write_scene
     cameras = write_scene("scene/", num_views=6)      # scene/view_0.png .. view_5.png
 """
+
 from __future__ import annotations
 
 import math
@@ -70,7 +71,7 @@ def render_view(camera: SceneCamera, textures: list, planes=None) -> np.ndarray:
     h, w = camera.shape
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pix = np.stack([xs, ys, np.ones_like(xs)], -1).reshape(-1, 3)
-    rays = (pix @ np.linalg.inv(camera.K).T) @ camera.R        # world directions (R^T d, as row vectors)
+    rays = (pix @ np.linalg.inv(camera.K).T) @ camera.R  # world directions (R^T d, as row vectors)
     centre = camera.center
     best = np.full(len(rays), np.inf)
     out = np.full((len(rays), 3), 110, np.float32)
@@ -91,8 +92,9 @@ def render_view(camera: SceneCamera, textures: list, planes=None) -> np.ndarray:
     return np.clip(out, 0, 255).astype(np.uint8).reshape(h, w, 3)
 
 
-def arc_cameras(num_views: int = 6, shape: tuple = (240, 320), focal: float = 300.0, distance: float = 6.0,
-                spread_deg: float = 40.0) -> list:
+def arc_cameras(
+    num_views: int = 6, shape: tuple = (240, 320), focal: float = 300.0, distance: float = 6.0, spread_deg: float = 40.0
+) -> list:
     """``num_views`` cameras on an arc (``spread_deg`` wide, heights alternating) around the ridge,
     each at ``distance`` and looking at the ridge's middle."""
     h, w = shape
@@ -105,7 +107,7 @@ def arc_cameras(num_views: int = 6, shape: tuple = (240, 320), focal: float = 30
         centre = target + np.array([distance * math.sin(yaw), height, -distance * math.cos(yaw)])
         z = target - centre
         z /= np.linalg.norm(z)
-        x = np.cross(np.array([0.0, -1.0, 0.0]), z)    # image x to the right, image y down (world y up)
+        x = np.cross(np.array([0.0, -1.0, 0.0]), z)  # image x to the right, image y down (world y up)
         x /= np.linalg.norm(x)
         y = np.cross(z, x)
         R = np.stack([x, y, z])

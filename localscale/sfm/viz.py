@@ -6,6 +6,7 @@ any orientation of the model), and (right) the pair graph: every image on a circ
 matched pair an edge, green when its two-view geometry verified, red when it did not, registered
 images filled. Written atomically.
 """
+
 from __future__ import annotations
 
 import math
@@ -26,7 +27,7 @@ def _top_view_axes(rec) -> np.ndarray:
             rots.append(np.asarray(pose.rotation.matrix()))
     if not rots:
         return np.eye(3)[:, :2]
-    up = -np.mean([R[1] for R in rots], 0)          # image y points down: its world direction, negated
+    up = -np.mean([R[1] for R in rots], 0)  # image y points down: its world direction, negated
     up /= max(np.linalg.norm(up), 1e-12)
     x = np.mean([R[0] for R in rots], 0)
     x -= up * (x @ up)
@@ -44,6 +45,7 @@ def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: 
     ``pair_status``: ``{(a, b): True/False}`` verified or not.
     """
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -56,7 +58,7 @@ def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: 
         registered = set(names)
         pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
         cols = np.array([p.color for p in rec.points3D.values()]).reshape(-1, 3) / 255.0
-        if len(pts):     # the points within the 1st..99th percentiles (a few far outliers would shrink the rest)
+        if len(pts):  # the points within the 1st..99th percentiles (a few far outliers would shrink the rest)
             lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
             keep = np.all((pts >= lo) & (pts <= hi), axis=1)
             pts, cols = pts[keep], cols[keep]
@@ -79,14 +81,18 @@ def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: 
     xy = {name: (math.cos(a), math.sin(a)) for name, a in angle.items()}
     for (a, b), ok in pair_status.items():
         if a in xy and b in xy:
-            ax1.plot([xy[a][0], xy[b][0]], [xy[a][1], xy[b][1]], color="tab:green" if ok else "tab:red",
-                     alpha=0.7 if ok else 0.35, lw=1.0)
+            ax1.plot(
+                [xy[a][0], xy[b][0]],
+                [xy[a][1], xy[b][1]],
+                color="tab:green" if ok else "tab:red",
+                alpha=0.7 if ok else 0.35,
+                lw=1.0,
+            )
     for name, (x, y) in xy.items():
         ax1.scatter([x], [y], s=40, c="black" if name in registered else "white", edgecolors="black", zorder=3)
         ax1.annotate(Path(name).stem, (x * 1.08, y * 1.08), fontsize=6, ha="center", va="center")
     nv = sum(bool(v) for v in pair_status.values())
-    ax1.set_title(f"pairs: {nv} verified (green), {len(pair_status) - nv} not (red); filled = registered",
-                  fontsize=9)
+    ax1.set_title(f"pairs: {nv} verified (green), {len(pair_status) - nv} not (red); filled = registered", fontsize=9)
     ax1.set_aspect("equal")
     ax1.axis("off")
     if title:

