@@ -7,30 +7,11 @@ and the command line's ``--help`` stay fast.
 from .errors import CheckpointError, HomographyError, ImageError, LocalScaleError
 
 __version__ = "0.1.0"
-__all__ = [
-    "LocalScaleNet",
-    "LocalScaleBatch",
-    "LocalScaleNetConfig",
-    "LocalScalePrediction",
-    "ScaleNet",
-    "ScaleNetConfig",
-    "predict_scale_map",
-    "estimate_scale",
-    "LocalScaleError",
-    "ImageError",
-    "HomographyError",
-    "CheckpointError",
-]
-_FROM_MODELS = (
-    "LocalScaleNet",
-    "LocalScaleBatch",
-    "LocalScaleNetConfig",
-    "LocalScalePrediction",
-    "ScaleNet",
-    "ScaleNetConfig",
-    "predict_scale_map",
-    "estimate_scale",
-)
+# fmt: off
+_FROM_MODELS = ("LocalScaleNet", "LocalScaleBatch", "LocalScaleNetConfig", "LocalScalePrediction", "ScaleNet",
+                "ScaleNetConfig", "predict_scale_map", "estimate_scale")
+# fmt: on
+__all__ = [*_FROM_MODELS, "LocalScaleError", "ImageError", "HomographyError", "CheckpointError"]
 
 
 def __getattr__(name):
