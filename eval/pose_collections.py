@@ -2,7 +2,7 @@
 
 The SuperGlue/LightGlue protocol the ScaleNet paper uses: for each image pair with a known
 relative pose, match, estimate the essential matrix from the matches with the known intrinsics
-(:func:`localscale.matching.two_view.estimate_two_view_geometry`: MAGSAC, cheirality, refinement),
+(:func:`localscale.two_view.estimate_two_view_geometry`: MAGSAC, cheirality, refinement),
 error = max(rotation error, translation-direction error) in degrees (180 when no pose), and report
 the AUC at 5/10/20 degrees and the share of pairs within 10 degrees.
 
@@ -53,8 +53,8 @@ from tqdm import tqdm
 
 from localscale.cameras import Camera, cut_window, read_cameras_txt
 from localscale.errors import LocalScaleError
-from localscale.matching.two_view import TwoViewConfig, estimate_two_view_geometry, pose_auc, relative_pose_error
 from localscale.outputs import atomic_path
+from localscale.two_view import TwoViewConfig, estimate_two_view_geometry, pose_auc, relative_pose_error
 
 COLLECTIONS = ("skull_alansartlog", "temple_sparse_ring_middlebury", "kermit_bundler")
 THRESHOLDS = (5, 10, 20)

@@ -24,7 +24,7 @@ from localscale.cameras import (
     window_pixels,
 )
 from localscale.errors import LocalScaleError
-from localscale.matching.two_view import (
+from localscale.two_view import (
     CONFIGURATIONS,
     TwoViewConfig,
     TwoViewError,

@@ -3,7 +3,7 @@ refinement, correction methods, ``auto`` and the pipeline that runs them.
 
 One module per concept: :mod:`.config` (:class:`MatchConfig`, :data:`MATCHERS`), :mod:`.matcher`
 (:class:`Matcher`), :mod:`.nearest_neighbour`, :mod:`.lightglue`, :mod:`.rectification`,
-:mod:`.correction`, :mod:`.verification`, :mod:`.two_view`, :mod:`.refinement`, :mod:`.auto`,
+:mod:`.correction`, :mod:`.verification` (with :mod:`localscale.two_view`), :mod:`.refinement`, :mod:`.auto`,
 :mod:`.metrics`, :mod:`.result`, :mod:`.viz` and :mod:`.pipeline` (:func:`match_pair`).
 The submodules (torch, kornia, OpenCV) are imported on first use of a name below.
 
@@ -33,7 +33,7 @@ _EXPORTS = {
         "scale_maps_for_pair",
         "fuse_local_global",
     ),
-    ".two_view": ("TwoViewConfig", "TwoViewGeometry", "estimate_two_view_geometry", "relative_pose_error", "pose_auc"),
+    "..two_view": ("TwoViewConfig", "TwoViewGeometry", "estimate_two_view_geometry", "relative_pose_error", "pose_auc"),
     ".verification": (
         "VerificationConfig",
         "VerificationResult",

@@ -1,7 +1,7 @@
 """Step 4: the verified two-view geometry of every matched pair (``geometries.h5``).
 
 Each pair's matches (``keypoints.h5`` / ``matches.h5``) and the two cameras
-(:func:`~.database.image_cameras`) go to :func:`localscale.matching.two_view.estimate_two_view_geometry`
+(:func:`~.database.image_cameras`) go to :func:`localscale.two_view.estimate_two_view_geometry`
 when that module exists, else to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
 verification: E, F and H by RANSAC, the configuration that explains the matches, its inliers).
 A pair with fewer than ``min_inliers`` inliers, or a degenerate configuration, is kept with no
@@ -133,7 +133,7 @@ def verify_pairs(
 ) -> GeometryStats:
     """Verify every pair of ``matches_path`` and write ``geometries_path`` (anew, atomically)."""
     t0 = time.perf_counter()
-    stats = GeometryStats(estimator="localscale.matching.two_view" if _two_view_module() else "pycolmap")
+    stats = GeometryStats(estimator="localscale.two_view" if _two_view_module() else "pycolmap")
     names = {im.name for im in images}
     kps = {
         n: read_group(keypoints_path, n, ("keypoints",))["keypoints"]
