@@ -194,7 +194,7 @@ class TwoViewGeometry:
 
     def pycolmap_configuration(self):
         """The configuration as ``pycolmap.TwoViewGeometryConfiguration`` (needs pycolmap)."""
-        from ..cameras import import_pycolmap
+        from .cameras import import_pycolmap
 
         return getattr(import_pycolmap().TwoViewGeometryConfiguration, self.configuration)
 
