@@ -88,7 +88,7 @@ def to_given_pixels(points: np.ndarray, fx: float, fy: float) -> np.ndarray:
 
 
 class Extractor:
-    """Base of the dense extractors: ``extract(image, factor)`` -> :class:`Features`.
+    """Base of the extractors: their options; the dense ones ``extract(image, factor)`` -> :class:`Features`.
 
     Subclasses set ``default_conf`` and implement ``_extract(image) -> (xy N x 2, desc N x D, scores N)``.
     ``lightglue`` names the LightGlue configuration of kornia whose weights fit the descriptors (None: none).
@@ -241,12 +241,13 @@ class XFeat(Extractor):
         return _outputs(f["keypoints"], f["descriptors"], f["scores"])
 
 
-class PatchExtractor:
+class PatchExtractor(Extractor):
     """Keypoints of a single-scale detector, described on patches whose radius each keypoint's
     scale map corrects (``base_radius * S`` where the content is bigger in the other image).
 
     ``cache``: a dict kept per image by the caller; the keypoints are detected once, and a
-    keypoint whose corrected radius is unchanged reuses its descriptor.
+    keypoint whose corrected radius is unchanged reuses its descriptor. Its :meth:`extract` takes
+    the image's scale map where the dense extractors take a resize factor (``rectified = False``).
     """
 
     default_conf = {
@@ -262,11 +263,8 @@ class PatchExtractor:
     ratio_test = "symmetric"
 
     def __init__(self, device: str = "cpu", **conf):
-        unknown = sorted(set(conf) - set(self.default_conf))
-        if unknown:
-            raise LocalScaleError(f"PatchExtractor has no option(s) {', '.join(unknown)}")
-        self.conf = c = {**self.default_conf, **conf}
-        self.device = resolve_device(device)
+        super().__init__(device, **conf)
+        c = self.conf
         self.detector = get_detector(c["detector"], c["num_features"])  # an unknown name fails here
         self.descriptor = get_descriptor(c["descriptor"]).to(self.device)
         if isinstance(self.descriptor, HardNetDescriptor):
