@@ -233,50 +233,90 @@ def estimate_two_view_geometry(
     """
     cfg = (config or TwoViewConfig()).check()
     pa, pb = _check_points(points_a, points_b)
-    cam_a, cam_b = as_camera(camera_a), as_camera(camera_b)
-    n = len(pa)
-    geo = TwoViewGeometry("DEGENERATE", "none", n, np.zeros(n, bool))
-    need = max(cfg.min_num_inliers, 5)
-    if n < need:
-        geo.reasons.append(f"only {n} matches, {need} needed")
+    return _Estimation(pa, pb, as_camera(camera_a), as_camera(camera_b), cfg).run()
+
+
+class _Estimation:
+    """One :func:`estimate_two_view_geometry` of checked points, one method per stage (fit the
+    models, classify, the essential matrix's pose, the configuration's pose, its triangulation
+    angle), each filling :attr:`geo`."""
+
+    def __init__(self, pa: np.ndarray, pb: np.ndarray, cam_a, cam_b, cfg: TwoViewConfig):
+        self.pa, self.pb, self.cam_a, self.cam_b, self.cfg = pa, pb, cam_a, cam_b, cfg
+        self.n = len(pa)
+        self.geo = TwoViewGeometry("DEGENERATE", "none", self.n, np.zeros(self.n, bool))
+
+    def run(self) -> TwoViewGeometry:
+        """The stages in order, stopping at the first that leaves nothing more to estimate."""
+        cfg, geo, n = self.cfg, self.geo, self.n
+        need = max(cfg.min_num_inliers, 5)
+        if n < need:
+            geo.reasons.append(f"only {n} matches, {need} needed")
+            return geo
+        if cfg.seed is not None:
+            cv2.setRNGSeed(int(cfg.seed))
+        self.fit_models()
+        if not self.classify():
+            return geo
+        self.essential_pose()
+        if not self.both:
+            return geo
+        if not self.calibrated:
+            geo.reasons.append("a focal length is a guess: the pose is approximate")
+        if self.configuration_pose():
+            self.check_triangulation()
         return geo
-    if cfg.seed is not None:
-        cv2.setRNGSeed(int(cfg.seed))
 
-    both = cam_a is not None and cam_b is not None
-    calibrated = both and cam_a.has_prior_focal_length and cam_b.has_prior_focal_length
-    # H and F on undistorted pixels when the cameras are known; E on normalised coordinates
-    ua = cam_a.undistort_points(pa) if both else pa
-    ub = cam_b.undistort_points(pb) if both else pb
+    def fit_models(self) -> None:
+        """``H``, ``F`` and (both focal lengths known) ``E`` with their inlier masks and counts."""
+        cfg, cam_a, cam_b, pa, pb = self.cfg, self.cam_a, self.cam_b, self.pa, self.pb
+        self.both = both = cam_a is not None and cam_b is not None
+        self.calibrated = both and cam_a.has_prior_focal_length and cam_b.has_prior_focal_length
+        # H and F on undistorted pixels when the cameras are known; E on normalised coordinates
+        self.ua = cam_a.undistort_points(pa) if both else pa
+        self.ub = cam_b.undistort_points(pb) if both else pb
 
-    H, mask_H = _fit_homography(ua, ub, cfg)
-    F, mask_F = _fit_fundamental(ua, ub, cfg)
-    E, mask_E = (None, np.zeros(n, bool))
-    na = nb = None
-    if both:
-        na, nb = cam_a.normalize(pa), cam_b.normalize(pb)
-    if calibrated:
-        thr = 0.5 * (
-            cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error)
-        )
-        E, mask_E = _fit_essential(na, nb, thr, cfg)
-    geo.H, geo.F, geo.E = H, F, E
-    nH, nF, nE = int(mask_H.sum()), int(mask_F.sum()), int(mask_E.sum())
-    geo.num_inliers_H, geo.num_inliers_F, geo.num_inliers_E = nH, nF, nE
-    m = cfg.min_num_inliers
+        self.H, self.mask_H = _fit_homography(self.ua, self.ub, cfg)
+        self.F, self.mask_F = _fit_fundamental(self.ua, self.ub, cfg)
+        self.E, self.mask_E = (None, np.zeros(self.n, bool))
+        self.na = self.nb = None
+        if both:
+            self.na, self.nb = cam_a.normalize(pa), cam_b.normalize(pb)
+        if self.calibrated:
+            thr = 0.5 * (
+                cam_a.pixel_threshold_to_normalized(cfg.max_error) + cam_b.pixel_threshold_to_normalized(cfg.max_error)
+            )
+            self.E, self.mask_E = _fit_essential(self.na, self.nb, thr, cfg)
+        geo = self.geo
+        geo.H, geo.F, geo.E = self.H, self.F, self.E
+        geo.num_inliers_H = int(self.mask_H.sum())
+        geo.num_inliers_F = int(self.mask_F.sum())
+        geo.num_inliers_E = int(self.mask_E.sum())
 
-    config_name, mask = _classify(cfg, E, F, H, mask_E, mask_F, mask_H)
-    if config_name == "DEGENERATE":
-        geo.reasons.append(f"no model has {m} inliers (H {nH}, F {nF}, E {nE})")
-        return geo
-    if cfg.min_inlier_ratio > 0 and mask.sum() / n < cfg.min_inlier_ratio:
-        geo.reasons.append(f"inlier ratio {mask.sum() / n:.2f} < {cfg.min_inlier_ratio}")
-        return geo
-    geo.configuration, geo.inliers, geo.num_inliers = config_name, mask, int(mask.sum())
-    geo.model = CONFIGURATION_MODEL[config_name]
+    def classify(self) -> bool:
+        """The configuration and its inliers (:func:`_classify`); False (with the reason) when degenerate."""
+        cfg, geo, n = self.cfg, self.geo, self.n
+        config_name, mask = _classify(cfg, self.E, self.F, self.H, self.mask_E, self.mask_F, self.mask_H)
+        if config_name == "DEGENERATE":
+            geo.reasons.append(
+                f"no model has {cfg.min_num_inliers} inliers "
+                f"(H {geo.num_inliers_H}, F {geo.num_inliers_F}, E {geo.num_inliers_E})"
+            )
+            return False
+        if cfg.min_inlier_ratio > 0 and mask.sum() / n < cfg.min_inlier_ratio:
+            geo.reasons.append(f"inlier ratio {mask.sum() / n:.2f} < {cfg.min_inlier_ratio}")
+            return False
+        geo.configuration, geo.inliers, geo.num_inliers = config_name, mask, int(mask.sum())
+        geo.model = CONFIGURATION_MODEL[config_name]
+        return True
 
-    if E is not None and nE >= m:
-        geo.R_E, geo.t_E, _ = pose_from_essential(E, na[mask_E], nb[mask_E])
+    def essential_pose(self) -> None:
+        """``R_E``, ``t_E``: the pose of ``E`` when it has enough inliers (refined if asked, ``E`` then its own)."""
+        cfg, geo, cam_a, cam_b = self.cfg, self.geo, self.cam_a, self.cam_b
+        if self.E is None or geo.num_inliers_E < cfg.min_num_inliers:
+            return
+        na, nb, mask_E = self.na, self.nb, self.mask_E
+        geo.R_E, geo.t_E, _ = pose_from_essential(self.E, na[mask_E], nb[mask_E])
         if geo.R_E is not None and cfg.refine_pose:
             scale = 0.5 * (
                 cam_a.pixel_threshold_to_normalized(cfg.refine_loss_scale)
@@ -284,39 +324,44 @@ def estimate_two_view_geometry(
             )
             geo.R_E, geo.t_E = refine_relative_pose(geo.R_E, geo.t_E, na[mask_E], nb[mask_E], scale)
             geo.E = skew(geo.t_E) @ geo.R_E
-    if not both:
-        return geo
-    if not calibrated:
-        geo.reasons.append("a focal length is a guess: the pose is approximate")
 
-    if config_name == "CALIBRATED":
-        geo.R, geo.t, geo.pose_source = geo.R_E, geo.t_E, "E"
-    elif config_name == "UNCALIBRATED":
-        E_f = cam_b.K().T @ F @ cam_a.K()
-        geo.R, geo.t, _ = pose_from_essential(E_f, na[mask_F], nb[mask_F])
-        geo.pose_source = "F"
-    else:
-        R_rot, rot_share = rotation_fit(ua[mask_H], ub[mask_H], cam_a, cam_b, cfg.max_error)
-        if rot_share >= cfg.panoramic_min_inlier_ratio:
-            geo.configuration, geo.R, geo.t, geo.pose_source = "PANORAMIC", R_rot, np.zeros(3), "rotation"
-            geo.reasons.append("panoramic: the baseline is too small to give a translation")
-            return geo
-        geo.configuration = "PLANAR"
-        pose = pose_from_homography(H, cam_a, cam_b, na, nb, mask_H, cfg)
-        if pose is None:
-            geo.reasons.append("no decomposition of H puts the points in front of both cameras")
-            return geo
-        geo.R, geo.t = pose
-        geo.pose_source = "H"
-    if geo.R is None:
-        geo.reasons.append("no pose passes the cheirality test")
-        return geo
-    geo.tri_angle = median_triangulation_angle(geo.R, geo.t, na[geo.inliers], nb[geo.inliers])
-    if geo.tri_angle is not None and geo.tri_angle < cfg.min_tri_angle:
-        geo.reasons.append(
-            f"median triangulation angle {geo.tri_angle:.2f} deg < {cfg.min_tri_angle}: translation weakly observed"
-        )
-    return geo
+    def configuration_pose(self) -> bool:
+        """``R``, ``t`` and ``pose_source`` of the configuration (both cameras given); resolves
+        ``PLANAR_OR_PANORAMIC``. False (with the reason) when the pose is missing or only a rotation."""
+        cfg, geo, na, nb = self.cfg, self.geo, self.na, self.nb
+        if geo.configuration == "CALIBRATED":
+            geo.R, geo.t, geo.pose_source = geo.R_E, geo.t_E, "E"
+        elif geo.configuration == "UNCALIBRATED":
+            E_f = self.cam_b.K().T @ self.F @ self.cam_a.K()
+            geo.R, geo.t, _ = pose_from_essential(E_f, na[self.mask_F], nb[self.mask_F])
+            geo.pose_source = "F"
+        else:
+            mask_H = self.mask_H
+            R_rot, rot_share = rotation_fit(self.ua[mask_H], self.ub[mask_H], self.cam_a, self.cam_b, cfg.max_error)
+            if rot_share >= cfg.panoramic_min_inlier_ratio:
+                geo.configuration, geo.R, geo.t, geo.pose_source = "PANORAMIC", R_rot, np.zeros(3), "rotation"
+                geo.reasons.append("panoramic: the baseline is too small to give a translation")
+                return False
+            geo.configuration = "PLANAR"
+            pose = pose_from_homography(self.H, self.cam_a, self.cam_b, na, nb, mask_H, cfg)
+            if pose is None:
+                geo.reasons.append("no decomposition of H puts the points in front of both cameras")
+                return False
+            geo.R, geo.t = pose
+            geo.pose_source = "H"
+        if geo.R is None:
+            geo.reasons.append("no pose passes the cheirality test")
+            return False
+        return True
+
+    def check_triangulation(self) -> None:
+        """``tri_angle`` of the pose's inliers; a small one flags the translation as weakly observed."""
+        cfg, geo = self.cfg, self.geo
+        geo.tri_angle = median_triangulation_angle(geo.R, geo.t, self.na[geo.inliers], self.nb[geo.inliers])
+        if geo.tri_angle is not None and geo.tri_angle < cfg.min_tri_angle:
+            geo.reasons.append(
+                f"median triangulation angle {geo.tri_angle:.2f} deg < {cfg.min_tri_angle}: translation weakly observed"
+            )
 
 
 def _classify(cfg, E, F, H, mask_E, mask_F, mask_H) -> Tuple[str, np.ndarray]:

@@ -166,6 +166,19 @@ def test_local_executor_builds_the_state_once_and_reports_bad_items():
         list(LocalExecutor().map(buggy, range(5)))
 
 
+class KillOnce:
+    """The matching step's pair work, except that the first call anywhere kills its worker (``kill -9``)."""
+
+    def __init__(self, marker: str, work):
+        self.marker, self.work = marker, work
+
+    def __call__(self, runner, pair):
+        if not os.path.exists(self.marker):
+            Path(self.marker).write_text(str(os.getpid()))
+            os.kill(os.getpid(), signal.SIGKILL)
+        return self.work(runner, pair)
+
+
 # ---------------------------------------------------------------- Ray: one local cluster for the tests below
 
 
@@ -275,6 +288,36 @@ class TestRayLocalCluster:
         assert sorted(int(x) for x in log.read_text().split()) == list(range(6))  # one attempt each
         with pytest.raises(ZeroDivisionError):  # a bug ends the run, in the driver
             list(ray_executor.map(buggy, range(5)))
+
+    def test_reconstruct_equals_local_engine_with_a_worker_killed(self, ray_executor, tmp_path, monkeypatch):
+        pytest.importorskip("pycolmap")
+        h5py = pytest.importorskip("h5py")
+        import localscale.sfm.match as sfm_match
+        from localscale.sfm import reconstruct
+        from localscale.sfm.synthetic import write_scene
+
+        write_scene(tmp_path / "scene", num_views=5, shape=(240, 320), seed=0)
+        opts = dict(matcher="sift", num_keypoints=1024, num_threads=1, show_progress=False, plot=False)
+        local = reconstruct(tmp_path / "scene", tmp_path / "local", **opts)
+        marker = tmp_path / "killed"
+        work = sfm_match.MatchPair()
+        monkeypatch.setattr(sfm_match, "MatchPair", lambda: KillOnce(str(marker), work))
+        remote = reconstruct(tmp_path / "scene", tmp_path / "ray", engine=ray_executor, **opts)
+        assert marker.exists() and ray_executor.last_run.retried >= 1  # a worker died mid-matching
+        assert remote["engine"] == {"name": "ray", "workers": 2} and local["engine"]["name"] == "local"
+        assert remote["registered"] == local["registered"] == 5
+        for name in ("features.h5", "matches.h5", "keypoints.h5"):
+            with h5py.File(tmp_path / "local" / name) as a, h5py.File(tmp_path / "ray" / name) as b:
+                keys_a, keys_b = [], []
+                a.visit(lambda k: keys_a.append(k) if isinstance(a[k], h5py.Dataset) else None)
+                b.visit(lambda k: keys_b.append(k) if isinstance(b[k], h5py.Dataset) else None)
+                assert sorted(keys_a) == sorted(keys_b) and keys_a
+                for k in keys_a:
+                    x, y = a[k][()], b[k][()]
+                    if np.issubdtype(x.dtype, np.floating):
+                        np.testing.assert_allclose(y, x, rtol=0, atol=1e-5)
+                    else:
+                        np.testing.assert_array_equal(y, x)  # matches and indices identical
 
     def test_bad_weights_raise_in_the_driver(self, ray_executor, tmp_path):
         bad = tmp_path / "weights.pt"

@@ -174,7 +174,9 @@ def test_bad_pairs_options(views, tmp_path, capsys):
     pairs.write_text("view_0.png view_9.png\n")
     _refused([str(views), "-o", str(out), *FAST, "--pairs", str(pairs)], capsys, out, "view_9.png")
     pairs.write_text("view_0.png\n")
-    _refused([str(views), "-o", str(out), *FAST, "--pairs", str(pairs)], capsys, out, "expected two image names")
+    _refused(
+        [str(views), "-o", str(out), *FAST, "--pairs", str(pairs)], capsys, out, "expected two images (names or paths)"
+    )
     _refused([str(views), "-o", str(out), *FAST, "--pairs", str(tmp_path / "nope.txt")], capsys, out, "not found")
     pairs.write_text("view_0.png view_1.png\n")
     _refused(

@@ -14,6 +14,7 @@ from .options import (
     HelpFormatter,
     OneLineErrorParser,
     _LazyArgumentParser,
+    add_engine_options,
     add_hpatches_options,
     add_match_options,
     add_model_options,
@@ -121,23 +122,7 @@ def _add_map_commands(command) -> None:
         "the most content with the other image; for strong zooms and low overlap, ~30x slower",
     )
     sp.add_argument("--batch-size", type=positive_int, default=8, help="pairs per network batch with --pairs")
-    sp.add_argument(
-        "--engine",
-        choices=["local", "ray"],
-        default="local",
-        help="where --pairs runs: this process (local) or a Ray cluster (ray; pip install 'localscale[ray]')",
-    )
-    sp.add_argument(
-        "--workers", type=positive_int, default=None, help="Ray workers (default: one per threads-per-worker CPUs)"
-    )
-    sp.add_argument(
-        "--threads-per-worker", type=positive_int, default=None, help="torch threads of each Ray worker (default: 1)"
-    )
-    sp.add_argument(
-        "--ray-address",
-        default=None,
-        help="a running Ray cluster (e.g. auto, or HOST:PORT); default: a local one, started and stopped",
-    )
+    add_engine_options(sp, "--pairs")
     sp.add_argument("--cache-mb", type=positive_float, default=256, help="feature cache bound (MiB) with --pairs")
     sp.add_argument(
         "--overwrite",

@@ -320,6 +320,42 @@ def add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def add_engine_options(p: argparse.ArgumentParser, what: str) -> argparse.ArgumentParser:
+    """``--engine local|ray``, ``--workers``, ``--threads-per-worker``, ``--ray-address``: where ``what`` runs."""
+    p.add_argument(
+        "--engine",
+        choices=["local", "ray"],
+        default="local",
+        help=f"where {what} runs: this process (local) or a Ray cluster (ray; pip install 'localscale[ray]')",
+    )
+    p.add_argument(
+        "--workers", type=positive_int, default=None, help="Ray workers (default: one per threads-per-worker CPUs)"
+    )
+    p.add_argument(
+        "--threads-per-worker", type=positive_int, default=None, help="torch threads of each Ray worker (default: 1)"
+    )
+    p.add_argument(
+        "--ray-address",
+        default=None,
+        help="a running Ray cluster (e.g. auto, or HOST:PORT); default: a local one, started and stopped",
+    )
+    return p
+
+
+def executor_from_args(args):
+    """The Ray executor of ``--engine ray`` (options checked, nothing started), or None for this process."""
+    from ..engine import get_executor
+    from ..errors import LocalScaleError
+
+    if args.engine == "local":
+        if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "ray_address")):
+            raise LocalScaleError("--workers, --threads-per-worker and --ray-address need --engine ray")
+        return None
+    if args.device != "cpu":
+        raise LocalScaleError("--engine ray runs the networks on the workers' CPUs: drop --device")
+    return get_executor("ray", args.workers, args.threads_per_worker, args.ray_address)
+
+
 def _int_at_least(text: str, low: int) -> int:
     try:
         v = int(text)

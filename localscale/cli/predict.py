@@ -9,17 +9,45 @@ from ..map_files import scale_map_paths, write_refinement, write_scale_map
 from .common import _model, check_output_dir, pair_name
 from .predict_pairs import _predict_pairs
 
+#: what ``predict --refine`` writes beside the refined maps
+_REFINE_META = ("passes", "inlier_counts", "seed_inliers")
+
 
 def cmd_predict(args) -> int:
     out = check_output_dir(args.output)
     if args.pairs:
-        if args.image_a or args.image_b:
-            raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
-        if getattr(args, "refine", False):
-            raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
-        if args.search:
-            raise LocalScaleError("predict: --search works on one pair A B, not with --pairs")
+        _check_pairs_options(args)
         return _predict_pairs(args, out)
+    _check_pair_options(args)
+    inputs = (args.image_a, args.image_b)
+    check_output_dir(out, [p.name for p in scale_map_paths(out, pair_name(*inputs), True)])
+    from ..reliability import check_pair
+
+    model = _model(args, "local")
+    if args.search and (args.hard or args.planar):
+        raise LocalScaleError("predict: --search uses the soft read-out; drop --hard/--planar")
+    check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
+    pred = _searched_prediction(model, args) if args.search else check.forward
+    _write_prediction(args, pred, check, out, inputs)
+    if getattr(args, "refine", False) and args.matcher != "hardnet":
+        _refine_with_matcher(args, model, out, inputs)
+    elif getattr(args, "refine", False):
+        _refine_hardnet(args, model, pred, check.backward, out, inputs)
+    return 0
+
+
+def _check_pairs_options(args) -> None:
+    """The options ``--pairs FILE`` cannot be combined with."""
+    if args.image_a or args.image_b:
+        raise LocalScaleError("predict: give two images A B or --pairs FILE, not both")
+    if getattr(args, "refine", False):
+        raise LocalScaleError("predict: --refine works on one pair A B, not with --pairs")
+    if args.search:
+        raise LocalScaleError("predict: --search works on one pair A B, not with --pairs")
+
+
+def _check_pair_options(args) -> None:
+    """The options of one pair A B: ``--refine-passes``, ``--matcher`` (needs ``--refine``, not ``--search``), A and B."""
     if getattr(args, "refine", False) and args.refine_passes < 1:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
     if args.matcher != "hardnet":
@@ -33,25 +61,23 @@ def cmd_predict(args) -> int:
             raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
-    inputs = (args.image_a, args.image_b)
-    check_output_dir(out, [p.name for p in scale_map_paths(out, pair_name(*inputs), True)])
-    from ..reliability import check_pair
 
-    model = _model(args, "local")
-    if args.search and (args.hard or args.planar):
-        raise LocalScaleError("predict: --search uses the soft read-out; drop --hard/--planar")
-    check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
-    pred = check.forward
-    if args.search:
-        from ..search import search_scale_map
 
-        found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
-        pred = found.prediction
-        print(
-            f"search: {found.candidates} window pairs scored; kept {found.kept()} "
-            f"(score {found.score:.1f}, whole images {found.base_score:.1f})",
-            file=sys.stderr,
-        )
+def _searched_prediction(model, args):
+    """The map of A from ``--search`` (window pairs), with its line on stderr."""
+    from ..search import search_scale_map
+
+    found = search_scale_map(model, args.image_a, args.image_b, bf16=args.bf16)
+    print(
+        f"search: {found.candidates} window pairs scored; kept {found.kept()} "
+        f"(score {found.score:.1f}, whole images {found.base_score:.1f})",
+        file=sys.stderr,
+    )
+    return found.prediction
+
+
+def _write_prediction(args, pred, check, out, inputs) -> None:
+    """Write the scale map, print its files, its summary and the warning of an unreliable map."""
     for p in write_scale_map(pred, out, pair_name(*inputs), inputs):
         print(p)
     import numpy as np
@@ -61,49 +87,49 @@ def cmd_predict(args) -> int:
     if not check.reliable:
         scope = " (checked on the whole images)" if args.search else ""
         print(f"warning: this scale map is unreliable{scope}: {'; '.join(check.reasons)}", file=sys.stderr)
-    if getattr(args, "refine", False) and args.matcher != "hardnet":
-        from ..matching.pipeline import match_pair
 
-        options = {"refine": True} | ({"weights": args.matcher_weights} if args.matcher_weights else {})
-        res = match_pair(args.image_a, args.image_b, "auto", None, model, None, args.matcher, **options)
-        v = res.verification
-        extra = {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")} | {"auto": res.meta["auto"]}
-        for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
-            print(p)
-        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
-        print(
-            f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
-            f"inliers, {state}",
-            file=sys.stderr,
-        )
-    elif getattr(args, "refine", False):
-        from ..matching.correction import CorrectionGate
-        from ..matching.pipeline import refine_match
 
-        back = check.backward
-        if args.search:  # B's map from its own search, as the searched correction of match does
-            back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
-        first_a, first_b = CorrectionGate().apply_predictions(pred, back)
-        res = refine_match(
-            args.image_a,
-            args.image_b,
-            first_a,
-            first_b,
-            pred.scale,
-            back.scale,
-            max_passes=args.refine_passes,
-            sift_seed=args.refine_seed == "sift",
-        )
-        v = res.verification
-        for p in write_refinement(
-            out,
-            pair_name(*inputs) + "_",
-            res.refined_a,
-            None,
-            {k: res.meta[k] for k in ("passes", "inlier_counts", "seed_inliers")},
-            inputs,
-        ):
-            print(p)
-        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
-        print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)
-    return 0
+def _refine_with_matcher(args, model, out, inputs) -> None:
+    """``--refine --matcher M``: :func:`~localscale.matching.match_pair` with ``auto`` and refinement."""
+    from ..matching.pipeline import match_pair
+
+    options = {"refine": True} | ({"weights": args.matcher_weights} if args.matcher_weights else {})
+    res = match_pair(args.image_a, args.image_b, "auto", None, model, None, args.matcher, **options)
+    v = res.verification
+    extra = {k: res.meta[k] for k in _REFINE_META} | {"auto": res.meta["auto"]}
+    for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
+        print(p)
+    state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+    print(
+        f"refine: {args.matcher} auto chose {res.meta['auto']['chosen']}; {v.model} with {v.num_inliers} "
+        f"inliers, {state}",
+        file=sys.stderr,
+    )
+
+
+def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
+    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.refine_match`)."""
+    from ..matching.correction import CorrectionGate
+    from ..matching.pipeline import refine_match
+
+    if args.search:  # B's map from its own search, as the searched correction of match does
+        from ..search import search_scale_map
+
+        back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
+    first_a, first_b = CorrectionGate().apply_predictions(pred, back)
+    res = refine_match(
+        args.image_a,
+        args.image_b,
+        first_a,
+        first_b,
+        pred.scale,
+        back.scale,
+        max_passes=args.refine_passes,
+        sift_seed=args.refine_seed == "sift",
+    )
+    v = res.verification
+    extra = {k: res.meta[k] for k in _REFINE_META}
+    for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):
+        print(p)
+    state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network map kept"
+    print(f"refine: {v.model} with {v.num_inliers}/{len(v.inliers)} inliers, {state}", file=sys.stderr)

@@ -9,8 +9,10 @@ from pathlib import Path
 from ..errors import LocalScaleError
 from ..map_files import scale_map_paths, write_scale_map
 from ..outputs import make_dir, resolved_path, write_text
+from ..pairs_file import read_pairs_file
 from .common import _model, check_output_dir
-from .pairs_file import pairs_output_names, read_pairs_file
+from .options import executor_from_args
+from .pairs_file import pairs_output_names
 from .signals import SIGTERM_STATE
 
 
@@ -82,7 +84,7 @@ def _predict_pairs(args, out: Path) -> int:
     or an output cannot be written (a full disk: the run stops, a rerun resumes); 143 after a
     SIGTERM (the pair being written is finished first)."""
     run = _PairsRun(args, out)
-    executor = _executor(args)
+    executor = executor_from_args(args)
     run.check_images()
     SIGTERM_STATE.defer()  # from here a SIGTERM stops the run after the pair it is on (main resets this)
     if executor is None:
@@ -99,19 +101,6 @@ def _predict_pairs(args, out: Path) -> int:
             make_dir(out)
             run.predict_on(executor, factory, todo)
     return run.finish(todo)
-
-
-def _executor(args):
-    """The Ray executor of ``--engine ray`` (checked before any work), or None for this process."""
-    from ..engine import get_executor
-
-    if args.engine == "local":
-        if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "ray_address")):
-            raise LocalScaleError("--workers, --threads-per-worker and --ray-address need --engine ray")
-        return None
-    if args.device != "cpu":
-        raise LocalScaleError("--engine ray runs the networks on the workers' CPUs: drop --device")
-    return get_executor("ray", args.workers, args.threads_per_worker, args.ray_address)
 
 
 def _factory(args):

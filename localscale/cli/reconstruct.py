@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from .options import HelpFormatter, positive_int
+from .options import HelpFormatter, add_engine_options, executor_from_args, positive_int
 
 DESCRIPTION = """Reconstruct the images of a folder (COLMAP sparse model) with localscale's matching, hloc style:
 features (features.h5) -> pairs (pairs.txt) -> matches with a scale/turn correction (matches.h5,
@@ -27,6 +27,7 @@ EXAMPLES = """examples:
   localscale reconstruct photos/ -o out/ --correction auto            (scale and quarter-turn hypotheses per pair)
   localscale reconstruct photos/ -o out/ --matcher sift --pairs-nearest 10
   localscale reconstruct photos/ -o out/ --camera cameras.txt         (one COLMAP camera for every image)
+  localscale reconstruct photos/ -o out/ --engine ray --workers 4     (extraction and matching on Ray)
       -> out/sparse/0/{cameras,images,points3D}.bin, out/summary.json, out/reconstruction.png"""
 
 
@@ -94,6 +95,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="replace our files in a non-empty OUT (other files are left alone) instead of resuming",
     )
+    add_engine_options(p, "feature extraction and pair matching")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--verbose", action="store_true", help="COLMAP's log lines")
 
@@ -120,14 +122,28 @@ def cmd_reconstruct(args) -> int:
     """Run :func:`localscale.sfm.reconstruct` with the options of ``args``; print the summary table.
     Returns 0, or 1 when no model was built."""
     from ..matching import get_correction
-    from ..sfm import reconstruct, summary_table
+    from ..sfm import summary_table
 
     local_model = global_model = None
     if args.local_weights or args.global_weights:
         local_model, global_model = get_correction(args.correction).load_models(
             args.local_weights, args.global_weights, args.device
         )
-    summary = reconstruct(
+    executor = executor_from_args(args)
+    try:
+        summary = _reconstruct_with(args, executor, local_model, global_model)
+    finally:
+        if executor is not None:
+            executor.close()
+    print(summary_table(summary))
+    print(f"wrote {args.output}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
+    return 0 if summary["registered"] > 0 else 1
+
+
+def _reconstruct_with(args, executor, local_model, global_model) -> dict:
+    from ..sfm import reconstruct
+
+    return reconstruct(
         args.images,
         args.output,
         matcher=args.matcher,
@@ -145,7 +161,5 @@ def cmd_reconstruct(args) -> int:
         verbose=args.verbose,
         local_model=local_model,
         global_model=global_model,
+        engine=executor,
     )
-    print(summary_table(summary))
-    print(f"wrote {args.output}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
-    return 0 if summary["registered"] > 0 else 1

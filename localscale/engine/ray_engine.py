@@ -323,66 +323,18 @@ class RayExecutor(Executor):
             self.name, self._workers, self.threads_per_worker, startup_seconds=self.startup_seconds - startup
         )
         self.last_run = stats
-        pending = deque(range(len(items)))
-        attempts = [0] * len(items)
-        running: dict = {}  # status reference -> (index, slot, generation)
-        company: dict = {}  # (slot, generation) of a dead actor -> calls it had out
-        isolated: set = set()  # items that died in company: next time they run alone
-        alone: list = [None] * len(self._actors)  # slot -> the isolated item it runs, if any
-        values: dict = {}  # keep: index -> value reference
-        load = [0] * len(self._actors)  # calls out per actor slot
+        calls = _MapCalls(self, fn, items, keep, stats)
         bar = progress_bar(len(items), progress, unit)
         t0 = time.perf_counter()
-
-        def submit(i: int, slot: int) -> None:
-            actor = self._actors[slot]
-            if keep:  # two returns: the status comes to the driver, the value stays in the object store
-                status, values[i] = actor.run.options(num_returns=2).remote(fn, items[i])
-            else:
-                status = actor.run.remote(fn, items[i])
-            running[status] = (i, slot, self._generation[slot])
-            load[slot] += 1
-
         try:
-            while pending or running:
-                for slot in range(len(self._actors)):
-                    while pending and load[slot] < self.in_flight and alone[slot] is None:
-                        if pending[0] in isolated:
-                            if load[slot]:
-                                break
-                            alone[slot] = pending[0]
-                        submit(pending.popleft(), slot)
-                ready, _ = ray.wait(list(running), num_returns=1)
+            while calls.pending or calls.running:
+                calls.submit_pending()
+                ready, _ = ray.wait(list(calls.running), num_returns=1)
                 for ref in ready:
-                    i, slot, generation = running.pop(ref)
-                    load[slot] -= 1
-                    if alone[slot] == i:
-                        alone[slot] = None
-                    try:
-                        got = ray.get(ref)
-                        error, value = (got, values.pop(i)) if keep else got
-                    except ray.exceptions.RayActorError:  # the actor died (kill -9, out of memory, lost node)
-                        values.pop(i, None)
-                        if (slot, generation) not in company:  # first news of this death: replace the actor once
-                            company[slot, generation] = 1 + sum(
-                                (sl, g) == (slot, generation) for _, sl, g in running.values()
-                            )
-                            self._replace(slot)
-                        if company[slot, generation] > 1:
-                            # which of its calls killed it is unknown (a finished call's reply can die with
-                            # the process too): each runs again alone, without using up a retry
-                            isolated.add(i)
-                            stats.retried += 1
-                            pending.appendleft(i)
-                            continue
-                        attempts[i] += 1
-                        if attempts[i] <= self.max_retries:
-                            stats.retried += 1
-                            pending.appendleft(i)
-                            continue
-                        error = WorkerLostError(f"its worker process died {attempts[i]} time(s) while running it")
-                    except ray.exceptions.RayTaskError as e:  # a bug in the work function: end the run
-                        raise e.as_instanceof_cause() from None
+                    finished = calls.finish(ref)
+                    if finished is None:  # queued again
+                        continue
+                    i, error, value = finished
                     stats.items += 1
                     stats.failed += error is not None
                     stats.seconds = time.perf_counter() - t0
@@ -393,8 +345,94 @@ class RayExecutor(Executor):
             stats.seconds = time.perf_counter() - t0
             if bar is not None:
                 bar.close()
-            for ref in running:  # the caller stopped early: drop what is still queued
-                try:
-                    ray.cancel(ref)
-                except Exception:
-                    pass
+            calls.cancel_running()
+
+
+class _MapCalls:
+    """The calls of one :meth:`RayExecutor.map`: the items waiting, the calls out on each actor slot,
+    and what a finished call gives (its result, or its item queued again after its actor died)."""
+
+    def __init__(self, executor: RayExecutor, fn, items: list, keep: bool, stats: RunStats):
+        self.executor, self.fn, self.items, self.keep, self.stats = executor, fn, items, keep, stats
+        slots = len(executor._actors)
+        self.pending = deque(range(len(items)))
+        self.attempts = [0] * len(items)
+        self.running: dict = {}  # status reference -> (index, slot, generation)
+        self.company: dict = {}  # (slot, generation) of a dead actor -> calls it had out
+        self.isolated: set = set()  # items that died in company: next time they run alone
+        self.alone: list = [None] * slots  # slot -> the isolated item it runs, if any
+        self.values: dict = {}  # keep: index -> value reference
+        self.load = [0] * slots  # calls out per actor slot
+
+    def submit(self, i: int, slot: int) -> None:
+        actor = self.executor._actors[slot]
+        if self.keep:  # two returns: the status comes to the driver, the value stays in the object store
+            status, self.values[i] = actor.run.options(num_returns=2).remote(self.fn, self.items[i])
+        else:
+            status = actor.run.remote(self.fn, self.items[i])
+        self.running[status] = (i, slot, self.executor._generation[slot])
+        self.load[slot] += 1
+
+    def submit_pending(self) -> None:
+        """Queue waiting items on every actor, up to ``in_flight`` each; an isolated item waits for
+        an idle actor and runs there alone."""
+        for slot in range(len(self.load)):
+            while self.pending and self.load[slot] < self.executor.in_flight and self.alone[slot] is None:
+                if self.pending[0] in self.isolated:
+                    if self.load[slot]:
+                        break
+                    self.alone[slot] = self.pending[0]
+                self.submit(self.pending.popleft(), slot)
+
+    def finish(self, ref):
+        """``(index, error or None, value)`` of the finished call ``ref``, or None when its actor died
+        and its item is queued again. A bug in the work function (not a :class:`LocalScaleError`)
+        is raised: it ends the run."""
+        ray = self.executor._ray
+        i, slot, generation = self.running.pop(ref)
+        self.load[slot] -= 1
+        if self.alone[slot] == i:
+            self.alone[slot] = None
+        try:
+            got = ray.get(ref)
+            error, value = (got, self.values.pop(i)) if self.keep else got
+        except ray.exceptions.RayActorError:  # the actor died (kill -9, out of memory, lost node)
+            self.values.pop(i, None)
+            error = self._actor_died(i, slot, generation)
+            if error is None:
+                return None
+            value = None
+        except ray.exceptions.RayTaskError as e:  # a bug in the work function: end the run
+            raise e.as_instanceof_cause() from None
+        return i, error, value
+
+    def _actor_died(self, i: int, slot: int, generation: int) -> Optional[WorkerLostError]:
+        """Replace the dead actor (once per death) and queue item ``i`` again; the error of an item
+        that used up its retries instead."""
+        stats = self.stats
+        if (slot, generation) not in self.company:  # first news of this death: replace the actor once
+            self.company[slot, generation] = 1 + sum(
+                (sl, g) == (slot, generation) for _, sl, g in self.running.values()
+            )
+            self.executor._replace(slot)
+        if self.company[slot, generation] > 1:
+            # which of its calls killed it is unknown (a finished call's reply can die with
+            # the process too): each runs again alone, without using up a retry
+            self.isolated.add(i)
+            stats.retried += 1
+            self.pending.appendleft(i)
+            return None
+        self.attempts[i] += 1
+        if self.attempts[i] <= self.executor.max_retries:
+            stats.retried += 1
+            self.pending.appendleft(i)
+            return None
+        return WorkerLostError(f"its worker process died {self.attempts[i]} time(s) while running it")
+
+    def cancel_running(self) -> None:
+        """Drop the calls still queued (the caller stopped early)."""
+        for ref in self.running:
+            try:
+                self.executor._ray.cancel(ref)
+            except Exception:
+                pass

@@ -46,255 +46,41 @@ Outputs in ``--out``: ``results.json`` (per-pair records, summaries, splits), ``
 
 from __future__ import annotations
 
-import math
 import re
-import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Optional, Sequence
+from typing import Optional
 
 import cv2
 import numpy as np
 
-from ..errors import HomographyError, LocalScaleError
-from ..geometry import covisible_mask, global_scale, homography_rotation, orient_homography, perspective_spread
-from ..io import load_image, read_homography
-from ..matching.correction import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
-from .report import (
+from ..errors import LocalScaleError
+from ..io import load_image
+from ..matching import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
+from .pairs import (  # noqa: F401
+    HIGH_RES,
+    IMAGE_EXTS,
+    MIN_AGREEMENT,
+    MIN_COVISIBLE,
+    HSequence,
+    PairInfo,
+    _warn,
+    content_agreement,
+    image_size,
+    load_hpatches,
+    make_pairs,
+)
+from .report import (  # noqa: F401
     THRESHOLDS,
     markdown_table,
-    perspective_split,  # noqa: F401
+    perspective_split,
     rotation_split,
     scale_split,
     summarise,
     write_outputs,
 )
 
-HIGH_RES = (
-    "i_contruction",
-    "i_crownnight",
-    "i_dc",
-    "i_pencils",
-    "i_whitebuilding",
-    "v_artisans",
-    "v_astronautis",
-    "v_talent",
-)
-IMAGE_EXTS = (".ppm", ".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 METHODS = CORRECTIONS  #: the correction methods (one registry: localscale.matching.correction)
-
-
-@dataclass
-class HSequence:
-    name: str
-    images: dict  #: index -> path
-    homographies: dict  #: k -> H_1_k
-    bad: dict = field(default_factory=dict)  #: k -> why pair (1, k) cannot be evaluated (bad H_1_k)
-
-
-@dataclass
-class PairInfo:
-    sequence: str
-    k: int
-    image_a: Path
-    image_b: Path
-    H: np.ndarray
-    spread: float = 0.0
-    log2_scale: float = 0.0
-    perspective_split: str = ""
-    scale_split: str = ""
-    covisible: float = 0.0
-    rotation: float = 0.0
-    rotation_split: str = ""
-
-    @property
-    def name(self) -> str:
-        return f"{self.sequence}/1-{self.k}"
-
-
-def _find_image(folder: Path, index: int) -> Optional[Path]:
-    for ext in IMAGE_EXTS:
-        for cand in (folder / f"{index}{ext}", folder / f"{index}{ext.upper()}"):
-            if cand.is_file():
-                return cand
-    return None
-
-
-def load_hpatches(
-    root,
-    include_illumination: bool = False,
-    exclude_hires: bool = False,
-    exclude: Iterable[str] = (),
-    sequences: Optional[Iterable[str]] = None,
-) -> list[HSequence]:
-    """Sequences of an HPatches-layout folder (sorted by name).
-
-    A sub-folder counts as a sequence when it has image ``1.*`` and at least one ``H_1_k``
-    with image ``k.*``. ``i_*`` are skipped unless ``include_illumination``.
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise LocalScaleError(f"HPatches root not found: {root}")
-    exclude = set(exclude) | (set(HIGH_RES) if exclude_hires else set())
-    wanted = set(sequences) if sequences is not None else None
-    out = []
-    for d in sorted(p for p in root.iterdir() if p.is_dir()):
-        if d.name in exclude or (wanted is not None and d.name not in wanted):
-            continue
-        if d.name.startswith("i_") and not include_illumination:
-            continue
-        first = _find_image(d, 1)
-        if first is None:
-            continue
-        images, Hs, bad = {1: first}, {}, {}
-        for hf in sorted(d.glob("H_1_*")):
-            m = re.fullmatch(r"H_1_(\d+)", hf.name)
-            if not m:
-                continue
-            k = int(m.group(1))
-            img = _find_image(d, k)
-            if img is None:
-                continue
-            images[k] = img
-            try:
-                Hs[k] = read_homography(hf)
-            except HomographyError as e:
-                bad[k] = " ".join(str(e).split())
-        if Hs or bad:
-            out.append(HSequence(d.name, images, Hs, bad))
-    if not out:
-        raise LocalScaleError(f"no sequences (folders with 1.ppm/png/jpg and H_1_k files) in {root}")
-    return out
-
-
-def _warn(message: str) -> None:
-    """One ``warning: ...`` line on stderr (beside a progress bar)."""
-    from tqdm import tqdm
-
-    tqdm.write(f"warning: {' '.join(message.split())}", file=sys.stderr)
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    """``(height, width)`` from the file header (upright, EXIF orientation applied); raises
-    :class:`~localscale.errors.ImageError` for a file that cannot be used (unreadable header,
-    smaller than :data:`localscale.io.MIN_SIDE` or above :data:`localscale.io.MAX_PIXELS`)."""
-    from ..errors import ImageError
-    from ..io import _check_size, _header, _stat_file
-
-    _stat_file(Path(path), "image")
-    try:
-        header = _header(Path(path))
-    except OSError as e:
-        raise ImageError(f"cannot read {path} ({e.strerror})") from None
-    if header is None:
-        raise ImageError(f"cannot read the image size of {path} (corrupt, truncated or unsupported format)")
-    (w, h), orientation = header
-    _check_size(h, w, str(path))
-    return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
-
-
-#: a pair whose GT homography maps less than this fraction of image 1 into image k is warned about
-MIN_COVISIBLE = 0.05
-
-
-def make_pairs(seqs: Sequence[HSequence], skipped: Optional[list] = None) -> list[PairInfo]:
-    """All ``(1, k)`` pairs with their perspective / scale splits.
-
-    Pairs that cannot be evaluated (bad ``H_1_k``, an image whose size cannot be read or is too
-    small, an ``H`` that maps all of image 1 outside image k) are left out with a warning and
-    appended to ``skipped`` as ``{"pair", "reason"}``; a pair where ``H`` maps less than
-    :data:`MIN_COVISIBLE` of image 1 into image k is kept with a warning.
-    """
-    pairs = []
-    skipped = [] if skipped is None else skipped
-
-    def skip(name, reason):
-        reason = " ".join(str(reason).split())
-        _warn(f"pair {name} skipped: {reason}")
-        skipped.append({"pair": name, "reason": reason})
-
-    for s in seqs:
-        for k, why in sorted(s.bad.items()):
-            skip(f"{s.name}/1-{k}", why)
-        try:
-            sa = image_size(s.images[1])
-        except LocalScaleError as e:
-            for k in sorted(s.homographies):
-                skip(f"{s.name}/1-{k}", e)
-            continue
-        for k, H in sorted(s.homographies.items()):
-            name = f"{s.name}/1-{k}"
-            try:
-                sb = image_size(s.images[k])
-            except LocalScaleError as e:
-                skip(name, e)
-                continue
-            H = orient_homography(H, sa)
-            covisible = float(covisible_mask(H, sa, sb, 8).mean())
-            if not covisible > 0:
-                skip(
-                    name,
-                    f"H_1_{k} maps all of image 1 outside image {k} ({sb[1]}x{sb[0]}): check that H and "
-                    f"the images belong together",
-                )
-                continue
-            if covisible < MIN_COVISIBLE:
-                _warn(
-                    f"pair {name}: H_1_{k} maps only {covisible:.1%} of image 1 into image {k}; "
-                    f"check that H and the image sizes belong together"
-                )
-            p = PairInfo(s.name, k, s.images[1], s.images[k], H)
-            p.spread = perspective_spread(H, sa, sb)
-            try:
-                p.log2_scale = math.log2(global_scale(H, sa, sb))
-            except ValueError:
-                p.log2_scale = float("nan")
-            p.covisible = covisible
-            p.rotation = homography_rotation(H, sa)
-            p.perspective_split, p.scale_split = perspective_split(p.spread), scale_split(p.log2_scale)
-            p.rotation_split = rotation_split(p.rotation)
-            pairs.append(p)
-    return pairs
-
-
-#: :func:`content_agreement` below this is warned about (the Oxford and HPatches pairs of
-#: ``docs/RESULTS.md`` give 0.5-1.0; the same pairs with image k at half the size H expects, <= 0.15)
-MIN_AGREEMENT = 0.25
-
-
-def content_agreement(a: np.ndarray, b: np.ndarray, H: np.ndarray, side: int = 192) -> float:
-    """Correlation of image-1 gradients with those of image k warped into image 1 by ``H``, over the
-    co-visible region, at ``side`` px: near 0 when ``H`` does not belong to the images (e.g. an image
-    of another size than the one ``H`` was measured on), 1 for a perfect fit. NaN-free; 1.0 when
-    too little is co-visible to tell."""
-    f = side / max(a.shape[:2])
-    fb = side / max(b.shape[:2])
-    S = np.diag([f, f, 1.0]) @ np.asarray(H, np.float64) @ np.diag([1 / f, 1 / f, 1.0])
-    S = np.diag([fb / f, fb / f, 1.0]) @ S
-    ga = cv2.cvtColor(
-        cv2.resize(a, (max(1, round(a.shape[1] * f)), max(1, round(a.shape[0] * f))), interpolation=cv2.INTER_AREA),
-        cv2.COLOR_RGB2GRAY,
-    ).astype(np.float32)
-    gb = cv2.cvtColor(
-        cv2.resize(b, (max(1, round(b.shape[1] * fb)), max(1, round(b.shape[0] * fb))), interpolation=cv2.INTER_AREA),
-        cv2.COLOR_RGB2GRAY,
-    ).astype(np.float32)
-    size = (ga.shape[1], ga.shape[0])
-    warped = cv2.warpPerspective(gb, S, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    cover = cv2.warpPerspective(np.ones_like(gb), S, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-    mask = cv2.erode(cover, np.ones((5, 5), np.uint8)) > 0.5
-    if mask.sum() < 200:
-        return 1.0
-
-    def grad(g):
-        g = cv2.GaussianBlur(g, (0, 0), 1.0)
-        return np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-
-    x, y = grad(ga)[mask], grad(warped)[mask]
-    x, y = x - x.mean(), y - y.mean()
-    den = float(np.sqrt((x * x).sum() * (y * y).sum()))
-    return float((x * y).sum() / den) if den > 0 else 1.0
 
 
 class _PairScales:
@@ -447,8 +233,7 @@ class _Keyed:
 def homography_corner_error(keypoints_a, keypoints_b, matches, H_true, shape_a) -> float:
     """Corner error (px of B) of the homography estimated from the matches (``USAC_MAGSAC``, 3 px);
     ``inf`` when none can be estimated."""
-    from ..matching.metrics import corner_error
-    from ..matching.verification import estimate_homography
+    from ..matching import corner_error, estimate_homography
 
     m = np.asarray(matches, np.int64).reshape(-1, 2)
     H_est, _ = estimate_homography(np.asarray(keypoints_a)[m[:, 0]], np.asarray(keypoints_b)[m[:, 1]])
@@ -516,8 +301,7 @@ def evaluate(
     """
     from tqdm import tqdm
 
-    from ..matching.correction import get_correction
-    from ..matching.matcher import get_matcher
+    from ..matching import get_correction, get_matcher
 
     for m in methods:
         needs = get_correction(m).models
@@ -528,8 +312,7 @@ def evaluate(
     if max_side is not None:
         options["max_side"] = max_side or None  # 0: full resolution
     if options and hasattr(matcher, "config"):  # a built Matcher with other options: rebuilt
-        from ..matching.config import match_config
-        from ..matching.matcher import Matcher
+        from ..matching import Matcher, match_config
 
         matcher = Matcher(match_config(matcher.config, **options), matcher.device)
         options = {}
@@ -579,7 +362,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None, de
     from ..devices import resolve_device
     from ..errors import CheckpointError
     from ..loading import load_scale_model
-    from ..matching.correction import get_correction
+    from ..matching import get_correction
 
     models, notes = {}, []
     device = resolve_device(device)
@@ -602,7 +385,7 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None, de
 
 def gate_from_args(args):
     """``CorrectionGate`` with the ``--gate-*`` / ``--no-consistency`` options a parser defined."""
-    from ..matching.correction import CorrectionGate
+    from ..matching import CorrectionGate
 
     gate = CorrectionGate()
     if getattr(args, "gate_pair", None) is not None:

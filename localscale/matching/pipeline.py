@@ -390,8 +390,6 @@ def run_match(
     ``out/geometry.json``. The models ``correction`` needs are ``local_model`` / ``global_model``
     (None: the bundled weights).
     """
-    from ..map_files import write_refinement
-
     res = match_pair(
         image_a,
         image_b,
@@ -405,6 +403,16 @@ def run_match(
         **options,
     )
     out = Path(out)
+    _write_match_files(res, image_a, image_b, out)
+    if verbose:
+        _print_match_summary(res, out)
+    return res
+
+
+def _write_match_files(res: MatchResult, image_a, image_b, out: Path) -> None:
+    """The files of ``run_match``: matches and their picture; the refined maps, or the verified geometry."""
+    from ..map_files import write_refinement
+
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
     inputs = [x for x in (image_a, image_b) if isinstance(x, (str, Path))]
@@ -421,38 +429,42 @@ def run_match(
         geo = ensure_not_input(out / "geometry.json", inputs)
         extra = {"auto": res.meta["auto"]} if "auto" in res.meta else {}
         write_text(geo, json.dumps(res.verification.to_dict() | extra, indent=1) + "\n")
-    if verbose:
-        msg = (
-            f"{res.meta['matcher']}: {len(res.matches)} matches "
-            f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
+
+
+def _print_match_summary(res: MatchResult, out: Path) -> None:
+    """The lines of ``run_match``: matches and accuracy, ``auto``'s trials, refinement, two-view geometry."""
+    msg = (
+        f"{res.meta['matcher']}: {len(res.matches)} matches "
+        f"({res.meta['num_features_a']}/{res.meta['num_features_b']} features)"
+    )
+    if res.errors is not None:
+        msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
+    print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
+    if "auto" in res.meta:
+        _print_auto(res.meta["auto"], out)
+    if res.refined_a is not None:
+        v = res.verification
+        state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"
+        print(
+            f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
+            f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}"
         )
-        if res.errors is not None:
-            msg += f", accuracy@5px {res.accuracy(5.0):.3f}"
-        print(f"{msg}; wrote {out / 'matches.npz'} and {out / 'matches.png'}")
-        if "auto" in res.meta:
-            auto = res.meta["auto"]
-            tried = "; ".join(
-                f"{t['source']} x{t['scale']:.3g} turn {90 * t['turn']}: {t['num_inliers']} inliers"
-                f"{'' if t['verified'] else ' (not verified)'}"
-                for t in auto["trials"]
-            )
-            print(
-                f"auto: chose {auto['chosen']} after {len(auto['trials'])} run(s) [{tried}]; wrote {out / 'geometry.json'}"
-            )
-            if not auto["verified"]:
-                print(
-                    "warning: no hypothesis verified; the matches of the identity are returned unverified",
-                    file=sys.stderr,
-                )
-        if res.refined_a is not None:
-            v = res.verification
-            state = "verified" if v.verified else f"not verified ({'; '.join(v.reasons)}), network maps kept"
-            print(
-                f"refine: {v.model} with {v.num_inliers} inliers after {res.meta['passes']} pass(es) "
-                f"{res.meta['inlier_counts']}, {state}; wrote {out / 'refined_scale.npy'}, {out / 'geometry.json'}"
-            )
-        _print_two_view(res, out)
-    return res
+    _print_two_view(res, out)
+
+
+def _print_auto(auto: dict, out: Path) -> None:
+    """The ``auto`` line of ``run_match`` (every trial), with a warning when no hypothesis was verified."""
+    tried = "; ".join(
+        f"{t['source']} x{t['scale']:.3g} turn {90 * t['turn']}: {t['num_inliers']} inliers"
+        f"{'' if t['verified'] else ' (not verified)'}"
+        for t in auto["trials"]
+    )
+    print(f"auto: chose {auto['chosen']} after {len(auto['trials'])} run(s) [{tried}]; wrote {out / 'geometry.json'}")
+    if not auto["verified"]:
+        print(
+            "warning: no hypothesis verified; the matches of the identity are returned unverified",
+            file=sys.stderr,
+        )
 
 
 def _print_two_view(res: MatchResult, out: Path) -> None:

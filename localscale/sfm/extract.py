@@ -100,41 +100,73 @@ def extract_features(
     matcher=None,
     overwrite: bool = False,
     show_progress: bool = True,
+    executor=None,
 ) -> Path:
     """Extract every image of ``images`` (:class:`~.images.ImageInfo`) not yet in ``features_path``
     (all of them with ``overwrite``) and write the file (hloc layout, :mod:`.h5io`).
 
     ``matcher``: a :class:`~localscale.matching.Matcher` to extract with (default: built from
     ``conf``); when it is a :class:`LevelMatcher`, the features also seed its level-1 cache.
+    ``executor``: an :class:`~localscale.engine.Executor` other than the local one extracts on its
+    workers (each builds its own matcher from ``conf``); the driver writes the file.
     """
     features_path = Path(features_path)
     done = set() if overwrite else set(groups_with(features_path, "keypoints"))
     todo = [im for im in images if im.name not in done]
     writer = H5Writer(features_path, fresh=overwrite)
-    if todo:
+    if todo and executor is not None and executor.name != "local":
+        factory = MatcherFactory(conf, device, len(images))
+        label = "extract" if show_progress else None
+        for i, result in executor.map(ExtractImage(conf), todo, state=factory, progress=label, unit="image"):
+            if isinstance(result, Exception):
+                raise result
+            writer.add(todo[i].name, *result)
+            writer.maybe_flush()
+    elif todo:
         matcher = matcher or build_matcher(conf, device, len(images))
+        extract_one = ExtractImage(conf)
         for im in progress(todo, "extract", unit="image", disable=not show_progress):
-            rgb, S = load_working(im, conf.max_side)
-            f = matcher.extract(rgb, None if not matcher.extractor.rectified else 1.0, im.name)
-            desc = f.descriptors.detach().float().cpu().numpy()
-            writer.add(
-                im.name,
-                {
-                    "keypoints": to_full(f.keypoints, S),
-                    "scores": np.asarray(f.responses, np.float32).reshape(-1),
-                    "descriptors": np.ascontiguousarray(desc.T.astype(np.float32)),
-                    "image_size": np.array([im.shape[1], im.shape[0]], np.int64),
-                },
-                {
-                    "matcher": conf.matcher,
-                    "to_working": np.asarray(S, np.float64),
-                    "working_size": np.array([rgb.shape[1], rgb.shape[0]], np.int64),
-                },
-            )
+            writer.add(im.name, *extract_one(matcher, im))
             writer.maybe_flush()
     if writer.pending or not features_path.exists():
         writer.flush()
     return features_path
+
+
+@dataclass(frozen=True)
+class MatcherFactory:
+    """Worker state of the extraction and matching steps on an executor: the :class:`LevelMatcher` of ``conf``."""
+
+    conf: FeatureConf
+    device: str = "cpu"
+    num_images: int = 8
+
+    def __call__(self):
+        return build_matcher(self.conf, self.device, self.num_images)
+
+
+@dataclass(frozen=True)
+class ExtractImage:
+    """Work of one image (:class:`~.images.ImageInfo`): ``(datasets, attributes)`` of its ``features.h5`` group."""
+
+    conf: FeatureConf
+
+    def __call__(self, matcher, im) -> tuple[dict, dict]:
+        rgb, S = load_working(im, self.conf.max_side)
+        f = matcher.extract(rgb, None if not matcher.extractor.rectified else 1.0, im.name)
+        desc = f.descriptors.detach().float().cpu().numpy()
+        data = {
+            "keypoints": to_full(f.keypoints, S),
+            "scores": np.asarray(f.responses, np.float32).reshape(-1),
+            "descriptors": np.ascontiguousarray(desc.T.astype(np.float32)),
+            "image_size": np.array([im.shape[1], im.shape[0]], np.int64),
+        }
+        attrs = {
+            "matcher": self.conf.matcher,
+            "to_working": np.asarray(S, np.float64),
+            "working_size": np.array([rgb.shape[1], rgb.shape[0]], np.int64),
+        }
+        return data, attrs
 
 
 def read_features(features_path, name: str) -> dict:

@@ -27,7 +27,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -167,6 +167,7 @@ def match_pairs(
     overwrite: bool = False,
     flush_s: float = 30.0,
     show_progress: bool = True,
+    executor=None,
 ) -> MatchStats:
     """Match ``pairs`` (``[(name_a, name_b), ...]``) of ``images`` and write ``matches_path`` and
     ``keypoints_path`` (module docstring). ``features_path`` must hold every image of the pairs
@@ -175,6 +176,9 @@ def match_pairs(
     ``matcher``: a :class:`~.extract.LevelMatcher` to share (default: built from ``conf``);
     ``local_model`` / ``global_model``: the networks of the correction (default: bundled weights).
     ``overwrite``: rematch every pair (else pairs in ``matches_path`` are skipped).
+    ``executor``: an :class:`~localscale.engine.Executor` other than the local one matches the pairs
+    on its workers (each with its own level cache and the bundled networks); the driver merges the
+    keypoints in pair order, so the outputs are those of the local run.
     """
     if correction not in SFM_CORRECTIONS:
         raise LocalScaleError(
@@ -182,6 +186,34 @@ def match_pairs(
         )
     t_start = time.perf_counter()
     by_name = {im.name: im for im in images}
+    _check_extracted(features_path, pairs)
+    sets = _keypoint_sets(images, features_path, keypoints_path, merge_px, fresh=overwrite)
+    stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
+    output = _MatchOutput(matches_path, keypoints_path, sets, by_name, fresh=overwrite)
+    if todo and executor is not None and executor.name != "local":
+        factory = PairRunnerFactory(
+            tuple(images), str(features_path), conf, correction, device, local_model, global_model
+        )
+        label = f"match ({correction})" if show_progress else None
+        _match_todo_on(executor, factory, todo, sets, output, stats, flush_s, label)
+    elif todo:
+        runner = _PairRunner(
+            by_name, features_path, conf, correction, device, matcher, local_model, global_model, len(images)
+        )
+        _match_todo(runner, todo, sets, output, stats, flush_s, f"match ({correction})", show_progress)
+    else:
+        output.flush()
+    stats.added_keypoints = sum(len(s) - s.num_base for s in sets.values())
+    stats.seconds = time.perf_counter() - t_start
+    if correction == "auto":
+        unverified = [p for p in stats.pairs if p.verified is False]
+        if unverified and len(unverified) == len(stats.pairs):
+            warn(f"auto verified none of the {len(stats.pairs)} pairs: the images may not overlap")
+    return stats
+
+
+def _check_extracted(features_path, pairs) -> None:
+    """Every image of ``pairs`` has its features in ``features_path`` (else :class:`H5FileError`)."""
     have = set(groups_with(features_path, "keypoints"))
     missing = sorted({n for p in pairs for n in p} - have)
     if missing:
@@ -189,8 +221,10 @@ def match_pairs(
             f"{features_path} lacks the features of {missing[0]}"
             f"{f' and {len(missing) - 1} more' if len(missing) > 1 else ''}: run the extraction first"
         )
-    sets = _keypoint_sets(images, features_path, keypoints_path, merge_px, fresh=overwrite)
-    done = {} if overwrite else _done_pairs(matches_path)
+
+
+def _split_resumed(pairs, done: dict):
+    """``(stats holding the pairs already in done (either order), the pairs still to match)``."""
     stats = MatchStats()
     todo = []
     for a, b in pairs:
@@ -200,72 +234,142 @@ def match_pairs(
             stats.resumed += 1
         else:
             todo.append((a, b))
-    m_writer = H5Writer(matches_path, fresh=overwrite)
-    k_writer = H5Writer(keypoints_path, fresh=overwrite)
-    changed = set(by_name) if (overwrite or not Path(keypoints_path).exists()) else set()
+    return stats, todo
 
-    def flush():
-        for n in sorted(changed):
-            k_writer.add(
-                n,
-                {
-                    "keypoints": sets[n].keypoints,
-                    "image_size": np.array([by_name[n].shape[1], by_name[n].shape[0]], np.int64),
-                },
-                {"num_base": sets[n].num_base},
-            )
-        changed.clear()
-        if k_writer.pending or not Path(keypoints_path).exists():
-            k_writer.flush()  # first: the matches index only keypoints it holds
-        if m_writer.pending or not Path(matches_path).exists():
-            m_writer.flush()
 
-    if todo:
-        runner = _PairRunner(
-            by_name, features_path, conf, correction, device, matcher, local_model, global_model, len(images)
-        )
-        last = time.monotonic()
-        try:
-            for a, b in progress(todo, f"match ({correction})", unit="pair", disable=not show_progress):
-                t0 = time.perf_counter()
-                kp_a, kp_b, m, scores, verified, chosen = runner.run(a, b)
-                ia = sets[a].index(kp_a[m[:, 0]]) if len(m) else np.zeros(0, np.int64)
-                ib = sets[b].index(kp_b[m[:, 1]]) if len(m) else np.zeros(0, np.int64)
-                mm, ss = (
-                    one_to_one(ia, ib, scores[: len(m)])
-                    if len(m)
-                    else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+def _match_todo(runner, todo, sets, output, stats: MatchStats, flush_s: float, desc: str, show_progress: bool):
+    """Match the ``todo`` pairs into ``output`` and ``stats``, flushing every ``flush_s`` seconds and
+    at the end (also when interrupted: what was matched is kept)."""
+    last = time.monotonic()
+    try:
+        for a, b in progress(todo, desc, unit="pair", disable=not show_progress):
+            t0 = time.perf_counter()
+            kp_a, kp_b, m, scores, verified, chosen = runner.run(a, b)
+            mm, ss = _index_matches(sets, a, b, kp_a, kp_b, m, scores)
+            stats.pairs.append(output.add(a, b, mm, ss, verified, chosen, time.perf_counter() - t0))
+            stats.matched += 1
+            if time.monotonic() - last >= flush_s:
+                output.flush()
+                last = time.monotonic()
+    finally:
+        output.flush()
+    stats.feature_sets = runner.feature_sets
+
+
+def _match_todo_on(executor, factory, todo, sets, output, stats: MatchStats, flush_s: float, label):
+    """:func:`_match_todo` with the pairs matched on ``executor``'s workers; results are applied in pair
+    order (the keypoint sets grow as in a local run), flushed every ``flush_s`` seconds and at the end."""
+    last, pending, applied = time.monotonic(), {}, 0
+    try:
+        for i, result in executor.map(MatchPair(), todo, state=factory, progress=label, unit="pair"):
+            if isinstance(result, Exception):
+                raise result
+            pending[i] = result
+            while applied in pending:
+                (a, b), (kp_a, kp_b, m, scores, verified, chosen, seconds, computed) = (
+                    todo[applied],
+                    pending.pop(applied),
                 )
-                changed.update((a, b))
-                m0, s0 = matches0_from_matches(mm, ss, len(sets[a]))
-                rec = PairRecord(a, b, int(len(mm)), verified, chosen, time.perf_counter() - t0)
-                attrs = {
-                    "num_matches": rec.num_matches,
-                    "chosen": chosen,
-                    "seconds": rec.seconds,
-                    "name0": a,
-                    "name1": b,
-                }
-                if verified is not None:
-                    attrs["verified"] = bool(verified)
-                m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
-                stats.pairs.append(rec)
+                mm, ss = _index_matches(sets, a, b, kp_a, kp_b, m, scores)
+                stats.pairs.append(output.add(a, b, mm, ss, verified, chosen, seconds))
                 stats.matched += 1
-                if time.monotonic() - last >= flush_s:
-                    flush()
-                    last = time.monotonic()
-        finally:
-            flush()  # also when interrupted: what was matched is kept
-        stats.feature_sets = runner.feature_sets
-    else:
-        flush()
-    stats.added_keypoints = sum(len(s) - s.num_base for s in sets.values())
-    stats.seconds = time.perf_counter() - t_start
-    if correction == "auto":
-        unverified = [p for p in stats.pairs if p.verified is False]
-        if unverified and len(unverified) == len(stats.pairs):
-            warn(f"auto verified none of the {len(stats.pairs)} pairs: the images may not overlap")
-    return stats
+                stats.feature_sets += computed
+                applied += 1
+            if time.monotonic() - last >= flush_s:
+                output.flush()
+                last = time.monotonic()
+    finally:
+        output.flush()
+
+
+def _index_matches(sets: dict, a: str, b: str, kp_a, kp_b, m, scores):
+    """The matches ``m`` of keypoints ``kp_a``, ``kp_b`` (full-image pixels) as ``(K x 2 indices into the
+    keypoint sets of A and B (new points added to them), one match per keypoint; K scores)``."""
+    ia = sets[a].index(kp_a[m[:, 0]]) if len(m) else np.zeros(0, np.int64)
+    ib = sets[b].index(kp_b[m[:, 1]]) if len(m) else np.zeros(0, np.int64)
+    return one_to_one(ia, ib, scores[: len(m)]) if len(m) else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+
+
+@dataclass(frozen=True)
+class PairRunnerFactory:
+    """Worker state of the matching step on an executor: a pair runner with its own level cache and networks."""
+
+    images: tuple
+    features_path: str
+    conf: FeatureConf
+    correction: str
+    device: str = "cpu"
+    local_model: Any = None  #: the networks to ship to the workers (None: each loads the bundled weights)
+    global_model: Any = None
+
+    def __call__(self):
+        by_name = {im.name: im for im in self.images}
+        return _PairRunner(
+            by_name,
+            self.features_path,
+            self.conf,
+            self.correction,
+            self.device,
+            None,
+            self.local_model,
+            self.global_model,
+            len(by_name),
+        )
+
+
+@dataclass(frozen=True)
+class MatchPair:
+    """Work of one pair ``(name_a, name_b)``: ``(keypoints A, keypoints B, matches, scores, verified,
+    chosen, seconds, feature sets computed for it)``."""
+
+    def __call__(self, runner, pair):
+        t0, before = time.perf_counter(), runner.feature_sets
+        out = runner.run(*pair)
+        return (*out, time.perf_counter() - t0, runner.feature_sets - before)
+
+
+class _MatchOutput:
+    """``matches.h5`` and ``keypoints.h5`` being written: the matches of each pair added, and the
+    keypoint sets of the images they touched, flushed together (keypoints first)."""
+
+    def __init__(self, matches_path, keypoints_path, sets: dict, by_name: dict, fresh: bool):
+        self.matches_path, self.keypoints_path = matches_path, keypoints_path
+        self.sets, self.by_name = sets, by_name
+        self.m_writer = H5Writer(matches_path, fresh=fresh)
+        self.k_writer = H5Writer(keypoints_path, fresh=fresh)
+        self.changed = set(by_name) if (fresh or not Path(keypoints_path).exists()) else set()
+
+    def add(self, a: str, b: str, mm: np.ndarray, ss: np.ndarray, verified, chosen: str, seconds: float) -> PairRecord:
+        """Add the matches ``mm`` (scores ``ss``) of a pair matched in ``seconds``; returns its record."""
+        self.changed.update((a, b))
+        m0, s0 = matches0_from_matches(mm, ss, len(self.sets[a]))
+        rec = PairRecord(a, b, int(len(mm)), verified, chosen, seconds)
+        attrs = {
+            "num_matches": rec.num_matches,
+            "chosen": chosen,
+            "seconds": rec.seconds,
+            "name0": a,
+            "name1": b,
+        }
+        if verified is not None:
+            attrs["verified"] = bool(verified)
+        self.m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
+        return rec
+
+    def flush(self) -> None:
+        """Write what was added: the changed keypoint sets, then the matches."""
+        for n in sorted(self.changed):
+            im = self.by_name[n]
+            self.k_writer.add(
+                n,
+                {"keypoints": self.sets[n].keypoints, "image_size": np.array([im.shape[1], im.shape[0]], np.int64)},
+                {"num_base": self.sets[n].num_base},
+            )
+        self.changed.clear()
+        if self.k_writer.pending or not Path(self.keypoints_path).exists():
+            self.k_writer.flush()  # first: the matches index only keypoints it holds
+        if self.m_writer.pending or not Path(self.matches_path).exists():
+            self.m_writer.flush()
 
 
 def _done_pairs(matches_path) -> dict:

@@ -1,8 +1,8 @@
 """Step 2: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
 
 * :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
-* :func:`pairs_from_file`: a pairs file of names (``A B`` or ``A<TAB>B`` per line; ``#`` comments;
-  names with spaces quoted as in a shell; or paths of the images), checked against the images;
+* :func:`pairs_from_file`: a pairs file (:mod:`localscale.pairs_file`) of names or of image paths,
+  checked against the images;
 * :func:`pairs_from_retrieval`: each image with its ``N`` nearest by a cheap global descriptor,
   the local descriptors of ``features.h5`` aggregated (GeM of the L2-normalised descriptors,
   then normalised), compared by cosine similarity; both directions, as one pair.
@@ -23,11 +23,8 @@ import numpy as np
 
 from ..errors import LocalScaleError
 from ..outputs import write_text
+from ..pairs_file import PairsFileError, read_pairs_lines
 from .h5io import read_group
-
-
-class PairsFileError(LocalScaleError):
-    """A pairs file cannot be used: missing, malformed, names that are not images."""
 
 
 def pairs_exhaustive(names: list) -> list:
@@ -59,12 +56,6 @@ def pairs_from_file(path, names: list, images_dir=None) -> list:
             one of ``names`` (e.g. an image that was skipped as unreadable), or no pair is left.
     """
     path = Path(path)
-    if not path.is_file():
-        raise PairsFileError(f"pairs file not found: {path}")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise PairsFileError(f"cannot read pairs file {path} as text ({e})") from None
     known = set(names)
     root = None if images_dir is None else Path(images_dir).resolve()
 
@@ -78,18 +69,10 @@ def pairs_from_file(path, names: list, images_dir=None) -> list:
         return rel if rel in known else None
 
     pairs = []
-    for i, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        try:
-            parts = [f for f in line.split("\t") if f] if "\t" in line else shlex.split(line)
-        except ValueError as e:
-            raise PairsFileError(f"{path}:{i}: cannot split the line into two names ({e})") from None
-        if len(parts) != 2:
-            raise PairsFileError(f"{path}:{i}: expected two image names, got {len(parts)}: {line.strip()[:120]!r}")
-        resolved = [name_of(p) for p in parts]
+    for i, *fields in read_pairs_lines(path):
+        resolved = [name_of(p) for p in fields]
         if None in resolved:
-            bad = parts[resolved.index(None)]
+            bad = fields[resolved.index(None)]
             raise PairsFileError(
                 f"{path}:{i}: {bad!r} is not one of the usable images "
                 f"(names are paths relative to the images folder, e.g. {sorted(known)[0]!r})"

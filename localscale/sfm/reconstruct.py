@@ -28,8 +28,10 @@ from __future__ import annotations
 import hashlib
 import shutil
 import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 from ..errors import LocalScaleError
 from ..outputs import check_writable_dir
@@ -151,6 +153,7 @@ def reconstruct(
     plot: bool = True,
     local_model=None,
     global_model=None,
+    engine=None,
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -169,141 +172,301 @@ def reconstruct(
         overwrite: replace a previous run in ``out_dir`` (else it is resumed if its options are these).
         merge_px: keypoints of different levels closer than this (full-image pixels) are one.
         num_threads: COLMAP's threads (-1: all).
+        engine: where extraction and matching run: None or ``"local"`` (this process), ``"ray"`` (a
+            local Ray cluster with default options) or an :class:`~localscale.engine.Executor`
+            (:func:`~localscale.engine.get_executor`; the caller closes it). The outputs are the same.
     """
-    from .database import image_cameras, write_database
-    from .extract import FeatureConf, build_matcher, extract_features
-    from .geometry import verify_pairs
-    from .images import find_images
-    from .mapping import run_mapping
-    from .match import match_pairs
-    from .pairs import pairs_exhaustive, pairs_from_file, pairs_from_retrieval, write_pairs
-
     t_total = time.perf_counter()
-    images_dir, out = Path(images_dir), Path(out_dir)
-    _check_options(matcher, correction, pairs, pairs_nearest, camera_mode, max_side, num_keypoints)
-    if out.resolve() == images_dir.resolve():
-        raise OutputFolderError(f"the output folder is the images folder ({out}): give another folder")
-    check_writable_dir(out)
-    options = {
-        "matcher": matcher,
-        "correction": correction,
-        "num_keypoints": num_keypoints,
-        "max_side": max_side,
-        "pairs": "exhaustive" if pairs == "exhaustive" else "file",
-        "pairs_file_sha1": None,
-        "pairs_nearest": pairs_nearest,
-        "camera_mode": camera_mode,
-        "camera_file_sha1": None,
-        "merge_px": merge_px,
-    }
-    with collecting_warnings() as warnings_seen:
-        if pairs != "exhaustive":
-            options["pairs_file_sha1"] = _sha1(pairs)
-        if camera_file is not None:
-            if not Path(camera_file).is_file():
+    run = _Reconstruction(
+        images_dir=Path(images_dir),
+        out=Path(out_dir),
+        matcher=matcher,
+        correction=correction,
+        pairs=pairs,
+        pairs_nearest=pairs_nearest,
+        camera_mode=camera_mode,
+        camera_file=camera_file,
+        max_side=max_side,
+        num_keypoints=num_keypoints,
+        device=device,
+        overwrite=overwrite,
+        merge_px=merge_px,
+        num_threads=num_threads,
+        show_progress=show_progress,
+        verbose=verbose,
+        plot=plot,
+        local_model=local_model,
+        global_model=global_model,
+        engine=engine,
+    )
+    return run.run(t_total)
+
+
+@dataclass
+class _Reconstruction:
+    """One run of :func:`reconstruct` (its arguments), one method per stage, called in order by
+    :meth:`run`: :meth:`check_arguments` and :meth:`read_inputs` check everything and write nothing;
+    the stages from :meth:`prepare_output` on write their files into ``out`` and their seconds into
+    :attr:`seconds`, and keep what the later stages need as attributes."""
+
+    images_dir: Path
+    out: Path
+    matcher: str
+    correction: str
+    pairs: str
+    pairs_nearest: Optional[int]
+    camera_mode: str
+    camera_file: Any
+    max_side: Optional[int]
+    num_keypoints: Optional[int]
+    device: str
+    overwrite: bool
+    merge_px: float
+    num_threads: int
+    show_progress: bool
+    verbose: bool
+    plot: bool
+    local_model: Any
+    global_model: Any
+    engine: Any = None
+    seconds: dict = field(default_factory=dict)
+
+    def run(self, t_total: float) -> dict:
+        """Every stage in order; writes ``summary.json`` and returns the summary (``t_total``: when the run began)."""
+        self.check_arguments()
+        from ..engine import Executor, get_executor
+
+        self.executor = self.engine if isinstance(self.engine, Executor) else get_executor(self.engine or "local")
+        try:
+            return self._stages(t_total)
+        finally:
+            if self.executor is not self.engine:
+                self.executor.close()
+
+    def _stages(self, t_total: float) -> dict:
+        with collecting_warnings() as warnings_seen:
+            self.read_inputs()
+            # ---- everything is checked: from here on, files are written
+            self.prepare_output()
+            self.extract()
+            self.choose_pairs()
+            self.match()
+            self.verify()
+            self.build_database()
+            self.map_model()
+            self.seconds["total"] = time.perf_counter() - t_total
+            summary = self.summarize()
+            summary["warnings"] = list(warnings_seen)
+        write_json(self.out / "summary.json", summary)
+        return summary
+
+    def check_arguments(self) -> None:
+        """The checks that read no input file; sets :attr:`options` (those of ``run.json``)."""
+        _check_options(
+            self.matcher,
+            self.correction,
+            self.pairs,
+            self.pairs_nearest,
+            self.camera_mode,
+            self.max_side,
+            self.num_keypoints,
+        )
+        if self.out.resolve() == self.images_dir.resolve():
+            raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
+        check_writable_dir(self.out)
+        self.options = {
+            "matcher": self.matcher,
+            "correction": self.correction,
+            "num_keypoints": self.num_keypoints,
+            "max_side": self.max_side,
+            "pairs": "exhaustive" if self.pairs == "exhaustive" else "file",
+            "pairs_file_sha1": None,
+            "pairs_nearest": self.pairs_nearest,
+            "camera_mode": self.camera_mode,
+            "camera_file_sha1": None,
+            "merge_px": self.merge_px,
+        }
+
+    def read_inputs(self) -> None:
+        """Read and check the pairs and camera files, the output folder (:attr:`state`), the images
+        and their cameras; nothing is written yet."""
+        from .database import image_cameras
+        from .images import find_images
+        from .pairs import pairs_from_file
+
+        if self.pairs != "exhaustive":
+            self.options["pairs_file_sha1"] = _sha1(self.pairs)
+        if self.camera_file is not None:
+            if not Path(self.camera_file).is_file():
                 from .database import CameraFileError
 
-                raise CameraFileError(f"camera file not found: {camera_file}")
-            options["camera_file_sha1"] = _sha1(camera_file)
-        state = _output_state(out, options, overwrite)
-        images = find_images(images_dir, exclude=[out], max_side=max_side)
-        names = [im.name for im in images]
-        cameras = image_cameras(images, camera_mode, camera_file)  # a bad camera file fails here
-        pair_list = pairs_from_file(pairs, names, images_dir) if pairs != "exhaustive" else None
-        stamps = {im.name: _image_stamp(im) for im in images}
-        if state == "resume":
-            before = read_json(out / "run.json").get("images", {})
-            changed = [n for n, s in stamps.items() if n in before and list(before[n]) != s]
-            if changed:
-                raise OutputFolderError(
-                    f"{changed[0]} changed since the run in {out}"
-                    f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: "
-                    "use --overwrite to start again"
-                )
-        # ---- everything is checked: from here on, files are written
-        if state == "overwrite":
+                raise CameraFileError(f"camera file not found: {self.camera_file}")
+            self.options["camera_file_sha1"] = _sha1(self.camera_file)
+        self.state = _output_state(self.out, self.options, self.overwrite)
+        self.images = find_images(self.images_dir, exclude=[self.out], max_side=self.max_side)
+        self.names = [im.name for im in self.images]
+        self.cameras = image_cameras(self.images, self.camera_mode, self.camera_file)  # a bad camera file fails here
+        self.pair_list = (
+            pairs_from_file(self.pairs, self.names, self.images_dir) if self.pairs != "exhaustive" else None
+        )
+        self.stamps = {im.name: _image_stamp(im) for im in self.images}
+        if self.state == "resume":
+            self._check_unchanged()
+
+    def _check_unchanged(self) -> None:
+        """A resumed run: no image of the previous run changed since (size or modification time)."""
+        before = read_json(self.out / "run.json").get("images", {})
+        changed = [n for n, s in self.stamps.items() if n in before and list(before[n]) != s]
+        if changed:
+            raise OutputFolderError(
+                f"{changed[0]} changed since the run in {self.out}"
+                f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: "
+                "use --overwrite to start again"
+            )
+
+    def prepare_output(self) -> None:
+        """Remove our files of a run being overwritten, create the folder and write ``run.json``."""
+        if self.state == "overwrite":
             for name in OUTPUTS:
-                p = out / name
+                p = self.out / name
                 if p.is_dir():
                     shutil.rmtree(p)
                 elif p.exists():
                     p.unlink()
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "run.json", {"options": options, "images": stamps, "images_dir": str(images_dir.resolve())})
-        seconds = {}
-        conf = FeatureConf(matcher, num_keypoints, max_side)
-        level_matcher = build_matcher(conf, device, len(images))
+        self.out.mkdir(parents=True, exist_ok=True)
+        write_json(
+            self.out / "run.json",
+            {"options": self.options, "images": self.stamps, "images_dir": str(self.images_dir.resolve())},
+        )
 
+    @contextmanager
+    def _timed(self, stage: str):
         t = time.perf_counter()
-        extract_features(images, out / "features.h5", conf, device, matcher=level_matcher, show_progress=show_progress)
-        seconds["extract"] = time.perf_counter() - t
+        yield
+        self.seconds[stage] = time.perf_counter() - t
 
-        t = time.perf_counter()
-        if pair_list is None:
-            pair_list = (
-                pairs_from_retrieval(names, out / "features.h5", pairs_nearest)
-                if pairs_nearest
-                else pairs_exhaustive(names)
+    def extract(self) -> None:
+        """``features.h5``, with the level matcher that the matching stage shares."""
+        from .extract import FeatureConf, build_matcher, extract_features
+
+        self.conf = FeatureConf(self.matcher, self.num_keypoints, self.max_side)
+        in_process = self.executor.name == "local"
+        self.level_matcher = build_matcher(self.conf, self.device, len(self.images)) if in_process else None
+        with self._timed("extract"):
+            extract_features(
+                self.images,
+                self.out / "features.h5",
+                self.conf,
+                self.device,
+                matcher=self.level_matcher,
+                show_progress=self.show_progress,
+                executor=self.executor,
             )
-        write_pairs(out / "pairs.txt", pair_list)
-        seconds["pairs"] = time.perf_counter() - t
 
-        t = time.perf_counter()
-        mstats = match_pairs(
-            images,
-            pair_list,
-            out / "features.h5",
-            out / "matches.h5",
-            out / "keypoints.h5",
-            conf,
-            correction,
-            device,
-            matcher=level_matcher,
-            merge_px=merge_px,
-            show_progress=show_progress,
-            local_model=local_model,
-            global_model=global_model,
+    def choose_pairs(self) -> None:
+        """``pairs.txt``: the pairs file's, the nearest by retrieval, or all."""
+        from .pairs import pairs_exhaustive, pairs_from_retrieval, write_pairs
+
+        with self._timed("pairs"):
+            if self.pair_list is None:
+                self.pair_list = (
+                    pairs_from_retrieval(self.names, self.out / "features.h5", self.pairs_nearest)
+                    if self.pairs_nearest
+                    else pairs_exhaustive(self.names)
+                )
+            write_pairs(self.out / "pairs.txt", self.pair_list)
+
+    def match(self) -> None:
+        """``matches.h5`` and ``keypoints.h5``."""
+        from .match import match_pairs
+
+        with self._timed("match"):
+            self.mstats = match_pairs(
+                self.images,
+                self.pair_list,
+                self.out / "features.h5",
+                self.out / "matches.h5",
+                self.out / "keypoints.h5",
+                self.conf,
+                self.correction,
+                self.device,
+                matcher=self.level_matcher,
+                merge_px=self.merge_px,
+                show_progress=self.show_progress,
+                local_model=self.local_model,
+                global_model=self.global_model,
+                executor=self.executor,
+            )
+
+    def verify(self) -> None:
+        """``geometries.h5``: the verified two-view geometries."""
+        from .geometry import verify_pairs
+
+        with self._timed("geometry"):
+            self.gstats = verify_pairs(
+                self.images,
+                self.out / "keypoints.h5",
+                self.out / "matches.h5",
+                self.cameras,
+                self.out / "geometries.h5",
+                show_progress=self.show_progress,
+            )
+
+    def build_database(self) -> None:
+        """``database.db``, COLMAP's."""
+        from .database import write_database
+
+        out = self.out
+        with self._timed("database"):
+            write_database(
+                out / "database.db",
+                self.images,
+                self.cameras,
+                out / "keypoints.h5",
+                out / "matches.h5",
+                out / "geometries.h5",
+            )
+
+    def map_model(self) -> None:
+        """``sparse/``: pycolmap's incremental mapping."""
+        from .mapping import run_mapping
+
+        with self._timed("mapping"):
+            self.mapping = run_mapping(
+                self.out / "database.db",
+                self.images_dir,
+                self.out / "sparse",
+                num_threads=self.num_threads,
+                verbose=self.verbose,
+            )
+
+    def summarize(self) -> dict:
+        """The summary (its warnings flagged), and ``reconstruction.png`` when :attr:`plot`."""
+        summary = _summary(
+            self.images,
+            self.pair_list,
+            self.mstats,
+            self.gstats,
+            self.mapping,
+            self.cameras,
+            self.options,
+            self.seconds,
+            self.state,
         )
-        seconds["match"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        gstats = verify_pairs(
-            images,
-            out / "keypoints.h5",
-            out / "matches.h5",
-            cameras,
-            out / "geometries.h5",
-            show_progress=show_progress,
-        )
-        seconds["geometry"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        write_database(
-            out / "database.db", images, cameras, out / "keypoints.h5", out / "matches.h5", out / "geometries.h5"
-        )
-        seconds["database"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        mapping = run_mapping(out / "database.db", images_dir, out / "sparse", num_threads=num_threads, verbose=verbose)
-        seconds["mapping"] = time.perf_counter() - t
-        seconds["total"] = time.perf_counter() - t_total
-
-        summary = _summary(images, pair_list, mstats, gstats, mapping, cameras, options, seconds, state)
+        summary["engine"] = {"name": self.executor.name, "workers": self.executor.workers}
         _flag(summary)
-        if plot:
+        if self.plot:
             from .viz import plot_reconstruction
 
-            status = {k: v["inliers"] > 0 for k, v in gstats.pairs.items()}
+            status = {k: v["inliers"] > 0 for k, v in self.gstats.pairs.items()}
             plot_reconstruction(
-                out / "reconstruction.png",
-                mapping.models[0] if mapping.models else None,
-                names,
+                self.out / "reconstruction.png",
+                self.mapping.models[0] if self.mapping.models else None,
+                self.names,
                 status,
-                f"{images_dir.name}: {matcher}, correction {correction}",
+                f"{self.images_dir.name}: {self.matcher}, correction {self.correction}",
             )
-        summary["warnings"] = list(warnings_seen)
-    write_json(out / "summary.json", summary)
-    return summary
+        return summary
 
 
 def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, seconds, state) -> dict:
