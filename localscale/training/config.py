@@ -64,6 +64,9 @@ class TrainConfig:
     degrade_probability: float = 0.0  #: PairConfig: blur / noise / JPEG, each, on each side
     swap_probability: float = 0.0  #: PairConfig: share of pairs with A and B swapped
     photometric: float = 0.25  #: PairConfig: strength of the mild photometric jitter
+    real_pairs: str = ""  #: labelled real pairs (``.npz`` files of :mod:`.real_pairs`, comma-separated)
+    real_fraction: float = 0.5  #: share of training samples drawn from ``real_pairs``
+    real_val_pairs: str = ""  #: labelled real pairs validated beside the synthetic ones (a held-out collection)
 
     def check(self) -> None:
         """Refuse settings that cannot train (one-line :class:`LocalScaleError`)."""
@@ -93,6 +96,8 @@ class TrainConfig:
 
         if self.backbone not in BACKBONE_NAMES:
             raise LocalScaleError(f"unknown backbone {self.backbone!r} (choose from {', '.join(BACKBONE_NAMES)})")
+        if not 0 <= self.real_fraction <= 1:
+            raise LocalScaleError(f"real-fraction must be in [0, 1], got {self.real_fraction}")
         if self.vgg_weights and self.backbone != "vgg":
             raise LocalScaleError(f"vgg-weights needs --backbone vgg, got {self.backbone!r}")
 

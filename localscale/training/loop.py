@@ -76,7 +76,26 @@ def _datasets(cfg: TrainConfig, world: int) -> tuple[SyntheticPairs, SyntheticPa
         seed=cfg.seed + 10_000,
         config=pair_cfg,
     )
+    if cfg.real_pairs:
+        from .real_pairs import MixedPairs, RealPairConfig, RealPairs
+
+        real = RealPairs(_real_pairs(cfg.real_pairs), len(train_set), cfg.seed + 1, RealPairConfig(cfg.image_size))
+        train_set = MixedPairs(train_set, real, cfg.real_fraction, cfg.seed)
     return train_set, val_set
+
+
+def _real_pairs(files: str) -> list:
+    from .real_pairs import load_covisible_pairs
+
+    return [p for f in files.split(",") if f.strip() for p in load_covisible_pairs(f.strip())]
+
+
+def real_validation_batches(files: str, n: int, seed: int, image_size: int, batch: int = 16) -> list[dict]:
+    """``n`` fixed samples (seeded) of the labelled real pairs in ``files`` (comma-separated), in batches."""
+    from .real_pairs import RealPairConfig, RealPairs
+
+    ds = RealPairs(_real_pairs(files), n, seed, RealPairConfig(image_size))
+    return [collate([ds[i] for i in range(j, min(j + batch, n))]) for j in range(0, n, batch)]
 
 
 def _float_state(path) -> dict:
@@ -158,6 +177,11 @@ class _Run:
         self.val_batches = [
             collate([val_set[i] for i in range(j, min(j + 16, len(val_set)))]) for j in range(0, len(val_set), 16)
         ]
+        self.real_val_batches = (
+            real_validation_batches(cfg.real_val_pairs, cfg.val_pairs, cfg.seed + 20_000, cfg.image_size)
+            if cfg.real_val_pairs
+            else []
+        )
         self.skipped = 0
 
     def _resume(self, model) -> int:
@@ -253,12 +277,16 @@ class _Run:
 
     def validate(self, bar) -> dict:
         row = {"step": self.step, **validate(self.core, self.val_batches, self.cfg.model, self.device, self.amp_ctx)}
+        if self.real_val_batches:
+            real = validate(self.core, self.real_val_batches, self.cfg.model, self.device, self.amp_ctx)
+            row.update({f"real_{k}": v for k, v in real.items()})
         self.set_train()
         self.log.validation(row)
         if bar is not None:
             bar.write(
                 f"step {self.step}: val mean r {row['mean_r']:.3f} (median {row['median_r']:.3f}, "
                 f"constant-1 {row['baseline_mean_r']:.3f})"
+                + (f"; real mean r {row['real_mean_r']:.3f}" if "real_mean_r" in row else "")
             )
         return row
 
