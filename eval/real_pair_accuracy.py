@@ -8,6 +8,10 @@ pair the ScaleNet error of the consistency-checked scale against the paper's glo
 the constant 1. Direction errors: pairs with ``|log2 label| >= 0.5`` predicted on the other side of 1.
 
     OMP_NUM_THREADS=1 python eval/real_pair_accuracy.py --labels runs/real_models --out results/real_pairs/bundled.json
+
+``--loco RUNS`` scores each collection with the models trained without it
+(``RUNS/local_without_<collection>/model.pt``, ``RUNS/global_without_<collection>/model.pt``, from
+``train/train_real_pairs.py``) instead of one pair of models for all.
 """
 
 from __future__ import annotations
@@ -77,17 +81,27 @@ def main(argv=None) -> int:
     p.add_argument("--global-model", default=None, help="default: the bundled ScaleNet")
     p.add_argument("--samples", type=int, default=128)
     p.add_argument("--seed", type=int, default=123)
+    p.add_argument("--loco", type=Path, default=None, help="folder of leave-one-collection-out runs")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
-    local = LocalScaleNet.from_pretrained(args.local_model).eval()
-    scalenet = ScaleNet.from_pretrained(args.global_model).eval()
     names = args.collections or sorted(d.name for d in args.labels.iterdir() if (d / "pairs.npz").exists())
-    results = {"local_model": args.local_model or "bundled", "global_model": args.global_model or "bundled"}
+    if args.loco is None:
+        local = LocalScaleNet.from_pretrained(args.local_model).eval()
+        scalenet = ScaleNet.from_pretrained(args.global_model).eval()
+        results = {"local_model": args.local_model or "bundled", "global_model": args.global_model or "bundled"}
+    else:
+        results = {
+            "local_model": f"{args.loco}/local_without_<collection>",
+            "global_model": f"{args.loco}/global_without_<collection>",
+        }
     print(
         "| collection | samples | local mean r | local median r | const-1 | ScaleNet mean r | const-1 | direction errors local / global |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for name in names:
+        if args.loco is not None:
+            local = LocalScaleNet.from_pretrained(args.loco / f"local_without_{name}" / "model.pt").eval()
+            scalenet = ScaleNet.from_pretrained(args.loco / f"global_without_{name}" / "model.pt").eval()
         batches = real_validation_batches(str(args.labels / name / "pairs.npz"), args.samples, args.seed, 192)
         r = evaluate(local, scalenet, batches)
         results[name] = r

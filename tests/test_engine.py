@@ -319,6 +319,27 @@ class TestRayLocalCluster:
                     else:
                         np.testing.assert_array_equal(y, x)  # matches and indices identical
 
+    def test_eval_hpatches_equals_local_engine(self, ray_executor, photos, tmp_path):
+        import torch
+
+        from localscale.evaluation import evaluate, load_hpatches, make_pairs, make_sequences
+        from localscale.models import LocalScaleNet
+
+        make_sequences([photos["astronaut"], photos["coffee"]], tmp_path, num_images=3, size=128, seed=0)
+        broken = tmp_path / "s_001" / "2.png"
+        broken.write_bytes(broken.read_bytes()[:300])  # truncated after its header: skipped on both engines
+        pairs = make_pairs(load_hpatches(tmp_path))
+        torch.manual_seed(0)
+        local = LocalScaleNet(width=0.125, image_size=64).eval()
+        opts = dict(descriptor="sift", num_features=150, local_model=local, progress=False)
+        here = evaluate(pairs, ["none", "local", "gt"], "hardnet", **opts)
+        there = evaluate(pairs, ["none", "local", "gt"], "hardnet", executor=ray_executor, **opts)
+        assert here["skipped"] == there["skipped"] and len(here["skipped"]) == 1
+        timing = ("seconds", "scale_seconds")
+        strip = lambda recs: [{k: v for k, v in r.items() if k not in timing} for r in recs]  # noqa: E731
+        assert strip(there["records"]) == strip(here["records"]) and len(here["records"]) == 9
+        assert there["summary"]["all"]["gt"]["mma"] == here["summary"]["all"]["gt"]["mma"]
+
     def test_bad_weights_raise_in_the_driver(self, ray_executor, tmp_path):
         bad = tmp_path / "weights.pt"
         bad.write_bytes(b"truncated")

@@ -8,6 +8,7 @@ from ..errors import LocalScaleError
 from ..loading import MODEL_KINDS
 from ..outputs import ensure_not_input
 from .common import check_output_dir
+from .options import executor_from_args
 
 #: options of ``match`` that only the patch matcher (``--matcher hardnet``) reads
 PATCH_OPTIONS = ("descriptor", "descriptor_precision", "detector", "orientation", "ratio")
@@ -150,16 +151,22 @@ def cmd_eval_hpatches(args) -> int:
     for n in notes:
         print("note:", n)
     print(f"{len(seqs)} sequences, {len(pairs)} pairs; matchers {[m.name for m in matchers]}; methods {methods}")
-    run(
-        pairs,
-        methods,
-        matchers,
-        args.out,
-        models,
-        notes,
-        skipped,
-        args.max_side,
-        extra={"gate": vars(gate), "args": {k: v for k, v in vars(args).items() if not callable(v)}},
-    )
+    executor = executor_from_args(args)
+    try:
+        run(
+            pairs,
+            methods,
+            matchers,
+            args.out,
+            models,
+            notes,
+            skipped,
+            args.max_side,
+            extra={"gate": vars(gate), "args": {k: v for k, v in vars(args).items() if not callable(v)}},
+            executor=executor,
+        )
+    finally:
+        if executor is not None:
+            executor.close()
     print(f"wrote {args.out}/")
     return 0

@@ -317,6 +317,7 @@ def add_hpatches_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         default=None,
         help="gate: weight the maps' medians by the predicted visibility or reliability (default: CorrectionGate's)",
     )
+    add_engine_options(p, "the pairs' evaluation")
     return p
 
 

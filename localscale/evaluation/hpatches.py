@@ -48,8 +48,9 @@ from __future__ import annotations
 
 import re
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import cv2
 import numpy as np
@@ -287,6 +288,7 @@ def evaluate(
     max_side: Optional[int] = None,
     thresholds=THRESHOLDS,
     progress: bool = True,
+    executor=None,
     **options,
 ) -> dict:
     """Run the protocol on ``pairs`` with one matcher; returns ``{"records", "summary", "skipped",
@@ -297,10 +299,10 @@ def evaluate(
         matcher: a name of :data:`localscale.matching.MATCHERS`, a ``MatchConfig`` or a ``Matcher``.
         local_model, global_model: the models the methods need.
         max_side: working resolution of every image (longer side; None: the matcher's own; 0: full size).
+        executor: an :class:`~localscale.engine.Executor` other than the local one evaluates the pairs on
+            its workers (each with its own matcher and the models, shipped once); the records are the same.
         **options: ``MatchConfig`` fields replacing the matcher's (``descriptor="sift"``, ``num_features``, ``gate``).
     """
-    from tqdm import tqdm
-
     from ..matching import get_correction, get_matcher
 
     for m in methods:
@@ -317,35 +319,83 @@ def evaluate(
         matcher = Matcher(match_config(matcher.config, **options), matcher.device)
         options = {}
     matcher = get_matcher(matcher, **options)
-    scales = _PairScales(local_model, global_model, matcher.config.gate)
-    side = matcher.config.max_side
-    records, skipped, done, suspicious = [], [], [], {}
-    for p in tqdm(pairs, desc=f"eval {result_tag(matcher.config)}", disable=not progress, mininterval=5):
-        try:
-            a, fa = _resize(load_image(p.image_a), side)
-            b, fb = _resize(load_image(p.image_b), side)
-            H = np.diag([fb, fb, 1.0]) @ p.H @ np.diag([1 / fa, 1 / fa, 1.0])
-            agreement = content_agreement(a, b, H)
-            if agreement < MIN_AGREEMENT:
-                suspicious[p.name] = round(agreement, 3)
-                _warn(
-                    f"pair {p.name}: image {p.k} warped by H_1_{p.k} does not look like image 1 "
-                    f"(correlation {agreement:.2f}); check that H and the image sizes belong together"
-                )
-            scales.start(p, a, b)
-            records += _evaluate_pair(matcher, scales, p, a, b, fa, fb, methods, list(thresholds))
-            done.append(p)
-        except LocalScaleError as e:  # e.g. an image that is truncated after its header
-            reason = " ".join(str(e).split())
+    work = EvaluatePair(tuple(methods), tuple(thresholds))
+    label = f"eval {result_tag(matcher.config)}" if progress else None
+    if executor is None or executor.name == "local":
+        state = (matcher, _PairScales(local_model, global_model, matcher.config.gate))
+        results = _in_process(work, state, pairs, label)
+    else:
+        factory = EvaluationState(matcher.config, str(matcher.device), local_model, global_model)
+        results = executor.map(work, pairs, state=factory, progress=label, unit="pair")
+    by_pair, skipped, suspicious = {}, {}, {}
+    for i, result in results:
+        p = pairs[i]
+        if isinstance(result, LocalScaleError):  # e.g. an image that is truncated after its header
+            reason = " ".join(str(result).split())
             _warn(f"pair {p.name} skipped: {reason}")
-            skipped.append({"pair": p.name, "reason": reason})
+            skipped[i] = {"pair": p.name, "reason": reason}
+            continue
+        records, agreement = result
+        if agreement < MIN_AGREEMENT:
+            suspicious[p.name] = round(agreement, 3)
+            _warn(
+                f"pair {p.name}: image {p.k} warped by H_1_{p.k} does not look like image 1 "
+                f"(correlation {agreement:.2f}); check that H and the image sizes belong together"
+            )
+        by_pair[i] = records
+    records = [r for i in sorted(by_pair) for r in by_pair[i]]
+    done = [pairs[i] for i in sorted(by_pair)]
     return {
         "matcher": matcher.name,
         "records": records,
         "summary": summarise(records, done, methods, list(thresholds)),
-        "skipped": skipped,
+        "skipped": [skipped[i] for i in sorted(skipped)],
         "suspicious": suspicious,
     }
+
+
+def _in_process(work, state, pairs, label):
+    """``(index, records or the LocalScaleError)`` of every pair, in order, in this process."""
+    from tqdm import tqdm
+
+    for i, p in enumerate(tqdm(pairs, desc=label, disable=label is None, mininterval=5)):
+        try:
+            yield i, work(state, p)
+        except LocalScaleError as e:
+            yield i, e
+
+
+@dataclass(frozen=True)
+class EvaluationState:
+    """Worker state of :func:`evaluate` on an executor: the matcher of ``config`` and the pair's map cache."""
+
+    config: Any
+    device: str = "cpu"
+    local_model: Any = None
+    global_model: Any = None
+
+    def __call__(self):
+        from ..matching import Matcher
+
+        return Matcher(self.config, self.device), _PairScales(self.local_model, self.global_model, self.config.gate)
+
+
+@dataclass(frozen=True)
+class EvaluatePair:
+    """Work of one pair: ``(its records for every method, the content agreement of the two images under H)``."""
+
+    methods: tuple
+    thresholds: tuple
+
+    def __call__(self, state, p: PairInfo):
+        matcher, scales = state
+        side = matcher.config.max_side
+        a, fa = _resize(load_image(p.image_a), side)
+        b, fb = _resize(load_image(p.image_b), side)
+        H = np.diag([fb, fb, 1.0]) @ p.H @ np.diag([1 / fa, 1 / fa, 1.0])
+        agreement = content_agreement(a, b, H)
+        scales.start(p, a, b)
+        return _evaluate_pair(matcher, scales, p, a, b, fa, fb, self.methods, list(self.thresholds)), agreement
 
 
 def _resize(img: np.ndarray, max_side: Optional[int]) -> tuple[np.ndarray, float]:
@@ -424,6 +474,7 @@ def run(
     skipped: list,
     max_side: Optional[int] = None,
     extra: Optional[dict] = None,
+    executor=None,
 ) -> dict:
     """Evaluate every matcher config on ``pairs`` and write the results into ``out``:
     ``results_<tag>.{json,md}`` and ``mma_<tag>_*.png`` per matcher, ``splits.csv``, and
@@ -431,7 +482,7 @@ def run(
     out = Path(out)
     docs, tables = {}, []
     for cfg in configs:
-        res = evaluate(pairs, methods, cfg, models.get("local"), models.get("global"), max_side)
+        res = evaluate(pairs, methods, cfg, models.get("local"), models.get("global"), max_side, executor=executor)
         res["skipped"] = skipped + res["skipped"]
         if res["skipped"]:
             _warn(f"{len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)")

@@ -9,6 +9,8 @@ taken from here they still work, with a :class:`DeprecationWarning`.
 import importlib
 import warnings
 
+from ..lazy import lazy_exports
+
 _EXPORTS = {
     ".descriptors": ("HardNetDescriptor", "PatchDescriptor", "SIFTPatchDescriptor", "get_descriptor"),
     ".detector": (
@@ -44,7 +46,6 @@ _EXPORTS = {
         "rescale_keypoints",
     ),
 }
-_WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 #: names that moved to :mod:`localscale.matching`
 _MOVED = (
     "match_descriptors",
@@ -89,25 +90,17 @@ _MOVED = (
     "verify_matches",
 )
 
-__all__ = sorted(_WHERE)
 
-
-def __getattr__(name):
-    if name in _MOVED:
-        warnings.warn(
-            f"localscale.features.{name} moved to localscale.matching.{name}; the old name will be "
-            "removed in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module("localscale.matching"), name)
-    mod = _WHERE.get(name)
-    if mod is None:
+def _moved(name):
+    if name not in _MOVED:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(mod, __name__), name)
-    globals()[name] = value
-    return value
+    warnings.warn(
+        f"localscale.features.{name} moved to localscale.matching.{name}; the old name will be "
+        "removed in the next release",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return getattr(importlib.import_module("localscale.matching"), name)
 
 
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, fallback=_moved)

@@ -13,7 +13,7 @@ Example::
     res = match_pair("a.jpg", "b.jpg", "auto", matcher="aliked-lightglue")
 """
 
-import importlib
+from ..lazy import lazy_exports
 
 _EXPORTS = {
     ".config": ("MATCHERS", "MATCHER_NEEDS", "MatchConfig", "match_config"),
@@ -73,18 +73,4 @@ _EXPORTS = {
         "match_with_truth",
     ),
 }
-_WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name):
-    mod = _WHERE.get(name)
-    if mod is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(mod, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -20,7 +20,7 @@ Example::
     summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
 """
 
-import importlib
+from ..lazy import lazy_exports
 
 _EXPORTS = {
     ".images": ("ImageInfo", "find_images", "names_to_pair", "IMAGE_SUFFIXES", "ImageFolderError"),
@@ -48,18 +48,4 @@ _EXPORTS = {
     ".viz": ("plot_reconstruction",),
     ".reconstruct": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),
 }
-_WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name):
-    mod = _WHERE.get(name)
-    if mod is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(mod, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
