@@ -81,6 +81,7 @@ def main(argv=None) -> int:
     p.add_argument("--global-model", default=None, help="default: the bundled ScaleNet")
     p.add_argument("--samples", type=int, default=128)
     p.add_argument("--seed", type=int, default=123)
+    p.add_argument("--turn-probability", type=float, default=0.5, help="share of samples with B turned (0: upright)")
     p.add_argument("--loco", type=Path, default=None, help="folder of leave-one-collection-out runs")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -88,9 +89,14 @@ def main(argv=None) -> int:
     if args.loco is None:
         local = LocalScaleNet.from_pretrained(args.local_model).eval()
         scalenet = ScaleNet.from_pretrained(args.global_model).eval()
-        results = {"local_model": args.local_model or "bundled", "global_model": args.global_model or "bundled"}
+        results = {
+            "turn_probability": args.turn_probability,
+            "local_model": args.local_model or "bundled",
+            "global_model": args.global_model or "bundled",
+        }
     else:
         results = {
+            "turn_probability": args.turn_probability,
             "local_model": f"{args.loco}/local_without_<collection>",
             "global_model": f"{args.loco}/global_without_<collection>",
         }
@@ -102,7 +108,9 @@ def main(argv=None) -> int:
         if args.loco is not None:
             local = LocalScaleNet.from_pretrained(args.loco / f"local_without_{name}" / "model.pt").eval()
             scalenet = ScaleNet.from_pretrained(args.loco / f"global_without_{name}" / "model.pt").eval()
-        batches = real_validation_batches(str(args.labels / name / "pairs.npz"), args.samples, args.seed, 192)
+        batches = real_validation_batches(
+            str(args.labels / name / "pairs.npz"), args.samples, args.seed, 192, turn_probability=args.turn_probability
+        )
         r = evaluate(local, scalenet, batches)
         results[name] = r
         d = r["direction_errors"]

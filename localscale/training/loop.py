@@ -90,11 +90,12 @@ def _real_pairs(files: str) -> list:
     return [p for f in files.split(",") if f.strip() for p in load_covisible_pairs(f.strip())]
 
 
-def real_validation_batches(files: str, n: int, seed: int, image_size: int, batch: int = 16) -> list[dict]:
-    """``n`` fixed samples (seeded) of the labelled real pairs in ``files`` (comma-separated), in batches."""
+def real_validation_batches(files: str, n: int, seed: int, image_size: int, batch: int = 16, **sampling) -> list[dict]:
+    """``n`` fixed samples (seeded) of the labelled real pairs in ``files`` (comma-separated), in batches;
+    ``sampling``: :class:`~.real_pairs.RealPairConfig` fields (e.g. ``turn_probability=0``)."""
     from .real_pairs import RealPairConfig, RealPairs
 
-    ds = RealPairs(_real_pairs(files), n, seed, RealPairConfig(image_size))
+    ds = RealPairs(_real_pairs(files), n, seed, RealPairConfig(image_size, **sampling))
     return [collate([ds[i] for i in range(j, min(j + batch, n))]) for j in range(0, n, batch)]
 
 
