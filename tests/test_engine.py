@@ -3,6 +3,7 @@ killed mid-run, reports bad input per item, resumes after its driver was killed 
 over two nodes of a cluster. Serial and self-contained: every Ray cluster a test starts is
 stopped by that test (or its fixture), and no test uses a cluster it did not start."""
 
+import json
 import os
 import signal
 import socket
@@ -37,18 +38,31 @@ RAY_CLI = Path(sys.executable).with_name("ray")
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 
 
+def own_address(host) -> bool:
+    """``host`` is loopback or an IP address of this machine (a socket can be bound to it): traffic to it
+    never leaves the machine."""
+    if host in LOOPBACK:
+        return True
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in str(host) else socket.AF_INET) as s:
+            s.bind((host, 0))
+        return True
+    except (OSError, TypeError, ValueError):
+        return False
+
+
 @pytest.fixture(autouse=True)
 def no_network(monkeypatch):
-    """Like the suite's guard, but Ray's driver may talk to this machine's own cluster (loopback)."""
+    """Like the suite's guard, but Ray's driver may talk to clusters on this machine (its own addresses)."""
     real_connect, real_getaddrinfo = socket.socket.connect, socket.getaddrinfo
 
     def connect(self, address):
-        if self.family in (socket.AF_INET, socket.AF_INET6) and address[0] not in LOOPBACK:
+        if self.family in (socket.AF_INET, socket.AF_INET6) and not own_address(address[0]):
             raise AssertionError(f"a test tried to connect to {address!r}")
         return real_connect(self, address)
 
     def getaddrinfo(host, *args, **kwargs):
-        if host not in LOOPBACK + (socket.gethostname(), None):
+        if host not in (socket.gethostname(), None) and not own_address(host):
             raise AssertionError(f"a test tried to resolve {host!r}")
         return real_getaddrinfo(host, *args, **kwargs)
 
@@ -107,13 +121,6 @@ def buggy(state, x):
 
 def add_state(state, x):
     return state + x
-
-
-def node_of(state, x):
-    import ray
-
-    time.sleep(0.2)
-    return x, ray.get_runtime_context().get_node_id()
 
 
 class Counter:
@@ -418,22 +425,51 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
     assert {p.name: p.read_text() for p in out.iterdir()} == {f"{i}.txt": f"{i * i}\n" for i in range(10)}
 
 
+TWO_NODE_DRIVER = r"""
+import json, sys, time
+import ray
+from localscale.engine import EngineError, get_executor
+
+def node_of(state, x):
+    import ray, time
+    time.sleep(0.2)
+    return x, ray.get_runtime_context().get_node_id()
+
+deadline = time.time() + 90
+while True:  # the executor checks that the cluster has the 2 CPUs it needs: wait for the second node
+    ex = get_executor("ray", workers=2, threads_per_worker=1, address=sys.argv[1])
+    try:
+        ex.start()
+        break
+    except EngineError as e:
+        # the head's port opens before its services are up, and the second node comes later
+        if not ("1 CPU(s)" in str(e) or "Failed to connect" in str(e)) or time.time() > deadline:
+            raise
+        time.sleep(0.5)
+with ex:
+    alive = sum(n["Alive"] for n in ray.nodes())
+    out = [list(v) for _, v in sorted(ex.map(node_of, range(8)))]
+print(json.dumps([alive, out]))
+"""
+
+
 @needs_ray
 @pytest.mark.skipif(not RAY_CLI.exists(), reason="no `ray` command line")
-def test_two_node_cluster(short_dir, monkeypatch, pickle_tests_by_value):
+def test_two_node_cluster(short_dir, monkeypatch):
     """A head and a second node started with `ray start` on this machine (1 CPU each, own ports and
     folders); the driver joins with an address and its actors run on both nodes."""
-    # token authentication on every process (the head's default; a joining node must be told)
-    monkeypatch.setenv("RAY_AUTH_MODE", "token")
+    # no token authentication on any process: a cluster of this machine, for this test only
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     # Ray joins a node to a cluster at 127.0.0.1 by this machine's own interface address when it has
-    # one with a route; tests talk to loopback only, so the cluster can be made here only without one
+    # one with a route: the nodes then use that address, which stays on this machine (it is bound here)
     from ray._private.services import resolve_ip_for_localhost
 
-    if resolve_ip_for_localhost("127.0.0.1") not in LOOPBACK:
-        pytest.skip("Ray resolves 127.0.0.1 to this machine's network address; the test stays on loopback")
-    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0", RAY_AUTH_MODE="token")
+    node_ip = resolve_ip_for_localhost("127.0.0.1")
+    if not own_address(node_ip):
+        pytest.skip(f"Ray resolves 127.0.0.1 to {node_ip}, not an address of this machine")
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
     port, client_port = free_port(), free_port()
-    common = ["--block", "--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--dashboard-agent-listen-port", "0"]
+    common = ["--block", "--num-cpus", "1", "--node-ip-address", node_ip, "--dashboard-agent-listen-port", "0"]
     head = subprocess.Popen(
         [
             str(RAY_CLI),
@@ -460,35 +496,31 @@ def test_two_node_cluster(short_dir, monkeypatch, pickle_tests_by_value):
         deadline = time.time() + 60
         while time.time() < deadline and head.poll() is None:
             try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                socket.create_connection((node_ip, port), timeout=1).close()
                 break
             except OSError:
                 time.sleep(0.3)
         assert head.poll() is None, "ray start --head failed"
         node = subprocess.Popen(
-            [str(RAY_CLI), "start", "--address", f"127.0.0.1:{port}", "--temp-dir", str(short_dir / "node"), *common],
+            [str(RAY_CLI), "start", "--address", f"{node_ip}:{port}", "--temp-dir", str(short_dir / "node"), *common],
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,
         )
-        deadline = time.time() + 90
-        while True:  # the executor checks that the cluster has the 2 CPUs it needs: wait for the second node
-            ex = get_executor("ray", workers=2, threads_per_worker=1, address=f"127.0.0.1:{port}")
-            try:
-                ex.start()
-                break
-            except EngineError as e:
-                # the head's port opens before its services are up, and the second node comes later
-                if not ("1 CPU(s)" in str(e) or "Failed to connect" in str(e)) or time.time() > deadline:
-                    raise
-                time.sleep(0.5)
-        with ex:
-            assert sum(n["Alive"] for n in ray.nodes()) == 2
-            out = dict(ex.map(node_of, range(8)))
-            assert sorted(x for x, _ in out.values()) == list(range(8))
-            assert len({n for _, n in out.values()}) == 2  # work ran on both nodes
-        assert not ray.is_initialized()
+        # the driver runs in a process of its own: Ray keeps its authentication mode per process
+        driver = subprocess.run(
+            [PYTHON, "-c", TWO_NODE_DRIVER, f"{node_ip}:{port}"],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=180,
+        )
+        assert driver.returncode == 0, driver.stderr[-2000:]
+        alive, out = json.loads(driver.stdout.strip().splitlines()[-1])
+        assert alive == 2
+        assert sorted(x for x, _ in out) == list(range(8))
+        assert len({n for _, n in out}) == 2  # work ran on both nodes
     finally:
         for proc in (node, head):
             if proc is not None:
