@@ -259,6 +259,23 @@ def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
     return load_image_array(image, name).shape[:2]
 
 
+def header_shape(path: Union[str, os.PathLike]) -> tuple[int, int]:
+    """``(height, width)`` from the file header (upright, EXIF orientation applied); raises
+    :class:`~localscale.errors.ImageError` for a file that cannot be used (missing, unreadable header,
+    smaller than :data:`MIN_SIDE` or above :data:`MAX_PIXELS`). Unlike :func:`image_shape`, the file is
+    not checked further (its kind, its decodability)."""
+    _stat_file(Path(path), "image")
+    try:
+        header = _header(Path(path))
+    except OSError as e:
+        raise ImageError(f"cannot read {path} ({e.strerror})") from None
+    if header is None:
+        raise ImageError(f"cannot read the image size of {path} (corrupt, truncated or unsupported format)")
+    (w, h), orientation = header
+    _check_size(h, w, str(path))
+    return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
+
+
 _FILE_KINDS = (
     (stat.S_ISFIFO, "a named pipe"),
     (stat.S_ISCHR, "a character device"),

@@ -129,22 +129,10 @@ def _warn(message: str) -> None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """``(height, width)`` from the file header (upright, EXIF orientation applied); raises
-    :class:`~localscale.errors.ImageError` for a file that cannot be used (unreadable header,
-    smaller than :data:`localscale.io.MIN_SIDE` or above :data:`localscale.io.MAX_PIXELS`)."""
-    from ..errors import ImageError
-    from ..io import _check_size, _header, _stat_file
+    """``(height, width)`` from the file header: :func:`localscale.io.header_shape`."""
+    from ..io import header_shape
 
-    _stat_file(Path(path), "image")
-    try:
-        header = _header(Path(path))
-    except OSError as e:
-        raise ImageError(f"cannot read {path} ({e.strerror})") from None
-    if header is None:
-        raise ImageError(f"cannot read the image size of {path} (corrupt, truncated or unsupported format)")
-    (w, h), orientation = header
-    _check_size(h, w, str(path))
-    return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
+    return header_shape(path)
 
 
 #: a pair whose GT homography maps less than this fraction of image 1 into image k is warned about
