@@ -10,10 +10,18 @@ from ..errors import LocalScaleError
 from ..map_files import scale_map_paths, write_scale_map
 from ..outputs import make_dir, resolved_path, write_text
 from ..pairs_file import read_pairs_file
-from .common import _model, check_output_dir
+from .common import _model, check_output_dir, image_labels, short_name
 from .options import executor_from_args
-from .pairs_file import pairs_output_names
 from .signals import SIGTERM_STATE
+
+
+def pairs_output_names(pairs: list[tuple]) -> list[str]:
+    """``<index:05d>_<A>_<B>`` per pair: the index is the pair's position in the list (so it does
+    not depend on which pairs fail) and the names come from :func:`image_labels` over all images."""
+    labels = image_labels([p for pair in pairs for p in pair])
+    return [
+        short_name(f"{i:05d}_{labels[resolved_path(a)]}_{labels[resolved_path(b)]}") for i, (a, b) in enumerate(pairs)
+    ]
 
 
 def _complete(paths: list[Path], record_path: Path | None = None, record: dict | None = None) -> bool:

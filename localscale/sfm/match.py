@@ -238,30 +238,26 @@ def _split_resumed(pairs, done: dict):
 
 
 def _match_todo(runner, todo, sets, output, stats: MatchStats, flush_s: float, desc: str, show_progress: bool):
-    """Match the ``todo`` pairs into ``output`` and ``stats``, flushing every ``flush_s`` seconds and
-    at the end (also when interrupted: what was matched is kept)."""
-    last = time.monotonic()
-    try:
-        for a, b in progress(todo, desc, unit="pair", disable=not show_progress):
-            t0 = time.perf_counter()
-            kp_a, kp_b, m, scores, verified, chosen = runner.run(a, b)
-            mm, ss = _index_matches(sets, a, b, kp_a, kp_b, m, scores)
-            stats.pairs.append(output.add(a, b, mm, ss, verified, chosen, time.perf_counter() - t0))
-            stats.matched += 1
-            if time.monotonic() - last >= flush_s:
-                output.flush()
-                last = time.monotonic()
-    finally:
-        output.flush()
-    stats.feature_sets = runner.feature_sets
+    """Match the ``todo`` pairs in this process into ``output`` and ``stats`` (:func:`_apply_in_order`)."""
+    work = MatchPair()
+    pairs = progress(todo, desc, unit="pair", disable=not show_progress)
+    _apply_in_order(((i, work(runner, p)) for i, p in enumerate(pairs)), todo, sets, output, stats, flush_s)
+    stats.feature_sets = runner.feature_sets  # with the level cache shared with extraction, its levels too
 
 
 def _match_todo_on(executor, factory, todo, sets, output, stats: MatchStats, flush_s: float, label):
-    """:func:`_match_todo` with the pairs matched on ``executor``'s workers; results are applied in pair
-    order (the keypoint sets grow as in a local run), flushed every ``flush_s`` seconds and at the end."""
+    """:func:`_match_todo` with the pairs matched on ``executor``'s workers."""
+    results = executor.map(MatchPair(), todo, state=factory, progress=label, unit="pair")
+    _apply_in_order(results, todo, sets, output, stats, flush_s)
+
+
+def _apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: float) -> None:
+    """Add the ``(index, MatchPair result)`` of ``results`` (any order) to ``output`` and ``stats`` in pair
+    order, so that the keypoint sets grow as in a run in this process; flush every ``flush_s`` seconds
+    and at the end (also when interrupted: what was applied is kept). A failed pair ends the run."""
     last, pending, applied = time.monotonic(), {}, 0
     try:
-        for i, result in executor.map(MatchPair(), todo, state=factory, progress=label, unit="pair"):
+        for i, result in results:
             if isinstance(result, Exception):
                 raise result
             pending[i] = result
