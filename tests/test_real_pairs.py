@@ -127,28 +127,14 @@ def test_a_file_that_is_not_labels_is_a_clear_error(tmp_path):
 
 
 def test_training_mixes_real_pairs_and_validates_on_them(image_dir, zoomed_pair, tmp_path):
+    from test_training import tiny_cfg
+
     from localscale.training import TrainConfig, train
 
     labels = tmp_path / "pairs.npz"
     rp.save_covisible_pairs(labels, [zoomed_pair])
-    cfg = TrainConfig(
-        data=str(image_dir),
-        out=str(tmp_path / "run"),
-        width=0.125,
-        feature_dim=16,
-        image_size=64,
-        steps=2,
-        batch_size=4,
-        holdout_every=3,
-        val_pairs=8,
-        val_every=2,
-        ckpt_every=2,
-        threads=1,
-        amp="off",
-        real_pairs=str(labels),
-        real_fraction=0.5,
-        real_val_pairs=str(labels),
-    )
+    cfg = tiny_cfg(image_dir, tmp_path / "run", steps=2, val_every=2, ckpt_every=2)
+    cfg.real_pairs, cfg.real_fraction, cfg.real_val_pairs = str(labels), 0.5, str(labels)
     row = train(cfg)
     assert row["real_mean_r"] > 1 and row["real_baseline_mean_r"] > 1.2
     from localscale.training.loop import _datasets
