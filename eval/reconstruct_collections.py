@@ -22,7 +22,9 @@ Pipelines (``--pipelines``):
   verification) / ``incremental_mapping``;
 * ``aliked-lg``: :func:`localscale.sfm.reconstruct` with ALIKED + LightGlue, 2048 keypoints at 1024 px,
   exhaustive pairs, no correction (what an hloc user runs);
-* ``aliked-lg-auto``: the same with ``correction="auto"``.
+* ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
+* ``aliked-lg-auto-per-pair``: ``auto`` with the whole hypothesis loop on every pair that does not
+  verify clearly as it is (``auto_graph=False``).
 
 Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_image`` on the
 close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
@@ -49,7 +51,7 @@ import numpy as np
 
 from localscale.outputs import write_text
 
-PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto")
+PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
 COLUMNS = [
     ("collection", "collection"),
     ("pipeline", "pipeline"),
@@ -164,7 +166,9 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
     }
 
 
-def run_ours(images_dir: Path, run_dir: Path, correction: str, camera_mode: str, threads: int) -> dict:
+def run_ours(
+    images_dir: Path, run_dir: Path, correction: str, camera_mode: str, threads: int, auto_graph: bool = True
+) -> dict:
     from localscale.sfm import read_models, reconstruct
 
     summary = reconstruct(
@@ -178,6 +182,7 @@ def run_ours(images_dir: Path, run_dir: Path, correction: str, camera_mode: str,
         num_threads=threads,
         overwrite=True,
         show_progress=False,
+        auto_graph=auto_graph,
     )
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
@@ -286,8 +291,9 @@ def main(argv=None) -> int:
                 if pipe == "colmap-sift":
                     res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads)
                 else:
+                    correction = "auto" if "-auto" in pipe else "none"
                     res = run_ours(
-                        images_dir, run_dir, "auto" if pipe.endswith("auto") else "none", camera_mode, a.threads
+                        images_dir, run_dir, correction, camera_mode, a.threads, not pipe.endswith("per-pair")
                     )
                 wall = time.perf_counter() - t0
                 st = res["stats"] or {

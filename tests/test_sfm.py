@@ -239,7 +239,7 @@ def test_interrupted_matching_keeps_its_pairs_and_resumes(scene, tmp_path, monke
     from localscale.sfm import match as match_module
 
     folder, _ = scene
-    real_run = match_module._PairRunner.run
+    real_run = match_module.PairRunner.run
     calls = []
 
     def run_then_stop(self, a, b):
@@ -248,13 +248,13 @@ def test_interrupted_matching_keeps_its_pairs_and_resumes(scene, tmp_path, monke
         calls.append((a, b))
         return real_run(self, a, b)
 
-    monkeypatch.setattr(match_module._PairRunner, "run", run_then_stop)
+    monkeypatch.setattr(match_module.PairRunner, "run", run_then_stop)
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         reconstruct(folder, out, matcher="sift", num_threads=1, show_progress=False)
     assert len(read_all_matches(out / "matches.h5")) == 5  # flushed on the way out
     assert not (out / "summary.json").exists()
-    monkeypatch.setattr(match_module._PairRunner, "run", real_run)
+    monkeypatch.setattr(match_module.PairRunner, "run", real_run)
     summary = reconstruct(folder, out, matcher="sift", num_threads=1, show_progress=False)
     assert summary["run"] == "resume"
     assert summary["matching"]["resumed"] == 5 and summary["matching"]["matched"] == 10

@@ -67,3 +67,42 @@ def test_auto_registers_a_turned_closeup(tmp_path):
     spread = np.median([np.linalg.norm(centre[f"view_{i}.png"] - centre["view_0.png"]) for i in (1, 2, 3)])
     assert np.linalg.norm(centre["close_1.png"] - centre["view_1.png"]) < 0.1 * spread
     assert len(cams) == 4
+
+
+@pytest.fixture(scope="module")
+def scene_with_closeup(tmp_path_factory):
+    """Five views of the rendered ridge scene and a close-up of the middle one: the same camera
+    with a 3x focal length (a real zoom, not a resized crop), turned by a quarter turn."""
+    import cv2
+
+    from localscale.sfm.synthetic import SceneCamera, arc_cameras, random_texture, render_view
+
+    folder = tmp_path_factory.mktemp("closeup_scene")
+    rng = np.random.default_rng(0)
+    textures = [random_texture(rng), random_texture(rng)]
+    shape = (360, 480)
+    cams = arc_cameras(5, shape, focal=450.0)
+    for i, cam in enumerate(cams):
+        cv2.imwrite(str(folder / f"view_{i}.png"), cv2.cvtColor(render_view(cam, textures), cv2.COLOR_RGB2BGR))
+    K = cams[2].K.copy()
+    K[0, 0] *= 3
+    K[1, 1] *= 3
+    close = np.rot90(render_view(SceneCamera(K, cams[2].R, cams[2].t, shape), textures), 1)
+    cv2.imwrite(str(folder / "close.png"), cv2.cvtColor(np.ascontiguousarray(close), cv2.COLOR_RGB2BGR))
+    return folder
+
+
+@needs_aliked
+def test_auto_relates_a_closeup_to_every_view_that_plain_matching_loses(scene_with_closeup, tmp_path):
+    from localscale.sfm import reconstruct
+
+    opts = dict(matcher="aliked-lightglue", camera_mode="per_image", num_threads=1, show_progress=False, plot=False)
+    plain = reconstruct(scene_with_closeup, tmp_path / "none", **opts)
+    assert "close.png" in plain["unregistered_images"]
+    auto = reconstruct(scene_with_closeup, tmp_path / "auto", correction="auto", **opts)
+    assert auto["registered"] == 6 and not auto["unregistered_images"]
+    pairs = {(p["a"], p["b"]): p for p in auto["matching"]["pairs"]}
+    for i in range(5):  # B turned as the close-up was, content 3x smaller in B
+        p = pairs[("close.png", f"view_{i}.png")]
+        assert p["verified"] and p["relation"]["turn"] == 1 and 0.25 < p["relation"]["scale"] < 0.45
+    assert all(p["chosen"] == "as they are" for (a, _), p in pairs.items() if a != "close.png")

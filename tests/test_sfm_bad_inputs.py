@@ -187,6 +187,13 @@ def test_bad_pairs_options(views, tmp_path, capsys):
     )
 
 
+def test_auto_per_pair_needs_auto(views, tmp_path, capsys):
+    out = tmp_path / "out"
+    _refused(
+        [str(views), "-o", str(out), *FAST, "--auto-per-pair"], capsys, out, "--auto-per-pair needs --correction auto"
+    )
+
+
 def test_disconnected_images_are_flagged(views, tmp_path, capsys):
     """Images that share nothing with the others: the run ends, and says which were not registered."""
     import shutil

@@ -48,8 +48,15 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         "--correction",
         default="none",
         choices=SFM_CORRECTIONS,
-        help="none: features matched as extracted (hloc); auto: per pair, the images as they are, "
-        "then scales and quarter turns proposed by a SIFT seed and the networks, each verified",
+        help="none: features matched as extracted (hloc); auto: the pairs as they are, then scales and "
+        "quarter turns from a SIFT seed and composed along the verified pairs (the networks where "
+        "nothing joins a pair), each verified",
+    )
+    p.add_argument(
+        "--auto-per-pair",
+        action="store_true",
+        help="auto: the whole hypothesis loop (seed, networks, quarter turns) on every pair that does not "
+        "verify clearly as it is, instead of the pair graph (slower)",
     )
     p.add_argument(
         "--pairs",
@@ -121,9 +128,12 @@ def add_reconstruct_parser(sub) -> argparse.ArgumentParser:
 def cmd_reconstruct(args) -> int:
     """Run :func:`localscale.sfm.reconstruct` with the options of ``args``; print the summary table.
     Returns 0, or 1 when no model was built."""
+    from ..errors import LocalScaleError
     from ..matching import get_correction
     from ..sfm import summary_table
 
+    if args.auto_per_pair and args.correction != "auto":
+        raise LocalScaleError("--auto-per-pair needs --correction auto")
     local_model = global_model = None
     if args.local_weights or args.global_weights:
         local_model, global_model = get_correction(args.correction).load_models(
@@ -162,4 +172,5 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         local_model=local_model,
         global_model=global_model,
         engine=executor,
+        auto_graph=not args.auto_per_pair,
     )

@@ -65,6 +65,8 @@ class AutoConfig:
         window_share: a verified geometry's hypothesis matches only the window of the image whose
             content is smaller that the other image shows, when it is at most this share of that
             image (0: never a window).
+        accept_consistent: a verified result whose own geometry agrees with its hypothesis ends the
+            loop even without a clear margin (a collection, where the pair graph decides the rest).
     """
 
     budget: int = 4
@@ -75,6 +77,7 @@ class AutoConfig:
     geometry_log2: float = 0.5
     seed: Optional[str] = "sift"
     window_share: float = 0.5
+    accept_consistent: bool = False
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -342,6 +345,8 @@ def auto_match(
     seed_matcher=None,
     cameras: tuple = (None, None),
     verification: Optional[VerificationConfig] = None,
+    hypotheses: Optional[list] = None,
+    networks: bool = True,
 ) -> AutoResult:
     """Match ``image_a`` and ``image_b`` (``H x W x 3`` uint8) with ``matcher`` under the networks'
     hypotheses, each verified by geometry (module docstring).
@@ -356,6 +361,9 @@ def auto_match(
         cameras: the cameras of A and B in the pixels of these images, for the two-view
             geometry (``verification.model="two_view"``: essential matrix and relative pose).
         verification: how each run is verified (default: the matcher config's ``verification``).
+        hypotheses: tried first instead of the images as they are and the seed (the caller tried
+            those; at least one); the networks follow unless ``networks`` is False. If none verifies,
+            the first one's result is returned, flagged.
     Returns:
         :class:`AutoResult`; its ``matches`` are a :class:`~localscale.matching.Matches`
         with keypoints in the pixels of the images given.
@@ -370,7 +378,9 @@ def auto_match(
         cameras,
         verification or matcher.config.verification,
     )
-    network_maps = loop.run(local_model, global_model, seed_matcher)
+    network_maps = loop.run(local_model, global_model, seed_matcher, hypotheses, networks)
+    if not loop.runs:  # every hypothesis given was the images as they are
+        loop.attempt(loop.identity)
     found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
 
@@ -433,17 +443,21 @@ class _Loop:
         ):
             self.queue.insert(0, g)
             return False
-        return self.clear(v)
+        return self.clear(v) or (self.config.accept_consistent and bool(v.verified))
 
-    def run(self, local_model, global_model, seed_matcher):
-        """Try the images as they are, then the seed's geometry, then the networks' hypotheses, until
-        one settles or the budget is spent; returns Local-ScaleNet's maps when the networks ran."""
+    def run(self, local_model, global_model, seed_matcher, hypotheses=None, networks=True):
+        """Try the images as they are, then the seed's geometry (or ``hypotheses`` instead of both),
+        then the networks' hypotheses, until one settles or the budget is spent; returns
+        Local-ScaleNet's maps when the networks ran."""
         c, m = self.config, self.matcher
+        if hypotheses is not None:
+            self.queue = list(hypotheses)
+            self.tried.append(self.identity)  # the caller's: not run again
         # the images as they are first: a pair that verifies clearly needs no network at all
-        if self.settled(self.attempt(self.identity), self.identity):
+        elif self.settled(self.attempt(self.identity), self.identity):
             return None
-        if seed_matcher is not None and seed_matcher.name != m.config.name:
-            g = _seed_hypothesis(
+        if hypotheses is None and seed_matcher is not None and seed_matcher.name != m.config.name:
+            g = seed_hypothesis(
                 seed_matcher, self.a, self.b, self.keys, self.vconf, self.trials, c.window_share, self.cameras
             )
             if g is not None and not _same(g, self.tried, c.geometry_log2):
@@ -452,6 +466,8 @@ class _Loop:
         turns_added = False
         while sum(not t.hypothesis.source.startswith("seed") for t in self.trials) < c.budget:
             if not self.queue:
+                if not networks:
+                    break
                 if hyps is None:
                     hyps, more, network_maps = propose(
                         self.a,
@@ -478,7 +494,7 @@ class _Loop:
         return network_maps
 
 
-def _seed_hypothesis(
+def seed_hypothesis(
     seed_matcher,
     a: np.ndarray,
     b: np.ndarray,

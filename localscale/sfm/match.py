@@ -4,10 +4,13 @@
 
 * ``none``: the cached features of ``features.h5`` matched with the matcher (LightGlue or
   nearest neighbours), what an hloc user runs;
-* ``auto``: the library's hypothesis loop per pair (:func:`~localscale.matching.auto_match`: the
-  images as they are, then scales and quarter turns proposed by a SIFT seed and the networks, each
-  verified), with one :class:`~.extract.LevelMatcher` shared by all pairs so that an image's
-  features at a level and turn are computed once;
+* ``auto``: scales and quarter turns found for the collection as a whole (:func:`_match_with_graph`):
+  every pair as it is with a two-view verification, the SIFT seed's geometry of the pairs that do
+  not verify, then hypotheses composed along the verified pairs (:mod:`.pair_graph`: a close-up
+  verified against one photo is related to that photo's neighbours) and the networks only for
+  pairs that the graph cannot join; ``auto_graph=False``: the whole hypothesis loop
+  (:func:`~localscale.matching.auto_match`) on every pair. One :class:`~.extract.LevelMatcher` is
+  shared by all pairs, so that an image's features at a level and turn are computed once;
 * ``global``, ``local``, ``fused``, ``searched``: the pair rectified by the correction's maps
   (:mod:`localscale.matching.correction`), again with the shared level cache.
 
@@ -23,84 +26,26 @@ A pair already in ``matches.h5`` (either order) is skipped: a rerun resumes. ``m
 
 from __future__ import annotations
 
+import math
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import numpy as np
 
 from ..errors import LocalScaleError
-from .extract import FeatureConf, build_matcher, features_for_matcher, load_working, to_full
+from .extract import FeatureConf
 from .h5io import H5FileError, H5Writer, groups_with, matches0_from_matches, read_group
 from .images import names_to_pair
+from .keypoints import KeypointSet, one_to_one
+from .pair_graph import PairGraph, Relation
+from .pair_runner import MatchPair, PairRunner, PairRunnerFactory
 from .progress import progress
 from .report import warn
 
 #: corrections the matching step runs (``gt`` needs a homography, ``refined`` is a two-pass pipeline)
 SFM_CORRECTIONS = ("none", "auto", "global", "local", "fused", "searched")
-
-
-class KeypointSet:
-    """One image's keypoints (full-image pixels), grown by the matches of every pair: a point
-    within ``merge_px`` of a keypoint already in the set is that keypoint (the nearest), any other
-    point is appended. The first keypoints (``base``) keep their indices."""
-
-    def __init__(self, base: np.ndarray, merge_px: float = 1.0):
-        self.merge_px = float(merge_px)
-        self._points: list = [tuple(p) for p in np.asarray(base, np.float64).reshape(-1, 2)]
-        self.num_base = len(self._points)
-        self._grid: dict = {}
-        for i, p in enumerate(self._points):
-            self._grid.setdefault(self._cell(p), []).append(i)
-
-    def _cell(self, p) -> tuple:
-        return int(np.floor(p[0] / self.merge_px)), int(np.floor(p[1] / self.merge_px))
-
-    def __len__(self) -> int:
-        return len(self._points)
-
-    @property
-    def keypoints(self) -> np.ndarray:
-        return np.asarray(self._points, np.float32).reshape(-1, 2)
-
-    def index(self, points: np.ndarray) -> np.ndarray:
-        """The index of each point in the set (added when no keypoint is within ``merge_px``)."""
-        out = np.empty(len(points), np.int64)
-        r2 = self.merge_px**2
-        for k, p in enumerate(np.asarray(points, np.float64).reshape(-1, 2)):
-            cx, cy = self._cell(p)
-            best, best_d = -1, r2
-            for dx in (-1, 0, 1):
-                for dy in (-1, 0, 1):
-                    for i in self._grid.get((cx + dx, cy + dy), ()):
-                        q = self._points[i]
-                        d = (q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2
-                        if d <= best_d:
-                            best, best_d = i, d
-            if best < 0:
-                best = len(self._points)
-                self._points.append((float(p[0]), float(p[1])))
-                self._grid.setdefault((cx, cy), []).append(best)
-            out[k] = best
-        return out
-
-
-def one_to_one(ia: np.ndarray, ib: np.ndarray, scores: np.ndarray):
-    """Matches ``(ia, ib)`` with each index used once on either side (merged keypoints can repeat
-    one): the best-scored match wins. Returns ``(K x 2, K scores)``."""
-    order = np.argsort(-scores, kind="stable")
-    used_a, used_b, keep = set(), set(), []
-    for k in order:
-        a, b = int(ia[k]), int(ib[k])
-        if a in used_a or b in used_b:
-            continue
-        used_a.add(a)
-        used_b.add(b)
-        keep.append(k)
-    keep = np.asarray(sorted(keep), np.int64)
-    return np.stack([ia[keep], ib[keep]], 1).reshape(-1, 2).astype(np.int64), scores[keep].astype(np.float32)
 
 
 @dataclass
@@ -114,9 +59,10 @@ class PairRecord:
     verified: Optional[bool] = None
     chosen: str = ""
     seconds: float = 0.0
+    relation: Optional[Relation] = None  #: ``auto``: the verified pair's scale and quarter turn
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "a": self.a,
             "b": self.b,
             "num_matches": self.num_matches,
@@ -124,6 +70,9 @@ class PairRecord:
             "chosen": self.chosen,
             "seconds": round(self.seconds, 3),
         }
+        if self.relation is not None:
+            out["relation"] = {"scale": round(self.relation.scale, 4), "turn": self.relation.turn}
+        return out
 
 
 @dataclass
@@ -134,6 +83,7 @@ class MatchStats:
     feature_sets: int = 0  # feature sets the level cache computed
     added_keypoints: int = 0  # keypoints beyond features.h5's, all images
     seconds: float = 0.0
+    steps: dict = field(default_factory=dict)  # auto on the pair graph: {step: {"pairs", "verified", "seconds"}}
 
     def to_dict(self) -> dict:
         return {
@@ -142,13 +92,9 @@ class MatchStats:
             "feature_sets_computed": self.feature_sets,
             "added_keypoints": self.added_keypoints,
             "seconds": round(self.seconds, 2),
+            **({"auto_steps": self.steps} if self.steps else {}),
             "pairs": [p.to_dict() for p in self.pairs],
         }
-
-
-def _costs_to_scores(costs: np.ndarray, lightglue: bool) -> np.ndarray:
-    c = np.asarray(costs, np.float32)
-    return (1.0 - c) if lightglue else (1.0 - 0.5 * c**2)
 
 
 def match_pairs(
@@ -168,6 +114,7 @@ def match_pairs(
     flush_s: float = 30.0,
     show_progress: bool = True,
     executor=None,
+    auto_graph: bool = True,
 ) -> MatchStats:
     """Match ``pairs`` (``[(name_a, name_b), ...]``) of ``images`` and write ``matches_path`` and
     ``keypoints_path`` (module docstring). ``features_path`` must hold every image of the pairs
@@ -179,6 +126,8 @@ def match_pairs(
     ``executor``: an :class:`~localscale.engine.Executor` other than the local one matches the pairs
     on its workers (each with its own level cache and the bundled networks); the driver merges the
     keypoints in pair order, so the outputs are those of the local run.
+    ``auto_graph``: ``auto`` driven by the pair graph (:func:`_match_with_graph`); False: the whole
+    hypothesis loop on every pair that does not verify clearly as it is.
     """
     if correction not in SFM_CORRECTIONS:
         raise LocalScaleError(
@@ -190,19 +139,36 @@ def match_pairs(
     sets = _keypoint_sets(images, features_path, keypoints_path, merge_px, fresh=overwrite)
     stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
     output = _MatchOutput(matches_path, keypoints_path, sets, by_name, fresh=overwrite)
+    runner = None
     if todo and executor is not None and executor.name != "local":
         factory = PairRunnerFactory(
             tuple(images), str(features_path), conf, correction, device, local_model, global_model
         )
-        label = f"match ({correction})" if show_progress else None
-        _match_todo_on(executor, factory, todo, sets, output, stats, flush_s, label)
+
+        def run_items(items, label):
+            return executor.map(
+                MatchPair(), items, state=factory, progress=label if show_progress else None, unit="pair"
+            )
     elif todo:
-        runner = _PairRunner(
+        runner = PairRunner(
             by_name, features_path, conf, correction, device, matcher, local_model, global_model, len(images)
         )
-        _match_todo(runner, todo, sets, output, stats, flush_s, f"match ({correction})", show_progress)
+
+        def run_items(items, label):
+            work = MatchPair()
+            return (
+                (i, work(runner, it))
+                for i, it in enumerate(progress(items, label, unit="pair", disable=not show_progress))
+            )
+
+    if todo and correction == "auto" and auto_graph:
+        _match_with_graph(run_items, todo, sets, output, stats, flush_s, same_log2=conf.match_config().auto.same_log2)
+    elif todo:
+        _apply_in_order(run_items(todo, f"match ({correction})"), todo, sets, output, stats, flush_s)
     else:
         output.flush()
+    if runner is not None:
+        stats.feature_sets = runner.feature_sets  # with the level cache shared with extraction, its levels too
     stats.added_keypoints = sum(len(s) - s.num_base for s in sets.values())
     stats.seconds = time.perf_counter() - t_start
     if correction == "auto":
@@ -237,22 +203,8 @@ def _split_resumed(pairs, done: dict):
     return stats, todo
 
 
-def _match_todo(runner, todo, sets, output, stats: MatchStats, flush_s: float, desc: str, show_progress: bool):
-    """Match the ``todo`` pairs in this process into ``output`` and ``stats`` (:func:`_apply_in_order`)."""
-    work = MatchPair()
-    pairs = progress(todo, desc, unit="pair", disable=not show_progress)
-    _apply_in_order(((i, work(runner, p)) for i, p in enumerate(pairs)), todo, sets, output, stats, flush_s)
-    stats.feature_sets = runner.feature_sets  # with the level cache shared with extraction, its levels too
-
-
-def _match_todo_on(executor, factory, todo, sets, output, stats: MatchStats, flush_s: float, label):
-    """:func:`_match_todo` with the pairs matched on ``executor``'s workers."""
-    results = executor.map(MatchPair(), todo, state=factory, progress=label, unit="pair")
-    _apply_in_order(results, todo, sets, output, stats, flush_s)
-
-
 def _apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: float) -> None:
-    """Add the ``(index, MatchPair result)`` of ``results`` (any order) to ``output`` and ``stats`` in pair
+    """Add the ``(index, PairResult)`` of ``results`` (any order) to ``output`` and ``stats`` in pair
     order, so that the keypoint sets grow as in a run in this process; flush every ``flush_s`` seconds
     and at the end (also when interrupted: what was applied is kept). A failed pair ends the run."""
     last, pending, applied = time.monotonic(), {}, 0
@@ -262,14 +214,11 @@ def _apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: flo
                 raise result
             pending[i] = result
             while applied in pending:
-                (a, b), (kp_a, kp_b, m, scores, verified, chosen, seconds, computed) = (
-                    todo[applied],
-                    pending.pop(applied),
-                )
-                mm, ss = _index_matches(sets, a, b, kp_a, kp_b, m, scores)
-                stats.pairs.append(output.add(a, b, mm, ss, verified, chosen, seconds))
+                (a, b), r = todo[applied], pending.pop(applied)
+                mm, ss = _index_matches(sets, a, b, r.kp_a, r.kp_b, r.matches, r.scores)
+                stats.pairs.append(output.add(a, b, mm, ss, r.verified, r.chosen, r.seconds, r.relation))
                 stats.matched += 1
-                stats.feature_sets += computed
+                stats.feature_sets += r.computed
                 applied += 1
             if time.monotonic() - last >= flush_s:
                 output.flush()
@@ -278,50 +227,126 @@ def _apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: flo
         output.flush()
 
 
+#: pairs per image on which the networks run while the graph does not join the pair's images
+NETWORK_PAIRS_PER_IMAGE = 3
+
+
+def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s: float, same_log2: float) -> None:
+    """``auto`` on a collection, in steps that each run on the pairs still open (on the executor's
+    workers when there is one); the driver adds the pairs each step settles, in pair order:
+
+    1. every pair as it is (the stored features, two-view verification): settled when it verifies
+       clearly or with no scale change or turn to try;
+    2. the seed's (SIFT) geometry of each open pair;
+    3. the verified pairs (steps 1 and 2, and a resumed run's) make a :class:`~.pair_graph.PairGraph`;
+       each open pair tries the seed's geometry (in the window of the wide view that the close-up
+       shows, :attr:`~localscale.matching.AutoConfig.window_share`), its own geometry's scale and
+       turn and those composed through a common neighbour (:meth:`~.pair_runner.PairRunner.levels`:
+       a strong zoom half an octave less first), ending on one that verifies; a pair
+       with none whose images the graph does not join runs the networks (on at most
+       :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most matches first);
+    4. once more with the graph that step 3 grew, the hypotheses not tried yet.
+
+    A pair that nothing verified keeps its step-1 matches. Only the networks' pairs cost the
+    per-pair loop; the others cost a match at levels and turns each image computes once."""
+    graph = PairGraph()
+    for rec in stats.pairs:
+        if rec.relation is not None:
+            graph.add(rec.a, rec.b, rec.relation)
+    every = list(range(len(todo)))
+    best = _run_some(run_items, {i: (*todo[i], "as_they_are") for i in every}, "as they are", stats)
+    for i in every:
+        if best[i].verified and best[i].relation is not None:
+            graph.add(*todo[i], best[i].relation)
+    open_ = [i for i in every if not best[i].final]
+    _apply_some([i for i in every if best[i].final], best, todo, sets, output, stats, flush_s)
+    seeds = _run_some(run_items, {i: (*todo[i], "seed") for i in open_}, "seed", stats)
+    for i, r in seeds.items():
+        stats.feature_sets += r.computed
+        if r.relation is not None:
+            graph.add(*todo[i], r.relation)
+    tried: dict = {i: [] for i in open_}
+    for step in range(2):
+        items, quota = {}, {}
+        for i in sorted(open_, key=lambda i: (-len(best[i].matches), i)):
+            a, b = todo[i]
+            hyps = _graph_hypotheses(graph, a, b, best[i], seeds.get(i), tried[i], same_log2)
+            if hyps and hyps[0].window is not None:  # the seed's geometry, in the window of the wide view
+                items[i] = (a, b, "hypotheses", hyps, False)
+            elif hyps:
+                items[i] = (a, b, "levels", hyps)
+            elif (
+                step == 0
+                and not graph.connected(a, b)
+                and max(quota.get(a, 0), quota.get(b, 0)) < NETWORK_PAIRS_PER_IMAGE
+            ):
+                quota[a], quota[b] = quota.get(a, 0) + 1, quota.get(b, 0) + 1
+                items[i] = (a, b, "hypotheses", [], True)
+        found = _run_some(run_items, items, f"graph {step + 1}", stats)
+        settled = []
+        for i, r in found.items():
+            tried[i] += items[i][3]
+            if r.verified:
+                best[i] = r
+                settled.append(i)
+                graph.add(*todo[i], r.relation)
+        open_ = [i for i in open_ if i not in set(settled)]
+        _apply_some(sorted(settled), best, todo, sets, output, stats, flush_s)
+    _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
+
+
+def _run_some(run_items, items: dict, step: str, stats: MatchStats) -> dict:
+    """``{index: PairResult}`` of the work ``items`` (``{index: item}``) of the ``auto`` step ``step``
+    (its pairs, verified pairs and seconds go to ``stats.steps``); a failed item ends the run."""
+    keys, out, t0 = sorted(items), {}, time.perf_counter()
+    for k, r in run_items([items[i] for i in keys], f"match (auto: {step})") if keys else ():
+        if isinstance(r, Exception):
+            raise r
+        out[keys[k]] = r
+    verified = sum(bool(r.verified) or (r.verified is None and r.relation is not None) for r in out.values())
+    stats.steps[step] = {"pairs": len(keys), "verified": verified, "seconds": round(time.perf_counter() - t0, 2)}
+    return out
+
+
+def _apply_some(indices: list, results: dict, todo, sets, output, stats: MatchStats, flush_s: float) -> None:
+    """:func:`_apply_in_order` of the pairs ``indices`` of ``todo`` with their ``results``."""
+    _apply_in_order(
+        ((k, results[i]) for k, i in enumerate(indices)), [todo[i] for i in indices], sets, output, stats, flush_s
+    )
+
+
+def _graph_hypotheses(graph: PairGraph, a: str, b: str, first, seed, tried: list, same_log2: float) -> list:
+    """The hypotheses of an open pair not tried yet: its own geometry's, the seed's, then the graph's."""
+    from ..matching import Hypothesis
+
+    candidates = [] if seed is None or seed.hypothesis is None else [seed.hypothesis]
+    relations = ([first.relation] if first.verified else []) + graph.composed(a, b, same_log2=same_log2)
+    for r in relations:
+        if r is None:
+            continue
+        if abs(math.log2(r.scale)) >= 1:  # a strong zoom: half an octave less first (the close-up keeps detail)
+            candidates.append(Hypothesis(r.scale * 2.0 ** (0.5 if r.scale < 1 else -0.5), r.turn, "collection"))
+        candidates.append(Hypothesis(r.scale, r.turn, "collection"))
+    out: list = []
+    for h in candidates:
+        r = Relation(h.scale, h.turn % 4)
+        if h.window is None and r.is_identity(same_log2):
+            continue  # step 1 tried the images as they are
+        if any(
+            Relation(t.scale, t.turn % 4).same_as(r, same_log2) and (t.window is None) == (h.window is None)
+            for t in tried + out
+        ):
+            continue
+        out.append(h)
+    return out[:4]
+
+
 def _index_matches(sets: dict, a: str, b: str, kp_a, kp_b, m, scores):
     """The matches ``m`` of keypoints ``kp_a``, ``kp_b`` (full-image pixels) as ``(K x 2 indices into the
     keypoint sets of A and B (new points added to them), one match per keypoint; K scores)``."""
     ia = sets[a].index(kp_a[m[:, 0]]) if len(m) else np.zeros(0, np.int64)
     ib = sets[b].index(kp_b[m[:, 1]]) if len(m) else np.zeros(0, np.int64)
     return one_to_one(ia, ib, scores[: len(m)]) if len(m) else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
-
-
-@dataclass(frozen=True)
-class PairRunnerFactory:
-    """Worker state of the matching step on an executor: a pair runner with its own level cache and networks."""
-
-    images: tuple
-    features_path: str
-    conf: FeatureConf
-    correction: str
-    device: str = "cpu"
-    local_model: Any = None  #: the networks to ship to the workers (None: each loads the bundled weights)
-    global_model: Any = None
-
-    def __call__(self):
-        by_name = {im.name: im for im in self.images}
-        return _PairRunner(
-            by_name,
-            self.features_path,
-            self.conf,
-            self.correction,
-            self.device,
-            None,
-            self.local_model,
-            self.global_model,
-            len(by_name),
-        )
-
-
-@dataclass(frozen=True)
-class MatchPair:
-    """Work of one pair ``(name_a, name_b)``: ``(keypoints A, keypoints B, matches, scores, verified,
-    chosen, seconds, feature sets computed for it)``."""
-
-    def __call__(self, runner, pair):
-        t0, before = time.perf_counter(), runner.feature_sets
-        out = runner.run(*pair)
-        return (*out, time.perf_counter() - t0, runner.feature_sets - before)
 
 
 class _MatchOutput:
@@ -335,11 +360,11 @@ class _MatchOutput:
         self.k_writer = H5Writer(keypoints_path, fresh=fresh)
         self.changed = set(by_name) if (fresh or not Path(keypoints_path).exists()) else set()
 
-    def add(self, a: str, b: str, mm: np.ndarray, ss: np.ndarray, verified, chosen: str, seconds: float) -> PairRecord:
+    def add(self, a: str, b: str, mm, ss, verified, chosen: str, seconds: float, relation=None) -> PairRecord:
         """Add the matches ``mm`` (scores ``ss``) of a pair matched in ``seconds``; returns its record."""
         self.changed.update((a, b))
         m0, s0 = matches0_from_matches(mm, ss, len(self.sets[a]))
-        rec = PairRecord(a, b, int(len(mm)), verified, chosen, seconds)
+        rec = PairRecord(a, b, int(len(mm)), verified, chosen, seconds, relation)
         attrs = {
             "num_matches": rec.num_matches,
             "chosen": chosen,
@@ -349,6 +374,8 @@ class _MatchOutput:
         }
         if verified is not None:
             attrs["verified"] = bool(verified)
+        if relation is not None:
+            attrs["relation"] = np.array([relation.scale, relation.turn, relation.strength], np.float64)
         self.m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
         return rec
 
@@ -374,7 +401,7 @@ def _done_pairs(matches_path) -> dict:
         g = read_group(matches_path, key, ("matches0",))
         at = g["attrs"]
         a, b = str(at.get("name0", "")), str(at.get("name1", ""))
-        v = at.get("verified")
+        v, rel = at.get("verified"), at.get("relation")
         out[key] = PairRecord(
             a,
             b,
@@ -382,6 +409,7 @@ def _done_pairs(matches_path) -> dict:
             None if v is None else bool(v),
             str(at.get("chosen", "")),
             float(at.get("seconds", 0.0)),
+            None if rel is None else Relation(float(rel[0]), int(rel[1]), int(rel[2])),
         )
     return out
 
@@ -413,152 +441,6 @@ def _keypoint_sets(images, features_path, keypoints_path, merge_px: float, fresh
                 )
         sets[im.name] = s
     return sets
-
-
-class _PairRunner:
-    """Matches one pair with the correction: ``run(a, b) -> (keypoints A, keypoints B (full-image
-    pixels), K x 2 matches, K scores, verified or None, chosen hypothesis)``."""
-
-    def __init__(
-        self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images
-    ):
-        from ..matching import get_correction
-
-        self.by_name, self.features_path, self.conf, self.correction = by_name, features_path, conf, correction
-        self.matcher = matcher or build_matcher(conf, device, num_images)
-        self.lightglue = self.matcher.config.matching == "lightglue"
-        self.method = get_correction(correction)
-        self.local_model, self.global_model = local_model, global_model
-        if correction != "none" and (
-            (local_model is None and "local" in self.method.models)
-            or (global_model is None and "global" in self.method.models)
-        ):
-            loaded = self.method.load_models(device=device)  # the bundled weights of what is missing
-            self.local_model = local_model if local_model is not None else loaded[0]
-            self.global_model = global_model if global_model is not None else loaded[1]
-        self.seed = None
-        seed_name = self.matcher.config.auto.seed
-        if correction == "auto" and seed_name is not None and seed_name != self.matcher.config.name:
-            from ..matching import match_config
-            from .extract import LevelMatcher
-
-            self.seed = LevelMatcher(match_config(seed_name, max_side=None), device, cache_size=max(8, 2 * num_images))
-        self._features: OrderedDict = OrderedDict()
-        self._images: OrderedDict = OrderedDict()
-        self._seeded: set = set()
-
-    @property
-    def feature_sets(self) -> int:
-        """Feature sets the level caches computed in this run (matcher and seed)."""
-        count = getattr(self.matcher, "level_count", 0)
-        return count + (self.seed.level_count if self.seed is not None else 0)
-
-    def _stored(self, name):
-        if name not in self._features:
-            self._features[name] = features_for_matcher(self.features_path, name)
-            while len(self._features) > 4 * max(8, len(self.by_name)):
-                self._features.popitem(last=False)
-        return self._features[name]
-
-    def _image(self, name):
-        if name not in self._images:
-            self._images[name] = load_working(self.by_name[name], self.conf.max_side)
-            while len(self._images) > 16:
-                self._images.popitem(last=False)
-        self._images.move_to_end(name)
-        return self._images[name]
-
-    def run(self, a: str, b: str):
-        m = self.matcher
-        (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
-        if self.correction == "none":
-            matches, costs = m.match_features(fa, fb)
-            return (
-                to_full(fa.keypoints, Sa),
-                to_full(fb.keypoints, Sb),
-                matches,
-                _costs_to_scores(costs, self.lightglue),
-                None,
-                "",
-            )
-        (ia, Sa), (ib, Sb) = self._image(a), self._image(b)
-        if m.extractor.rectified:
-            for name, f in ((a, fa), (b, fb)):
-                if name not in self._seeded:
-                    m.seed(name, f)  # level 1 of every pair is features.h5's
-                    self._seeded.add(name)
-        if self.correction == "auto":
-            from ..matching import auto_match
-
-            out = auto_match(m, ia, ib, self.local_model, self.global_model, keys=(a, b), seed_matcher=self.seed)
-            found, verified, chosen = out.matches, bool(out.verified), out.chosen.describe()
-            h = out.chosen
-            kp_a, kp_b = found.keypoints_a, found.keypoints_b
-            matches, scores = found.matches, _costs_to_scores(found.distances, self.lightglue)
-            if (
-                m.extractor.rectified
-                and verified
-                and (h.turn % 4 or h.window is not None or abs(np.log2(h.scale)) >= m.config.auto.same_log2)
-            ):
-                # the winner matched at another level, turn or window: match again with the image whose
-                # content is smaller at its stored level, so its keypoints are those the other pairs use
-                kp_a, kp_b, matches, scores = _union(
-                    (kp_a, kp_b, matches, scores), self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn)
-                )
-                chosen += "; anchored"
-        else:
-            cfg = m.config
-            sa, sb = self.method.maps(ia, ib, None, self.local_model, self.global_model, cfg.gate, bf16=cfg.bf16)
-            verified = None
-            if m.extractor.rectified:
-                from ..matching import pair_scale
-
-                level = pair_scale(sa, sb)
-                kp_a, kp_b, matches, scores = self._anchored(a, b, ia, ib, fa, fb, level, 0)
-                chosen = f"level {level:.3g}"
-            else:  # patches: the keypoints stay, each patch's size follows the maps
-                found = m.match(ia, ib, sa, sb, (a, b))
-                kp_a, kp_b, matches = found.keypoints_a, found.keypoints_b, found.matches
-                scores, chosen = _costs_to_scores(found.distances, self.lightglue), "maps"
-        return to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, verified, chosen
-
-    def _anchored(self, a, b, ia, ib, fa, fb, scale: float, turn: int):
-        """Match the pair at ``S_{A->B} = scale`` with B turned by ``turn`` quarter turns, keeping the
-        image whose content is smaller as it is (its stored level-1 features) and bringing the
-        other one (the close-up) to it: turned (B by ``turn``, or A by ``-turn``) and shrunk by the
-        scale, at a level of the shared cache. Returns ``(kp A, kp B (working pixels), K x 2, scores)``."""
-        from ..matching.auto import turn_matrix
-
-        m = self.matcher
-        b_is_close = scale >= 1.0
-        name, image = (b, ib) if b_is_close else (a, ia)
-        factor = min(1.0, 1.0 / scale if b_is_close else scale)
-        k = (turn if b_is_close else -turn) % 4
-        turned = np.ascontiguousarray(np.rot90(image, k)) if k else image
-        fc = m.extract(turned, factor, (name, "turn", k) if k else name)
-        kc = fc.keypoints
-        if k:
-            M = np.linalg.inv(turn_matrix(k, image.shape))
-            kc = (np.asarray(kc, np.float64) @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
-        if b_is_close:
-            matches, costs = m.match_features(fa, fc)
-            return fa.keypoints, kc, matches, _costs_to_scores(costs, self.lightglue)
-        matches, costs = m.match_features(fc, fb)
-        return kc, fb.keypoints, matches, _costs_to_scores(costs, self.lightglue)
-
-
-def _union(first: tuple, second: tuple):
-    """Two match sets of one pair ``(kp A, kp B, K x 2, scores)`` as one (keypoints concatenated;
-    :func:`one_to_one` later keeps one match per keypoint)."""
-    ka1, kb1, m1, s1 = first
-    ka2, kb2, m2, s2 = second
-    m2 = np.asarray(m2, np.int64).reshape(-1, 2) + np.array([len(ka1), len(kb1)], np.int64)
-    return (
-        np.concatenate([ka1, ka2]),
-        np.concatenate([kb1, kb2]),
-        np.concatenate([np.asarray(m1, np.int64).reshape(-1, 2), m2]),
-        np.concatenate([s1, s2]),
-    )
 
 
 def read_all_matches(matches_path) -> dict:

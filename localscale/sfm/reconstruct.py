@@ -54,6 +54,7 @@ OUTPUTS = (
 RESULT_OPTIONS = (
     "matcher",
     "correction",
+    "auto_graph",
     "num_keypoints",
     "max_side",
     "pairs",
@@ -154,6 +155,7 @@ def reconstruct(
     local_model=None,
     global_model=None,
     engine=None,
+    auto_graph: bool = True,
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -161,7 +163,7 @@ def reconstruct(
     Args:
         matcher: a name of :data:`localscale.matching.MATCHERS` (its extractor and matching rule).
         correction: :data:`~.match.SFM_CORRECTIONS` (``none``: the cached features matched as they
-            are; ``auto``: the scale and quarter-turn hypothesis loop per pair).
+            are; ``auto``: scales and quarter turns found over the pair graph, :func:`~.match.match_pairs`).
         local_model, global_model: the networks of the correction (default: the bundled weights).
         pairs: ``"exhaustive"`` or a pairs file (``A B`` names per line, :func:`~.pairs.pairs_from_file`).
         pairs_nearest: with ``"exhaustive"``: each image with its ``N`` most similar instead
@@ -175,6 +177,8 @@ def reconstruct(
         engine: where extraction and matching run: None or ``"local"`` (this process), ``"ray"`` (a
             local Ray cluster with default options) or an :class:`~localscale.engine.Executor`
             (:func:`~localscale.engine.get_executor`; the caller closes it). The outputs are the same.
+        auto_graph: ``auto`` driven by the pair graph (:func:`~.match.match_pairs`); False: the
+            whole hypothesis loop on every pair that does not verify clearly as it is.
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
@@ -198,6 +202,7 @@ def reconstruct(
         local_model=local_model,
         global_model=global_model,
         engine=engine,
+        auto_graph=auto_graph,
     )
     return run.run(t_total)
 
@@ -229,6 +234,7 @@ class _Reconstruction:
     local_model: Any
     global_model: Any
     engine: Any = None
+    auto_graph: bool = True
     seconds: dict = field(default_factory=dict)
 
     def run(self, t_total: float) -> dict:
@@ -285,6 +291,7 @@ class _Reconstruction:
             "camera_mode": self.camera_mode,
             "camera_file_sha1": None,
             "merge_px": self.merge_px,
+            "auto_graph": self.auto_graph if self.correction == "auto" else None,
         }
 
     def read_inputs(self) -> None:
@@ -396,6 +403,7 @@ class _Reconstruction:
                 local_model=self.local_model,
                 global_model=self.global_model,
                 executor=self.executor,
+                auto_graph=self.auto_graph,
             )
 
     def verify(self) -> None:

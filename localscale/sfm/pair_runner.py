@@ -1,0 +1,356 @@
+"""Matching one pair of a collection with the correction (the worker side of the matching step,
+:mod:`.match`): the whole correction per pair, or the steps of ``auto`` that the pair graph
+(:mod:`.pair_graph`) drives: the pair as it is, the seed's geometry, given hypotheses."""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from .extract import FeatureConf, build_matcher, features_for_matcher, load_working, to_full
+from .pair_graph import Relation
+
+
+@dataclass
+class PairResult:
+    """What matching one pair gives the driver: the keypoints of A and B (full-image pixels), K x 2
+    matches, K scores, whether it verified (None: not checked), the hypothesis chosen, the pair's
+    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window),
+    whether the pair needs no other hypothesis, seconds and feature sets computed for it."""
+
+    kp_a: np.ndarray
+    kp_b: np.ndarray
+    matches: np.ndarray
+    scores: np.ndarray = None
+    verified: Optional[bool] = None
+    chosen: str = ""
+    relation: Optional[Relation] = None
+    hypothesis: Any = None
+    final: bool = False  #: ``as_they_are``: verified clearly, or with no scale change or turn to try
+    seconds: float = 0.0
+    computed: int = 0
+
+
+def relation_of(v, hypothesis) -> Optional[Relation]:
+    """The relation a verified result's own geometry gives (else its ``hypothesis``'s; None if
+    it did not verify)."""
+    from ..matching.auto import geometry_hypothesis
+
+    if not v.verified:
+        return None
+    g = geometry_hypothesis(v)
+    h = g if g is not None else hypothesis
+    if h is None:
+        return Relation(1.0, 0, int(v.num_inliers))
+    return Relation(float(h.scale), int(h.turn) % 4, int(v.num_inliers))
+
+
+def costs_to_scores(costs: np.ndarray, lightglue: bool) -> np.ndarray:
+    c = np.asarray(costs, np.float32)
+    return (1.0 - c) if lightglue else (1.0 - 0.5 * c**2)
+
+
+@dataclass(frozen=True)
+class PairRunnerFactory:
+    """Worker state of the matching step on an executor: a pair runner with its own level cache and networks."""
+
+    images: tuple
+    features_path: str
+    conf: FeatureConf
+    correction: str
+    device: str = "cpu"
+    local_model: Any = None  #: the networks to ship to the workers (None: each loads the bundled weights)
+    global_model: Any = None
+
+    def __call__(self):
+        by_name = {im.name: im for im in self.images}
+        return PairRunner(
+            by_name,
+            self.features_path,
+            self.conf,
+            self.correction,
+            self.device,
+            None,
+            self.local_model,
+            self.global_model,
+            len(by_name),
+        )
+
+
+@dataclass(frozen=True)
+class MatchPair:
+    """Work of one item: ``(name_a, name_b)`` (the whole correction) or ``(name_a, name_b, step,
+    *arguments)`` with ``step`` a :class:`PairRunner` method (``as_they_are``, ``seed``,
+    ``hypotheses``); returns the :class:`PairResult` with its seconds and feature sets computed."""
+
+    def __call__(self, runner, item):
+        t0, before = time.perf_counter(), runner.feature_sets
+        a, b, *step = item
+        out = getattr(runner, step[0])(a, b, *step[1:]) if step else runner.run(a, b)
+        out.seconds, out.computed = time.perf_counter() - t0, runner.feature_sets - before
+        return out
+
+
+class PairRunner:
+    """Matches one pair with the correction: ``run(a, b)`` (the whole correction) or, for the steps
+    of ``auto`` on a collection, ``as_they_are(a, b)``, ``seed(a, b)`` and ``hypotheses(a, b, ...)``;
+    each returns a :class:`PairResult`."""
+
+    def __init__(
+        self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images
+    ):
+        from ..matching import get_correction
+
+        self.by_name, self.features_path, self.conf, self.correction = by_name, features_path, conf, correction
+        self.matcher = matcher or build_matcher(conf, device, num_images)
+        self.lightglue = self.matcher.config.matching == "lightglue"
+        self.method = get_correction(correction)
+        self.local_model, self.global_model = local_model, global_model
+        if correction != "none" and (
+            (local_model is None and "local" in self.method.models)
+            or (global_model is None and "global" in self.method.models)
+        ):
+            loaded = self.method.load_models(device=device)  # the bundled weights of what is missing
+            self.local_model = local_model if local_model is not None else loaded[0]
+            self.global_model = global_model if global_model is not None else loaded[1]
+        self.seed_matcher = None
+        seed_name = self.matcher.config.auto.seed
+        if correction == "auto" and seed_name is not None and seed_name != self.matcher.config.name:
+            from ..matching import match_config
+            from .extract import LevelMatcher
+
+            self.seed_matcher = LevelMatcher(
+                match_config(seed_name, max_side=None), device, cache_size=max(8, 2 * num_images)
+            )
+        self._features: OrderedDict = OrderedDict()
+        self._images: OrderedDict = OrderedDict()
+        self._seeded: set = set()
+
+    @property
+    def feature_sets(self) -> int:
+        """Feature sets the level caches computed in this run (matcher and seed)."""
+        count = getattr(self.matcher, "level_count", 0)
+        return count + (self.seed_matcher.level_count if self.seed_matcher is not None else 0)
+
+    def _stored(self, name):
+        if name not in self._features:
+            self._features[name] = features_for_matcher(self.features_path, name)
+            while len(self._features) > 4 * max(8, len(self.by_name)):
+                self._features.popitem(last=False)
+        return self._features[name]
+
+    def _image(self, name):
+        if name not in self._images:
+            self._images[name] = load_working(self.by_name[name], self.conf.max_side)
+            while len(self._images) > 16:
+                self._images.popitem(last=False)
+        self._images.move_to_end(name)
+        return self._images[name]
+
+    def _prepared(self, a: str, b: str):
+        """``(stored features and maps of A, of B, working image and map of A, of B)``; the stored
+        features are level 1 of the shared cache."""
+        m = self.matcher
+        (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
+        (ia, _), (ib, _) = self._image(a), self._image(b)
+        if m.extractor.rectified:
+            for name, f in ((a, fa), (b, fb)):
+                if name not in self._seeded:
+                    m.seed(name, f)  # level 1 of every pair is features.h5's
+                    self._seeded.add(name)
+        return fa, fb, ia, ib, Sa, Sb
+
+    def run(self, a: str, b: str) -> "PairResult":
+        """The pair matched with the whole correction (``auto``: the per-pair hypothesis loop)."""
+        m = self.matcher
+        if self.correction == "none":
+            (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
+            matches, costs = m.match_features(fa, fb)
+            return PairResult(
+                to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb), matches, costs_to_scores(costs, self.lightglue)
+            )
+        if self.correction == "auto":
+            return self.hypotheses(a, b, None, True, per_pair=True)
+        fa, fb, ia, ib, Sa, Sb = self._prepared(a, b)
+        cfg = m.config
+        sa, sb = self.method.maps(ia, ib, None, self.local_model, self.global_model, cfg.gate, bf16=cfg.bf16)
+        if m.extractor.rectified:
+            from ..matching import pair_scale
+
+            level = pair_scale(sa, sb)
+            kp_a, kp_b, matches, scores = self._anchored(a, b, ia, ib, fa, fb, level, 0)
+            chosen = f"level {level:.3g}"
+        else:  # patches: the keypoints stay, each patch's size follows the maps
+            found = m.match(ia, ib, sa, sb, (a, b))
+            kp_a, kp_b, matches = found.keypoints_a, found.keypoints_b, found.matches
+            scores, chosen = costs_to_scores(found.distances, self.lightglue), "maps"
+        return PairResult(to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, None, chosen)
+
+    def as_they_are(self, a: str, b: str) -> "PairResult":
+        """The stored features matched and verified with the two-view geometry (homography for
+        planes, fundamental matrix otherwise); a verified pair gets its relation."""
+        import dataclasses
+
+        from ..matching import verify_matches
+
+        m = self.matcher
+        (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
+        matches, costs = m.match_features(fa, fb)
+        matches = np.asarray(matches, np.int64).reshape(-1, 2)
+        vconf = dataclasses.replace(m.config.verification, model="two_view", coverage_of="either")
+        pa, pb = fa.keypoints[matches[:, 0]], fb.keypoints[matches[:, 1]]
+        v = verify_matches(pa, pb, fa.image_shape, fb.image_shape, None, vconf)
+        scores = costs_to_scores(costs, self.lightglue)
+        rel, c = relation_of(v, None), m.config.auto
+        clear = v.num_inliers >= c.accept_inliers and v.inlier_ratio >= c.accept_ratio
+        final = rel is not None and (clear or rel.is_identity(c.geometry_log2))
+        kp_a, kp_b = to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb)
+        return PairResult(kp_a, kp_b, matches, scores, bool(v.verified), "as they are", rel, final=final)
+
+    def seed(self, a: str, b: str) -> "PairResult":
+        """The seed matcher's (SIFT) run on the images as they are: no matches kept, only the
+        relation and the hypothesis (with its window) of its verified geometry."""
+        import dataclasses
+
+        from ..matching.auto import seed_hypothesis
+
+        empty = PairResult(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64))
+        if self.seed_matcher is None:
+            return empty
+        (ia, _), (ib, _) = self._image(a), self._image(b)
+        cfg = self.matcher.config
+        vconf = dataclasses.replace(cfg.verification, coverage_of="either")
+        trials: list = []
+        g = seed_hypothesis(self.seed_matcher, ia, ib, (a, b), vconf, trials, cfg.auto.window_share)
+        if g is not None:
+            empty.relation = Relation(g.scale, g.turn % 4, trials[-1].num_inliers)
+            empty.hypothesis = g
+        return empty
+
+    def hypotheses(self, a: str, b: str, hypotheses, networks: bool, per_pair: bool = False) -> "PairResult":
+        """:func:`~localscale.matching.auto_match` on the pair: ``per_pair``: the whole loop (the
+        images as they are, the seed, the networks); else ``hypotheses`` first, then the networks if
+        ``networks``, a verified result that its own geometry confirms ending the loop. A winner
+        matched at another level, turn or window is matched again with the image whose content
+        is smaller at its stored level (its keypoints are those the other pairs use)."""
+        import dataclasses
+
+        from ..matching import auto_match
+
+        m = self.matcher
+        fa, fb, ia, ib, Sa, Sb = self._prepared(a, b)
+        if per_pair:
+            out = auto_match(
+                m, ia, ib, self.local_model, self.global_model, keys=(a, b), seed_matcher=self.seed_matcher
+            )
+        else:
+            config = dataclasses.replace(m.config.auto, accept_consistent=True)
+            out = auto_match(
+                m, ia, ib, self.local_model, self.global_model, config, (a, b), None,
+                hypotheses=list(hypotheses or []), networks=networks,
+            )  # fmt: skip
+        found, verified, h = out.matches, bool(out.verified), out.chosen
+        kp_a, kp_b, matches = found.keypoints_a, found.keypoints_b, np.asarray(found.matches).reshape(-1, 2)
+        rel = relation_of(out.verification, h) if verified else None
+        chosen, scores = h.describe(), costs_to_scores(found.distances, self.lightglue)
+        if (
+            m.extractor.rectified
+            and verified
+            and (h.turn % 4 or h.window is not None or abs(np.log2(h.scale)) >= m.config.auto.same_log2)
+        ):
+            kp_a, kp_b, matches, scores = _union(
+                (kp_a, kp_b, matches, scores), self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn)
+            )
+            chosen += "; anchored"
+        return PairResult(to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, verified, chosen, rel)
+
+    def levels(self, a: str, b: str, hypotheses) -> "PairResult":
+        """Each hypothesis in turn until one verifies: the pair brought to one scale as the matcher
+        rectifies it (the close-up shrunk, the wide view enlarged up to the working size) with the
+        close-up turned, so that each image is extracted once per level (and turn, the close-up
+        only) whatever its pairs; verified as the hypothesis loop verifies, in the pixels of the
+        wide view. Unverified: the last run's matches."""
+        import dataclasses
+
+        from ..matching import verify_matches
+
+        m = self.matcher
+        fa, fb, ia, ib, Sa, Sb = self._prepared(a, b)
+        vconf = dataclasses.replace(m.config.verification, coverage_of="either")
+        out = None
+        for h in hypotheses:
+            kp_a, kp_b, matches, scores = self._leveled(a, b, ia, ib, fa, fb, h.scale, h.turn)
+            matches = np.asarray(matches, np.int64).reshape(-1, 2)
+            pa, pb = kp_a[matches[:, 0]], kp_b[matches[:, 1]]
+            if h.scale >= 1:  # B is the close-up: verified from B to A
+                v = verify_matches(pb, pa, ib.shape[:2], ia.shape[:2], None, vconf)
+                rel = relation_of(v, None)
+                rel = None if rel is None else rel.inverse()
+            else:
+                v = verify_matches(pa, pb, ia.shape[:2], ib.shape[:2], None, vconf)
+                rel = relation_of(v, None)
+            out = PairResult(to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, bool(v.verified), h.describe(), rel)
+            if v.verified:
+                break
+        return out
+
+    def _leveled(self, a, b, ia, ib, fa, fb, scale: float, turn: int):
+        """:meth:`_turned_close_up` at the resize factors of the matcher's rectification
+        (:func:`~localscale.matching.rectify_factors`: the close-up shrunk, the wide view enlarged up
+        to the working size)."""
+        from ..matching.rectification import rectify_factors
+
+        c = self.matcher.config
+        f_a, f_b = rectify_factors(scale, shapes=(ia.shape, ib.shape), min_side=c.rectify_min_side, max_side=c.max_side)
+        return self._turned_close_up(a, b, ia, ib, fa, fb, scale, turn, f_a, f_b)
+
+    def _anchored(self, a, b, ia, ib, fa, fb, scale: float, turn: int):
+        """:meth:`_turned_close_up` with the wide view at its stored level 1 (its keypoints are
+        those the other pairs use) and the close-up shrunk by the scale."""
+        close = min(1.0, 1.0 / scale if scale >= 1.0 else scale)
+        factors = (1.0, close) if scale >= 1.0 else (close, 1.0)
+        return self._turned_close_up(a, b, ia, ib, fa, fb, scale, turn, *factors)
+
+    def _turned_close_up(self, a, b, ia, ib, fa, fb, scale: float, turn: int, f_a: float, f_b: float):
+        """``(kp A, kp B (working pixels), K x 2, scores)`` of the pair at ``S_{A->B} = scale`` with B
+        turned by ``turn`` quarter turns: the close-up (the image whose content is bigger) is turned
+        (B by ``turn``, or A by ``-turn``), each image extracted at its factor (``f_a``, ``f_b``,
+        levels of the shared cache; the wide view's level 1 is its stored features ``fa`` / ``fb``)."""
+        from ..matching.auto import turn_matrix
+        from .extract import snap_factor
+
+        m = self.matcher
+        b_is_close = scale >= 1.0
+        (nc, ic, f_c, k), (nw, iw, f_w, stored) = (
+            ((b, ib, f_b, turn % 4), (a, ia, f_a, fa)) if b_is_close else ((a, ia, f_a, -turn % 4), (b, ib, f_b, fb))
+        )
+        fw = stored if snap_factor(f_w, getattr(m, "levels_per_octave", 2)) == 1.0 else m.extract(iw, f_w, nw)
+        turned = np.ascontiguousarray(np.rot90(ic, k)) if k else ic
+        fc = m.extract(turned, f_c, (nc, "turn", k) if k else nc)
+        kc = fc.keypoints
+        if k:
+            M = np.linalg.inv(turn_matrix(k, ic.shape))
+            kc = (np.asarray(kc, np.float64) @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
+        if b_is_close:
+            matches, costs = m.match_features(fw, fc)
+            return fw.keypoints, kc, matches, costs_to_scores(costs, self.lightglue)
+        matches, costs = m.match_features(fc, fw)
+        return kc, fw.keypoints, matches, costs_to_scores(costs, self.lightglue)
+
+
+def _union(first: tuple, second: tuple):
+    """Two match sets of one pair ``(kp A, kp B, K x 2, scores)`` as one (keypoints concatenated;
+    :func:`one_to_one` later keeps one match per keypoint)."""
+    ka1, kb1, m1, s1 = first
+    ka2, kb2, m2, s2 = second
+    m2 = np.asarray(m2, np.int64).reshape(-1, 2) + np.array([len(ka1), len(kb1)], np.int64)
+    return (
+        np.concatenate([ka1, ka2]),
+        np.concatenate([kb1, kb2]),
+        np.concatenate([np.asarray(m1, np.int64).reshape(-1, 2), m2]),
+        np.concatenate([s1, s2]),
+    )
