@@ -1,6 +1,7 @@
 """Matching one pair of a collection with the correction (the worker side of the matching step,
 :mod:`.match`): the whole correction per pair, or the steps of ``auto`` that the pair graph
-(:mod:`.pair_graph`) drives: the pair as it is, the seed's geometry, given hypotheses."""
+(:mod:`.pair_graph`) drives: the pair as it is, the seed's geometry, given hypotheses (through the
+hypothesis loop, or at the images' levels)."""
 
 from __future__ import annotations
 
@@ -85,7 +86,7 @@ class PairRunnerFactory:
 class MatchPair:
     """Work of one item: ``(name_a, name_b)`` (the whole correction) or ``(name_a, name_b, step,
     *arguments)`` with ``step`` a :class:`PairRunner` method (``as_they_are``, ``seed``,
-    ``hypotheses``); returns the :class:`PairResult` with its seconds and feature sets computed."""
+    ``hypotheses``, ``levels``); returns the :class:`PairResult` with its seconds and feature sets computed."""
 
     def __call__(self, runner, item):
         t0, before = time.perf_counter(), runner.feature_sets
@@ -97,8 +98,8 @@ class MatchPair:
 
 class PairRunner:
     """Matches one pair with the correction: ``run(a, b)`` (the whole correction) or, for the steps
-    of ``auto`` on a collection, ``as_they_are(a, b)``, ``seed(a, b)`` and ``hypotheses(a, b, ...)``;
-    each returns a :class:`PairResult`."""
+    of ``auto`` on a collection, ``as_they_are(a, b)``, ``seed(a, b)``, ``hypotheses(a, b, ...)`` and
+    ``levels(a, b, ...)``; each returns a :class:`PairResult`."""
 
     def __init__(
         self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images
