@@ -118,3 +118,14 @@ def test_auto_on_a_collection_tries_the_graphs_hypotheses_before_the_networks(tm
     assert sorted(record) == sorted(todo)  # every pair written once
     assert record[("c", "p2")].verified and record[("c", "p2")].relation.turn == 1
     assert record[("c", "p1")].verified and not record[("c", "p3")].verified
+
+
+def test_clear_pairs_fix_the_quarter_turns_that_hypotheses_must_keep():
+    from localscale.sfm.match import _quarter_turns, _turn_fits
+
+    # a ring of upright views (a-b-c-d), and e, f: f is e turned by a quarter turn, joined to nothing else
+    turns = _quarter_turns([("a", "b", 0), ("b", "c", 0), ("c", "d", 0), ("e", "f", 1)])
+    assert turns["a"] == turns["d"] == ("a", 0) and turns["f"] == ("e", 3)
+    assert _turn_fits(turns, "a", "d", 0) and not _turn_fits(turns, "a", "d", 2)  # opposite views: no half turn
+    assert _turn_fits(turns, "e", "f", 1) and _turn_fits(turns, "f", "e", 3) and not _turn_fits(turns, "e", "f", 0)
+    assert _turn_fits(turns, "a", "e", 2) and _turn_fits(turns, "a", "zoom", 3)  # not joined: anything goes

@@ -162,7 +162,7 @@ def match_pairs(
             )
 
     if todo and correction == "auto" and auto_graph:
-        _match_with_graph(run_items, todo, sets, output, stats, flush_s, same_log2=conf.match_config().auto.same_log2)
+        _match_with_graph(run_items, todo, sets, output, stats, flush_s, conf.match_config().auto.same_log2)
     elif todo:
         _apply_in_order(run_items(todo, f"match ({correction})"), todo, sets, output, stats, flush_s)
     else:
@@ -227,11 +227,17 @@ def _apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: flo
         output.flush()
 
 
+#: inliers of a pair verified as it is for its quarter turn to bind the hypotheses of the images it
+#: joins (fewer: chance verifications would bind truly turned photos)
+TURN_INLIERS = 40
+
 #: pairs per image on which the networks run while the graph does not join the pair's images
 NETWORK_PAIRS_PER_IMAGE = 3
 
 
-def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s: float, same_log2: float) -> None:
+def _match_with_graph(
+    run_items, todo, sets, output, stats: MatchStats, flush_s: float, same_log2: float, turn_inliers: int = TURN_INLIERS
+) -> None:
     """``auto`` on a collection, in steps that each run on the pairs still open (on the executor's
     workers when there is one); the driver adds the pairs each step settles, in pair order:
 
@@ -247,6 +253,9 @@ def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s:
        :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most matches first);
     4. once more with the graph that step 3 grew, the hypotheses not tried yet.
 
+    The pairs of step 1 with at least ``turn_inliers`` inliers fix the images' quarter turns
+    (:func:`_quarter_turns`); a hypothesis or seed geometry that turns two images these pairs join
+    otherwise is dropped (a symmetric object seen from opposite sides verifies turned).
     A pair that nothing verified keeps its step-1 matches. Only the networks' pairs cost the
     per-pair loop; the others cost a match at levels and turns each image computes once."""
     graph = PairGraph()
@@ -260,9 +269,15 @@ def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s:
             graph.add(*todo[i], best[i].relation)
     open_ = [i for i in every if not best[i].final]
     _apply_some([i for i in every if best[i].final], best, todo, sets, output, stats, flush_s)
+    clear = [
+        (*todo[i], best[i].relation.turn) for i in every if best[i].final and best[i].relation.strength >= turn_inliers
+    ]
+    turns = _quarter_turns(clear)
     seeds = _run_some(run_items, {i: (*todo[i], "seed") for i in open_}, "seed", stats)
     for i, r in seeds.items():
         stats.feature_sets += r.computed
+        if r.relation is not None and not _turn_fits(turns, *todo[i], r.relation.turn):
+            r.relation = r.hypothesis = None
         if r.relation is not None:
             graph.add(*todo[i], r.relation)
     tried: dict = {i: [] for i in open_}
@@ -271,6 +286,7 @@ def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s:
         for i in sorted(open_, key=lambda i: (-len(best[i].matches), i)):
             a, b = todo[i]
             hyps = _graph_hypotheses(graph, a, b, best[i], seeds.get(i), tried[i], same_log2)
+            hyps = [h for h in hyps if _turn_fits(turns, a, b, h.turn)]
             if hyps and hyps[0].window is not None:  # the seed's geometry, in the window of the wide view
                 items[i] = (a, b, "hypotheses", hyps, False)
             elif hyps:
@@ -293,6 +309,35 @@ def _match_with_graph(run_items, todo, sets, output, stats: MatchStats, flush_s:
         open_ = [i for i in open_ if i not in set(settled)]
         _apply_some(sorted(settled), best, todo, sets, output, stats, flush_s)
     _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
+
+
+def _quarter_turns(edges) -> dict:
+    """``{image: (component, quarter turns)}`` from pairs ``(a, b, turn)`` (B turned by ``turn`` is
+    upright with A): each image's turn relative to the first image of its component, by a
+    breadth-first walk (where the pairs disagree, the first path wins)."""
+    adjacent: dict = {}
+    for a, b, k in edges:
+        adjacent.setdefault(a, []).append((b, k))
+        adjacent.setdefault(b, []).append((a, -k))
+    out: dict = {}
+    for start in sorted(adjacent):
+        if start in out:
+            continue
+        out[start], queue = (start, 0), [start]
+        while queue:
+            x = queue.pop(0)
+            for y, k in adjacent[x]:
+                if y not in out:
+                    out[y] = (start, (out[x][1] - k) % 4)
+                    queue.append(y)
+    return out
+
+
+def _turn_fits(turns: dict, a: str, b: str, turn: int) -> bool:
+    """Whether turning B by ``turn`` agrees with :func:`_quarter_turns` (True where they do not join A and B)."""
+    if a in turns and b in turns and turns[a][0] == turns[b][0]:
+        return (turns[a][1] - turns[b][1]) % 4 == turn % 4
+    return True
 
 
 def _run_some(run_items, items: dict, step: str, stats: MatchStats) -> dict:
