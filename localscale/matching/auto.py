@@ -361,9 +361,9 @@ def auto_match(
         cameras: the cameras of A and B in the pixels of these images, for the two-view
             geometry (``verification.model="two_view"``: essential matrix and relative pose).
         verification: how each run is verified (default: the matcher config's ``verification``).
-        hypotheses: tried first instead of the images as they are and the seed (the caller tried
-            those; at least one); the networks follow unless ``networks`` is False. If none verifies,
-            the first one's result is returned, flagged.
+        hypotheses: tried instead of the images as they are and the seed (the caller tried those),
+            possibly none; the networks follow unless ``networks`` is False. If nothing verifies, the
+            first run's result is returned, flagged (the images as they are when nothing else ran).
     Returns:
         :class:`AutoResult`; its ``matches`` are a :class:`~localscale.matching.Matches`
         with keypoints in the pixels of the images given.

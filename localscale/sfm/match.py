@@ -306,7 +306,8 @@ def _match_with_graph(
                 best[i] = r
                 settled.append(i)
                 graph.add(*todo[i], r.relation)
-        open_ = [i for i in open_ if i not in set(settled)]
+        done = set(settled)
+        open_ = [i for i in open_ if i not in done]
         _apply_some(sorted(settled), best, todo, sets, output, stats, flush_s)
     _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
 
