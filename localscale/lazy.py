@@ -26,9 +26,10 @@ def lazy_exports(package: str, exports: dict, fallback: Optional[Callable] = Non
             if fallback is not None:
                 return fallback(name)
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(mod, package), name)
-        setattr(sys.modules[package], name, value)
-        return value
+        module = importlib.import_module(mod, package)
+        for exported in exports[mod]:  # every name of the module, over a submodule of the same name
+            setattr(sys.modules[package], exported, getattr(module, exported))
+        return getattr(module, name)
 
     names = sorted(where)
 

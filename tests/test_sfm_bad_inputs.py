@@ -210,3 +210,21 @@ def test_disconnected_images_are_flagged(views, tmp_path, capsys):
     assert run_cli([str(d), "-o", str(out), *FAST]) == 0
     err = capsys.readouterr().err
     assert "warning: only 5 of 7 images registered" in err and "noise_0.png" in err
+
+
+def test_command_in_a_fresh_process(views, tmp_path):
+    """The installed command as a user runs it: a new interpreter, nothing imported before."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [sys.executable, "-m", "localscale", "reconstruct", str(views), "-o", str(out), *FAST],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["registered"] == 5, summary["registered"]

@@ -46,6 +46,6 @@ _EXPORTS = {
     ),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
-    ".reconstruct": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),
+    ".reconstruction": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
