@@ -234,6 +234,16 @@ TURN_INLIERS = 40
 #: pairs per image on which the networks run while the graph does not join the pair's images
 NETWORK_PAIRS_PER_IMAGE = 3
 
+#: pairs per image matched in the window of the wide view that the seed's geometry gives
+ANCHOR_PAIRS_PER_IMAGE = 2
+
+#: hypotheses per pair in the graph step
+LEVEL_HYPOTHESES = 1
+
+#: a relation composed through the graph is tried when it turns, or zooms by at least this many
+#: octaves (a milder zoom the matcher takes as it is, which step 1 tried)
+COMPOSED_MIN_LOG2 = 1.0
+
 
 def _match_with_graph(
     run_items, todo, sets, output, stats: MatchStats, flush_s: float, same_log2: float, turn_inliers: int = TURN_INLIERS
@@ -244,20 +254,23 @@ def _match_with_graph(
     1. every pair as it is (the stored features, two-view verification): settled when it verifies
        clearly or with no scale change or turn to try;
     2. the seed's (SIFT) geometry of each open pair;
-    3. the verified pairs (steps 1 and 2, and a resumed run's) make a :class:`~.pair_graph.PairGraph`;
-       each open pair tries the seed's geometry (in the window of the wide view that the close-up
-       shows, :attr:`~localscale.matching.AutoConfig.window_share`), its own geometry's scale and
-       turn and those composed through a common neighbour (:meth:`~.pair_runner.PairRunner.levels`:
-       a strong zoom half an octave less first), ending on one that verifies; a pair
-       with none whose images the graph does not join runs the networks (on at most
-       :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most matches first);
-    4. once more with the graph that step 3 grew, the hypotheses not tried yet.
+    3. anchors: the seed's geometry matched in the window of the wide view that the close-up shows
+       (:attr:`~localscale.matching.AutoConfig.window_share`), on at most
+       :data:`ANCHOR_PAIRS_PER_IMAGE` pairs per image, the seed's strongest first;
+    4. the verified pairs (steps 1 to 3, and a resumed run's) make a :class:`~.pair_graph.PairGraph`;
+       each open pair tries :data:`LEVEL_HYPOTHESES` of: the seed's scale and turn, its own
+       geometry's, and those composed through a common neighbour that turn or zoom by
+       :data:`COMPOSED_MIN_LOG2` octaves or more (a strong zoom half an octave less: the close-up
+       keeps detail), at the images' levels
+       (:meth:`~.pair_runner.PairRunner.levels`: each image extracted once per level and turn
+       whatever its pairs); a pair with none whose images the graph does not join runs the
+       networks (on at most :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most
+       matches first).
 
-    The pairs of step 1 with at least ``turn_inliers`` inliers fix the images' quarter turns
-    (:func:`_quarter_turns`); a hypothesis or seed geometry that turns two images these pairs join
-    otherwise is dropped (a symmetric object seen from opposite sides verifies turned).
-    A pair that nothing verified keeps its step-1 matches. Only the networks' pairs cost the
-    per-pair loop; the others cost a match at levels and turns each image computes once."""
+    The pairs of step 1 with at least ``turn_inliers`` inliers, then those of step 3, fix the
+    images' quarter turns (:func:`_quarter_turns`); a hypothesis or seed geometry that turns two
+    images these pairs join otherwise is dropped (a symmetric object seen from opposite sides
+    verifies turned). A pair that nothing verified keeps its step-1 matches."""
     graph = PairGraph()
     for rec in stats.pairs:
         if rec.relation is not None:
@@ -281,35 +294,49 @@ def _match_with_graph(
         if r.relation is not None:
             graph.add(*todo[i], r.relation)
     tried: dict = {i: [] for i in open_}
-    for step in range(2):
-        items, quota = {}, {}
-        for i in sorted(open_, key=lambda i: (-len(best[i].matches), i)):
-            a, b = todo[i]
-            hyps = _graph_hypotheses(graph, a, b, best[i], seeds.get(i), tried[i], same_log2)
-            hyps = [h for h in hyps if _turn_fits(turns, a, b, h.turn)]
-            if hyps and hyps[0].window is not None:  # the seed's geometry, in the window of the wide view
-                items[i] = (a, b, "hypotheses", hyps, False)
-            elif hyps:
-                items[i] = (a, b, "levels", hyps)
-            elif (
-                step == 0
-                and not graph.connected(a, b)
-                and max(quota.get(a, 0), quota.get(b, 0)) < NETWORK_PAIRS_PER_IMAGE
-            ):
-                quota[a], quota[b] = quota.get(a, 0) + 1, quota.get(b, 0) + 1
-                items[i] = (a, b, "hypotheses", [], True)
-        found = _run_some(run_items, items, f"graph {step + 1}", stats)
-        settled = []
-        for i, r in found.items():
-            tried[i] += items[i][3]
-            if r.verified:
-                best[i] = r
-                settled.append(i)
-                graph.add(*todo[i], r.relation)
-        done = set(settled)
-        open_ = [i for i in open_ if i not in done]
-        _apply_some(sorted(settled), best, todo, sets, output, stats, flush_s)
+    anchors, count = {}, {}
+    for i in sorted(
+        (i for i in open_ if seeds[i].hypothesis is not None), key=lambda i: (-seeds[i].relation.strength, i)
+    ):
+        a, b = todo[i]
+        if seeds[i].hypothesis.window is not None and max(count.get(a, 0), count.get(b, 0)) < ANCHOR_PAIRS_PER_IMAGE:
+            count[a], count[b] = count.get(a, 0) + 1, count.get(b, 0) + 1
+            anchors[i] = (a, b, "hypotheses", [seeds[i].hypothesis], False)
+    open_ = _settle(run_items, anchors, "anchors", open_, best, tried, graph, todo, sets, output, stats, flush_s)
+    clear += [
+        (*todo[i], best[i].relation.turn)
+        for i in anchors
+        if best[i].verified and best[i].relation.strength >= turn_inliers
+    ]
+    turns = _quarter_turns(clear)
+    items, quota = {}, {}
+    for i in sorted(open_, key=lambda i: (-len(best[i].matches), i)):
+        a, b = todo[i]
+        hyps = _graph_hypotheses(graph, a, b, best[i], seeds.get(i), tried[i], same_log2)
+        hyps = [h for h in hyps if _turn_fits(turns, a, b, h.turn)][:LEVEL_HYPOTHESES]
+        if hyps:
+            items[i] = (a, b, "levels", hyps)
+        elif not graph.connected(a, b) and max(quota.get(a, 0), quota.get(b, 0)) < NETWORK_PAIRS_PER_IMAGE:
+            quota[a], quota[b] = quota.get(a, 0) + 1, quota.get(b, 0) + 1
+            items[i] = (a, b, "hypotheses", [], True)
+    open_ = _settle(run_items, items, "graph", open_, best, tried, graph, todo, sets, output, stats, flush_s)
     _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
+
+
+def _settle(run_items, items: dict, step: str, open_, best, tried, graph, todo, sets, output, stats, flush_s) -> list:
+    """Runs the ``items`` of the ``auto`` step ``step``; the pairs that verify get their result in
+    ``best`` and their relation in ``graph``, and are applied; returns the pairs still open."""
+    found = _run_some(run_items, items, step, stats)
+    settled = []
+    for i, r in found.items():
+        tried[i] += items[i][3]
+        if r.verified:
+            best[i] = r
+            settled.append(i)
+            graph.add(*todo[i], r.relation)
+    _apply_some(sorted(settled), best, todo, sets, output, stats, flush_s)
+    done = set(settled)
+    return [i for i in open_ if i not in done]
 
 
 def _quarter_turns(edges) -> dict:
@@ -362,29 +389,34 @@ def _apply_some(indices: list, results: dict, todo, sets, output, stats: MatchSt
 
 
 def _graph_hypotheses(graph: PairGraph, a: str, b: str, first, seed, tried: list, same_log2: float) -> list:
-    """The hypotheses of an open pair not tried yet: its own geometry's, the seed's, then the graph's."""
+    """The hypotheses of an open pair not tried yet (windows left out): the seed's, its own
+    geometry's, then the graph's that turn or zoom by :data:`COMPOSED_MIN_LOG2` octaves or more."""
     from ..matching import Hypothesis
 
-    candidates = [] if seed is None or seed.hypothesis is None else [seed.hypothesis]
-    relations = ([first.relation] if first.verified else []) + graph.composed(a, b, same_log2=same_log2)
+    relations = [] if seed is None or seed.relation is None else [seed.relation]
+    relations += [first.relation] if first.verified else []
+    relations += [
+        r
+        for r in graph.composed(a, b, same_log2=same_log2)
+        if r.turn % 4 or abs(math.log2(r.scale)) >= COMPOSED_MIN_LOG2 - 1e-9
+    ]
+    candidates = []
     for r in relations:
         if r is None:
             continue
-        if abs(math.log2(r.scale)) >= 1:  # a strong zoom: half an octave less first (the close-up keeps detail)
-            candidates.append(Hypothesis(r.scale * 2.0 ** (0.5 if r.scale < 1 else -0.5), r.turn, "collection"))
-        candidates.append(Hypothesis(r.scale, r.turn, "collection"))
+        scale = r.scale
+        if abs(math.log2(scale)) >= 1:  # a strong zoom: half an octave less (the close-up keeps detail)
+            scale *= 2.0 ** (0.5 if scale < 1 else -0.5)
+        candidates.append(Hypothesis(scale, r.turn, "collection"))
     out: list = []
     for h in candidates:
         r = Relation(h.scale, h.turn % 4)
-        if h.window is None and r.is_identity(same_log2):
+        if r.is_identity(same_log2):
             continue  # step 1 tried the images as they are
-        if any(
-            Relation(t.scale, t.turn % 4).same_as(r, same_log2) and (t.window is None) == (h.window is None)
-            for t in tried + out
-        ):
+        if any(Relation(t.scale, t.turn % 4).same_as(r, same_log2) for t in tried + out):
             continue
-        out.append(h)
-    return out[:4]
+        out.append(Hypothesis(h.scale, h.turn, h.source))
+    return out
 
 
 def _index_matches(sets: dict, a: str, b: str, kp_a, kp_b, m, scores):
