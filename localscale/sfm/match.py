@@ -415,7 +415,7 @@ def _graph_hypotheses(graph: PairGraph, a: str, b: str, first, seed, tried: list
             continue  # step 1 tried the images as they are
         if any(Relation(t.scale, t.turn % 4).same_as(r, same_log2) for t in tried + out):
             continue
-        out.append(Hypothesis(h.scale, h.turn, h.source))
+        out.append(h)
     return out
 
 
