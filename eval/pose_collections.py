@@ -25,6 +25,9 @@ pose come from :func:`localscale.cameras.window_camera`.
 Methods: ``opencv-sift`` (OpenCV SIFT, 4096 features, ratio 0.8, mutual nearest neighbours) and
 ``MATCHER:CORRECTION`` for the library's ``match_pair(A, B, correction, matcher=MATCHER)``
 (e.g. ``aliked-lightglue:none``, ``aliked-lightglue:auto``); only the returned matches are used.
+``MATCHER:CORRECTION:cameras`` also passes the known cameras (two-view verification with the
+essential matrix), ``MATCHER:CORRECTION:two_view`` verifies by COLMAP's homography / fundamental
+matrix choice without cameras.
 
 Per-pair results go to ``<out>.pairs.jsonl`` (or ``--cache``) as they are computed; a rerun skips the pairs found
 there (same collection, pair, kind, method and options). The table (markdown) is printed and the
@@ -274,7 +277,7 @@ class SiftMatcher:
             self.cache = {key: (xy, desc)} if len(self.cache) > 64 else {**self.cache, key: (xy, desc)}
         return self.cache[key]
 
-    def match(self, key_a, a, key_b, b):
+    def match(self, key_a, a, key_b, b, cameras=(None, None)):
         xa, da = self.features(key_a, a)
         xb, db = self.features(key_b, b)
         if da is None or db is None or len(da) < 2 or len(db) < 2:
@@ -292,21 +295,42 @@ class SiftMatcher:
 
 
 class LibraryMatcher:
-    """``localscale.matching.match_pair(A, B, correction, matcher=...)``; matches only."""
+    """``localscale.matching.match_pair(A, B, correction, matcher=...)``; matches only.
 
-    def __init__(self, name: str, correction: str, max_side: int, models):
+    ``given``: ``""`` (images only, the matcher's verification), ``"cameras"`` (the known cameras
+    passed: two-view geometry with the essential matrix) or ``"two_view"`` (no cameras, COLMAP's
+    choice of homography or fundamental matrix)."""
+
+    def __init__(self, name: str, correction: str, max_side: int, models, given: str = ""):
         from localscale.matching import get_matcher
 
-        self.matcher = get_matcher(name, max_side=max_side)
+        options = {}
+        if given == "two_view":
+            from localscale.matching import VerificationConfig
+
+            options["verification"] = VerificationConfig(model="two_view")
+        self.matcher = get_matcher(name, max_side=max_side, **options)
         self.correction = correction
         self.models = models
+        self.given = given
 
-    def match(self, key_a, a, key_b, b):
+    def match(self, key_a, a, key_b, b, cameras=(None, None)):
         from localscale.matching import match_pair
 
+        self.trials = None
+
+        cam_a, cam_b = cameras if self.given == "cameras" else (None, None)
         res = match_pair(
-            a, b, self.correction, local_model=self.models[0], global_model=self.models[1], matcher=self.matcher
+            a,
+            b,
+            self.correction,
+            local_model=self.models[0],
+            global_model=self.models[1],
+            matcher=self.matcher,
+            camera_a=cam_a,
+            camera_b=cam_b,
         )
+        self.trials = res.meta.get("auto")
         m = np.asarray(res.matches, int).reshape(-1, 2)
         return np.asarray(res.keypoints_a, np.float64)[m[:, 0]], np.asarray(res.keypoints_b, np.float64)[m[:, 1]]
 
@@ -316,12 +340,14 @@ def make_method(spec: str, max_side: int, models_cache: dict):
         return SiftMatcher()
     if ":" not in spec:
         raise LocalScaleError(f"method {spec!r}: use opencv-sift or MATCHER:CORRECTION (e.g. aliked-lightglue:auto)")
-    name, correction = spec.split(":", 1)
+    name, correction, *given = spec.split(":")
+    if len(given) > 1 or (given and given[0] not in ("cameras", "two_view")):
+        raise LocalScaleError(f"method {spec!r}: the third part must be cameras or two_view")
     if "models" not in models_cache:
         from localscale import LocalScaleNet, ScaleNet
 
         models_cache["models"] = (LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained())
-    return LibraryMatcher(name, correction, max_side, models_cache["models"])
+    return LibraryMatcher(name, correction, max_side, models_cache["models"], *given)
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -335,7 +361,7 @@ def load_rgb(path: Path) -> np.ndarray:
 def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, cfg: TwoViewConfig) -> dict:
     t0 = time.perf_counter()
     try:
-        pa, pb = method.match(key_a, img_a, key_b, img_b)
+        pa, pb = method.match(key_a, img_a, key_b, img_b, (cam_a, cam_b))
         error = None
     except LocalScaleError as e:
         pa, pb, error = np.zeros((0, 2)), np.zeros((0, 2)), str(e)
@@ -356,6 +382,8 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     }
     if error:
         rec["error"] = error
+    if getattr(method, "trials", None):
+        rec["auto"] = method.trials
     return rec
 
 

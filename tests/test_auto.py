@@ -223,3 +223,36 @@ def test_a_degenerate_geometry_gives_no_window():
     assert _window(behind, 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
     half = np.diag([0.25, 0.25, 1.0])  # A in B's top-left 25 x 25
     assert _window(half, 0.25, (100, 100), (100, 100), 0.25, 0.5) == (1, 0, 0, 32, 32)
+
+
+def test_a_bad_hypothesis_model_is_refused():
+    from localscale.errors import LocalScaleError
+
+    with pytest.raises(LocalScaleError, match="hypothesis_model"):
+        AutoConfig(hypothesis_model="plane").check()
+
+
+@needs_aliked
+def test_with_cameras_the_hypotheses_are_verified_by_the_homography_and_the_choice_by_two_view(photo, monkeypatch):
+    import localscale.matching.auto as auto_module
+
+    models = []
+    verify = auto_module.verify_matches
+
+    def recording(pa, pb, shape_a, shape_b, scale_map, config, *cameras):
+        models.append(config.model)
+        return verify(pa, pb, shape_a, shape_b, scale_map, config, *cameras)
+
+    monkeypatch.setattr(auto_module, "verify_matches", recording)
+    b, H = _zoom_turn(photo, 4.0, 1)
+    h, w = photo.shape[:2]
+    camera_a = f"SIMPLE_PINHOLE {w} {h} {w} {(w - 1) / 2} {(h - 1) / 2}"
+    camera_b = f"SIMPLE_PINHOLE {b.shape[1]} {b.shape[0]} {4 * w} {(b.shape[1] - 1) / 2} {(b.shape[0] - 1) / 2}"
+    res = match_pair(photo, b, "auto", H=H, matcher="aliked-lightglue", camera_a=camera_a, camera_b=camera_b)
+    trials = res.meta["auto"]["trials"]
+    assert trials[0]["source"] == "identity" and models[0] == "two_view"
+    assert models[1 : len(trials)] == ["homography"] * (len(trials) - 1), (models, trials)
+    # the chosen run (B turned back) verified again with the pair's two-view geometry
+    assert res.meta["auto"]["turn"] == 3 and models[-1] == "two_view" and len(models) == len(trials) + 1
+    assert res.verification.verified and res.verification.two_view is not None
+    assert res.accuracy(5.0) > 0.7

@@ -67,6 +67,11 @@ class AutoConfig:
             image (0: never a window).
         accept_consistent: a verified result whose own geometry agrees with its hypothesis ends the
             loop even without a clear margin (a collection, where the pair graph decides the rest).
+        hypothesis_model: the verification model of the seed and of every hypothesis other than
+            the images as they are, whatever the pair's (``None``: the pair's). A strong zoom shows
+            a small, nearly planar part of the wide view, where a fundamental or essential matrix
+            also fits wrong matches; the chosen result is verified again with the pair's model
+            (two-view geometry and pose with cameras) when it is another.
     """
 
     budget: int = 4
@@ -78,6 +83,7 @@ class AutoConfig:
     seed: Optional[str] = "sift"
     window_share: float = 0.5
     accept_consistent: bool = False
+    hypothesis_model: Optional[str] = "homography"
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -94,6 +100,14 @@ class AutoConfig:
             raise LocalScaleError(f"auto accept_inliers must be an integer >= 4, got {self.accept_inliers!r}")
         if not (0 <= self.accept_ratio <= 1):
             raise LocalScaleError(f"auto accept_ratio must be in [0, 1], got {self.accept_ratio!r}")
+        if self.hypothesis_model is not None:
+            from .verification import VERIFICATION_MODELS
+
+            if self.hypothesis_model not in VERIFICATION_MODELS:
+                raise LocalScaleError(
+                    f"auto hypothesis_model must be None or one of {', '.join(VERIFICATION_MODELS)}, "
+                    f"got {self.hypothesis_model!r}"
+                )
         return self
 
 
@@ -284,10 +298,10 @@ def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
 def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
     """The ``(scale, quarter turn of B)`` that a verified result's own geometry implies: the
     median geometric scale at its inliers, and the quarter turn of B that brings the homography's
-    rotation at the inliers' centre closest to none (for a fundamental or essential matrix: the
-    rotation of a similarity fitted to the inliers); with a homography, also the window of the
-    image whose content is smaller that the other image covers (its bounding box grown by
-    ``margin`` on each side), when that is at most ``max_share`` of it. ``None`` if it did not verify."""
+    rotation at the inliers' centre closest to none, and the window of the image whose content is
+    smaller that the other image covers under it (its bounding box grown by ``margin`` on each
+    side), when that is at most ``max_share`` of it; for a fundamental or essential matrix, a
+    similarity fitted to the inliers stands in for the homography. ``None`` if it did not verify."""
     if not v.verified or v.num_inliers == 0:
         return None
     inl = np.asarray(v.inliers, bool)
@@ -301,10 +315,12 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
     if v.H is not None:
         turn = nearest_turn(v.H, pa.mean(0), v.shape_b)
         window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
-    else:  # a fundamental or essential matrix: the rotation of a similarity fitted to the inliers
+    else:  # a fundamental or essential matrix: a similarity fitted to the inliers stands in for H
         M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
         if M is not None and np.isfinite(M).all():
-            turn = nearest_turn(np.vstack([M, [0.0, 0.0, 1.0]]), pa.mean(0), v.shape_b)
+            S = np.vstack([M, [0.0, 0.0, 1.0]])
+            turn = nearest_turn(S, pa.mean(0), v.shape_b)
+            window = _window(S, scale, v.shape_a, v.shape_b, margin, max_share)
     return Hypothesis(scale, turn, "geometry", window=window)
 
 
@@ -382,6 +398,8 @@ def auto_match(
     if not loop.runs:  # every hypothesis given was the images as they are
         loop.attempt(loop.identity)
     found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
+    if v.verified and h is not loop.identity and loop.hypothesis_vconf.model != loop.vconf.model:
+        v = loop.verify_again(found, v)
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
 
 
@@ -403,12 +421,25 @@ class _Loop:
         # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
         # a small part of the wide one, and all of itself
         self.vconf = dataclasses.replace(verification, coverage_of="either")
+        # the hypotheses' model (the images as they are keep the pair's)
+        model = config.hypothesis_model or verification.model
+        self.hypothesis_vconf = dataclasses.replace(self.vconf, model=model)
         self.geometric_vconf = dataclasses.replace(
-            self.vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
+            self.hypothesis_vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
         )
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
+
+    def verify_again(self, found, v):
+        """The chosen run's matches verified with the pair's model (its geometry, and the pose
+        with cameras); the hypothesis's verification if they do not verify so."""
+        m = found.matches
+        again = verify_matches(
+            found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], self.a.shape[:2], self.b.shape[:2], None,
+            self.vconf, *self.cameras,
+        )  # fmt: skip
+        return again if again.verified else v
 
     def clear(self, v) -> bool:
         c = self.config
@@ -418,7 +449,13 @@ class _Loop:
         self.tried.append(h)
         t0 = time.perf_counter()
         # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
-        vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
+        vconf = (
+            self.vconf
+            if h is self.identity
+            else self.geometric_vconf
+            if h.source.endswith("geometry")
+            else self.hypothesis_vconf
+        )
         found, v = _run(self.matcher, self.a, self.b, h, self.keys, vconf, self.cameras)
         self.trials.append(
             Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
@@ -458,7 +495,14 @@ class _Loop:
             return None
         if hypotheses is None and seed_matcher is not None and seed_matcher.name != m.config.name:
             g = seed_hypothesis(
-                seed_matcher, self.a, self.b, self.keys, self.vconf, self.trials, c.window_share, self.cameras
+                seed_matcher,
+                self.a,
+                self.b,
+                self.keys,
+                self.hypothesis_vconf,
+                self.trials,
+                c.window_share,
+                self.cameras,
             )
             if g is not None and not _same(g, self.tried, c.geometry_log2):
                 self.queue.insert(0, g)
