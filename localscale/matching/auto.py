@@ -67,11 +67,11 @@ class AutoConfig:
             image (0: never a window).
         accept_consistent: a verified result whose own geometry agrees with its hypothesis ends the
             loop even without a clear margin (a collection, where the pair graph decides the rest).
-        hypothesis_model: the verification model of the seed and of every hypothesis other than
-            the images as they are, whatever the pair's (``None``: the pair's). A strong zoom shows
-            a small, nearly planar part of the wide view, where a fundamental or essential matrix
-            also fits wrong matches; the chosen result is verified again with the pair's model
-            (two-view geometry and pose with cameras) when it is another.
+        zoom_model, zoom_min_log2: the verification model of the seed and of every hypothesis of
+            a zoom of at least ``zoom_min_log2`` octaves, whatever the pair's (``None``: the pair's).
+            A strong zoom shows a small, nearly planar part of the wide view, where a fundamental
+            or essential matrix also fits wrong matches; the chosen result is verified again with
+            the pair's model (two-view geometry and pose with cameras) when it is another.
     """
 
     budget: int = 4
@@ -83,7 +83,8 @@ class AutoConfig:
     seed: Optional[str] = "sift"
     window_share: float = 0.5
     accept_consistent: bool = False
-    hypothesis_model: Optional[str] = "homography"
+    zoom_model: Optional[str] = "homography"
+    zoom_min_log2: float = 1.0
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -100,14 +101,15 @@ class AutoConfig:
             raise LocalScaleError(f"auto accept_inliers must be an integer >= 4, got {self.accept_inliers!r}")
         if not (0 <= self.accept_ratio <= 1):
             raise LocalScaleError(f"auto accept_ratio must be in [0, 1], got {self.accept_ratio!r}")
-        if self.hypothesis_model is not None:
+        if self.zoom_model is not None:
             from .verification import VERIFICATION_MODELS
 
-            if self.hypothesis_model not in VERIFICATION_MODELS:
+            if self.zoom_model not in VERIFICATION_MODELS:
                 raise LocalScaleError(
-                    f"auto hypothesis_model must be None or one of {', '.join(VERIFICATION_MODELS)}, "
-                    f"got {self.hypothesis_model!r}"
+                    f"auto zoom_model must be None or one of {', '.join(VERIFICATION_MODELS)}, got {self.zoom_model!r}"
                 )
+        if not self.zoom_min_log2 >= 0:
+            raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
         return self
 
 
@@ -398,7 +400,7 @@ def auto_match(
     if not loop.runs:  # every hypothesis given was the images as they are
         loop.attempt(loop.identity)
     found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
-    if v.verified and h is not loop.identity and loop.hypothesis_vconf.model != loop.vconf.model:
+    if v.verified and any(v is z for z in loop.zoom_verified):
         v = loop.verify_again(found, v)
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
 
@@ -421,12 +423,12 @@ class _Loop:
         # a zoom hypothesis is judged by the inliers' coverage of either image: the zoomed view shows
         # a small part of the wide one, and all of itself
         self.vconf = dataclasses.replace(verification, coverage_of="either")
-        # the hypotheses' model (the images as they are keep the pair's)
-        model = config.hypothesis_model or verification.model
-        self.hypothesis_vconf = dataclasses.replace(self.vconf, model=model)
+        # the model of the seed and of strong zooms (the other runs keep the pair's)
+        self.zoom_vconf = dataclasses.replace(self.vconf, model=config.zoom_model or verification.model)
         self.geometric_vconf = dataclasses.replace(
-            self.hypothesis_vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
+            self.vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
         )
+        self.zoom_verified = []  # the verifications made with the zoom model, when it is not the pair's
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
@@ -449,14 +451,14 @@ class _Loop:
         self.tried.append(h)
         t0 = time.perf_counter()
         # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
-        vconf = (
-            self.vconf
-            if h is self.identity
-            else self.geometric_vconf
-            if h.source.endswith("geometry")
-            else self.hypothesis_vconf
-        )
+        vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
+        zoom = h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
+        zoom = zoom and self.zoom_vconf.model != vconf.model
+        if zoom:
+            vconf = dataclasses.replace(vconf, model=self.zoom_vconf.model)
         found, v = _run(self.matcher, self.a, self.b, h, self.keys, vconf, self.cameras)
+        if zoom:
+            self.zoom_verified.append(v)
         self.trials.append(
             Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
         )
@@ -499,7 +501,7 @@ class _Loop:
                 self.a,
                 self.b,
                 self.keys,
-                self.hypothesis_vconf,
+                self.zoom_vconf,
                 self.trials,
                 c.window_share,
                 self.cameras,
