@@ -36,10 +36,11 @@ from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
 from localscale.geometry import HomographyConfig, covisible_mask, grid_points, project, sample_homography, warp_image
 from localscale.io import load_image
-from localscale.matching.auto import AutoConfig, turn_matrix
+from localscale.matching.auto import AutoConfig
 from localscale.matching.matcher import get_matcher
 from localscale.matching.metrics import reprojection_errors
 from localscale.matching.pipeline import match_pair
+from localscale.matching.turns import turn_matrix
 from localscale.matching.verification import estimate_homography
 from localscale.outputs import write_text
 

@@ -57,10 +57,8 @@ _EXPORTS = {
         "Hypothesis",
         "auto_match",
         "propose",
-        "nearest_turn",
-        "turn_matrix",
-        "match_turned",
     ),
+    ".turns": ("turn_matrix", "nearest_turn", "match_turned"),
     ".result": ("MatchResult", "save_matches"),
     ".viz": ("draw_matches",),
     ".pipeline": (

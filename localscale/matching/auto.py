@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from ..errors import LocalScaleError
-from ..geometry import homography_rotation_at
+from .turns import match_turned, nearest_turn
 from .verification import VerificationConfig, VerificationResult, verify_matches
 
 #: inliers the seed matcher's geometry needs to be proposed, and the matcher's run at a verified
@@ -190,28 +190,6 @@ class AutoResult:
         return bool(self.verification.verified)
 
 
-# ---------------------------------------------------------------- quarter turns
-
-
-def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
-    """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
-    ``np.rot90(image, turn)`` (counter-clockwise quarter turns)."""
-    h, w = shape[:2]
-    k = turn % 4
-    if k == 0:
-        return np.eye(3)
-    if k == 1:
-        return np.array([[0.0, 1, 0], [-1, 0, w - 1], [0, 0, 1]])
-    if k == 2:
-        return np.array([[-1.0, 0, w - 1], [0, -1, h - 1], [0, 0, 1]])
-    return np.array([[0.0, -1, h - 1], [1, 0, 0], [0, 0, 1]])
-
-
-def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
-    p = np.asarray(points, np.float64).reshape(-1, 2)
-    return (p @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
-
-
 # ---------------------------------------------------------------- hypotheses
 
 
@@ -289,12 +267,6 @@ def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
 
 
 # ---------------------------------------------------------------- the geometry's own hypothesis
-
-
-def nearest_turn(H: np.ndarray, point, shape_b: tuple) -> int:
-    """The quarter turn of B (of ``shape_b``) after which the homography ``H`` (A -> B) rotates
-    least at ``point`` of A."""
-    return int(np.argmin([abs(homography_rotation_at(turn_matrix(k, shape_b) @ H, point)) for k in range(4)]))
 
 
 def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: float = 0.5) -> Optional[Hypothesis]:
@@ -563,30 +535,6 @@ def seed_hypothesis(
     )
     g = geometry_hypothesis(v, max_share=window_share)
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
-
-
-def match_turned(
-    matcher,
-    image_a: np.ndarray,
-    image_b: np.ndarray,
-    scale_a=None,
-    scale_b=None,
-    turn: int = 0,
-    keys: tuple = (None, None),
-    maps_turned: bool = False,
-):
-    """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
-    pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
-    (``maps_turned``), or a float."""
-    if turn % 4 == 0:
-        return matcher.match(image_a, image_b, scale_a, scale_b, keys)
-    bt = np.ascontiguousarray(np.rot90(image_b, turn))
-    if isinstance(scale_b, np.ndarray) and scale_b.ndim == 2 and not maps_turned:
-        scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
-    key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
-    found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b))
-    kb = _apply(np.linalg.inv(turn_matrix(turn, image_b.shape)), found.keypoints_b)
-    return dataclasses.replace(found, keypoints_b=kb)
 
 
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras: tuple = (None, None)):

@@ -29,13 +29,14 @@ import cv2
 import numpy as np
 
 from ..io import load_image, load_working_image, read_homography
-from .auto import auto_match, match_turned, nearest_turn
+from .auto import auto_match
 from .config import MatchConfig
 from .correction import Correction, get_correction
 from .matcher import Matcher, Matches, get_matcher
 from .metrics import reprojection_errors
 from .refinement import refine_matching, refine_pair_maps, sift_seed_points
 from .result import MatchResult, save_matches
+from .turns import match_turned, nearest_turn
 from .verification import verify_matches
 from .viz import draw_matches
 

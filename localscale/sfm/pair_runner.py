@@ -321,7 +321,7 @@ class PairRunner:
         turned by ``turn`` quarter turns: the close-up (the image whose content is bigger) is turned
         (B by ``turn``, or A by ``-turn``), each image extracted at its factor (``f_a``, ``f_b``,
         levels of the shared cache; the wide view's level 1 is its stored features ``fa`` / ``fb``)."""
-        from ..matching.auto import turn_matrix
+        from ..matching.turns import turn_matrix
         from .extract import snap_factor
 
         m = self.matcher
