@@ -34,13 +34,20 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
-from localscale.geometry import HomographyConfig, covisible_mask, grid_points, project, sample_homography, warp_image
+from localscale.geometry import (
+    HomographyConfig,
+    covisible_mask,
+    grid_points,
+    project,
+    sample_homography,
+    turn_matrix,
+    warp_image,
+)
 from localscale.io import load_image
 from localscale.matching.auto import AutoConfig
 from localscale.matching.matcher import get_matcher
 from localscale.matching.metrics import reprojection_errors
 from localscale.matching.pipeline import match_pair
-from localscale.matching.turns import turn_matrix
 from localscale.matching.verification import estimate_homography
 from localscale.outputs import write_text
 

@@ -210,6 +210,20 @@ def warp_image(
     return warped, valid
 
 
+def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
+    """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
+    ``np.rot90(image, turn)`` (counter-clockwise quarter turns)."""
+    h, w = shape[:2]
+    k = turn % 4
+    if k == 0:
+        return np.eye(3)
+    if k == 1:
+        return np.array([[0.0, 1, 0], [-1, 0, w - 1], [0, 0, 1]])
+    if k == 2:
+        return np.array([[-1.0, 0, w - 1], [0, -1, h - 1], [0, 0, 1]])
+    return np.array([[0.0, -1, h - 1], [1, 0, 0], [0, 0, 1]])
+
+
 def homography_rotation(H: np.ndarray, shape_a: tuple[int, int]) -> float:
     """In-plane rotation (degrees, -180..180) of ``H`` at the centre of image A
     (:func:`homography_rotation_at`)."""

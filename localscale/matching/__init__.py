@@ -58,7 +58,7 @@ _EXPORTS = {
         "auto_match",
         "propose",
     ),
-    ".turns": ("turn_matrix", "nearest_turn", "match_turned"),
+    ".turns": ("turn_matrix", "nearest_turn", "unturn_points", "match_turned"),
     ".result": ("MatchResult", "save_matches"),
     ".viz": ("draw_matches",),
     ".pipeline": (

@@ -372,7 +372,7 @@ def auto_match(
     if not loop.runs:  # every hypothesis given was the images as they are
         loop.attempt(loop.identity)
     found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
-    if v.verified and any(v is z for z in loop.zoom_verified):
+    if v.verified and loop.vconf_for(h).model != loop.vconf.model:
         v = loop.verify_again(found, v)
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
 
@@ -400,7 +400,6 @@ class _Loop:
         self.geometric_vconf = dataclasses.replace(
             self.vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
         )
-        self.zoom_verified = []  # the verifications made with the zoom model, when it is not the pair's
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
@@ -408,12 +407,18 @@ class _Loop:
     def verify_again(self, found, v):
         """The chosen run's matches verified with the pair's model (its geometry, and the pose
         with cameras); the hypothesis's verification if they do not verify so."""
-        m = found.matches
-        again = verify_matches(
-            found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], self.a.shape[:2], self.b.shape[:2], None,
-            self.vconf, *self.cameras,
-        )  # fmt: skip
+        again = _verify(found, self.a, self.b, self.vconf, self.cameras)
         return again if again.verified else v
+
+    def vconf_for(self, h: Hypothesis):
+        """How a run of ``h`` is verified: the pair's model (a verified geometry's run with fewer
+        inliers), the zoom model for a zoom of ``zoom_min_log2`` octaves or more."""
+        # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
+        vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
+        zoom = h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
+        if zoom and self.zoom_vconf.model != vconf.model:
+            return dataclasses.replace(vconf, model=self.zoom_vconf.model)
+        return vconf
 
     def clear(self, v) -> bool:
         c = self.config
@@ -422,15 +427,7 @@ class _Loop:
     def attempt(self, h: Hypothesis):
         self.tried.append(h)
         t0 = time.perf_counter()
-        # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
-        vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
-        zoom = h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
-        zoom = zoom and self.zoom_vconf.model != vconf.model
-        if zoom:
-            vconf = dataclasses.replace(vconf, model=self.zoom_vconf.model)
-        found, v = _run(self.matcher, self.a, self.b, h, self.keys, vconf, self.cameras)
-        if zoom:
-            self.zoom_verified.append(v)
+        found, v = _run(self.matcher, self.a, self.b, h, self.keys, self.vconf_for(h), self.cameras)
         self.trials.append(
             Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
         )
@@ -553,8 +550,12 @@ def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vcon
     found = dataclasses.replace(
         found, keypoints_a=found.keypoints_a + offsets[0], keypoints_b=found.keypoints_b + offsets[1]
     )
+    return found, _verify(found, a, b, vconf, cameras)
+
+
+def _verify(found, a: np.ndarray, b: np.ndarray, vconf, cameras: tuple):
+    """The matches of ``found`` (keypoints in the pixels of ``a`` and ``b``) verified by ``vconf``."""
     m = found.matches
-    v = verify_matches(
+    return verify_matches(
         found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]], a.shape[:2], b.shape[:2], None, vconf, *cameras
     )
-    return found, v

@@ -10,24 +10,13 @@ import dataclasses
 
 import numpy as np
 
-from ..geometry import homography_rotation_at
+from ..geometry import homography_rotation_at, turn_matrix
 
 
-def turn_matrix(turn: int, shape: tuple) -> np.ndarray:
-    """``3 x 3`` map from pixel coordinates of an image of ``shape`` ``(H, W)`` to those of
-    ``np.rot90(image, turn)`` (counter-clockwise quarter turns)."""
-    h, w = shape[:2]
-    k = turn % 4
-    if k == 0:
-        return np.eye(3)
-    if k == 1:
-        return np.array([[0.0, 1, 0], [-1, 0, w - 1], [0, 0, 1]])
-    if k == 2:
-        return np.array([[-1.0, 0, w - 1], [0, -1, h - 1], [0, 0, 1]])
-    return np.array([[0.0, -1, h - 1], [1, 0, 0], [0, 0, 1]])
-
-
-def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
+def unturn_points(points, turn: int, shape: tuple) -> np.ndarray:
+    """``N x 2`` pixel coordinates of ``np.rot90(image, turn)`` mapped back to those of the image
+    (of ``shape`` ``(H, W)``), float32."""
+    M = np.linalg.inv(turn_matrix(turn, shape))
     p = np.asarray(points, np.float64).reshape(-1, 2)
     return (p @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
 
@@ -58,5 +47,4 @@ def match_turned(
         scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
     key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
     found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b))
-    kb = _apply(np.linalg.inv(turn_matrix(turn, image_b.shape)), found.keypoints_b)
-    return dataclasses.replace(found, keypoints_b=kb)
+    return dataclasses.replace(found, keypoints_b=unturn_points(found.keypoints_b, turn, image_b.shape))

@@ -321,7 +321,7 @@ class PairRunner:
         turned by ``turn`` quarter turns: the close-up (the image whose content is bigger) is turned
         (B by ``turn``, or A by ``-turn``), each image extracted at its factor (``f_a``, ``f_b``,
         levels of the shared cache; the wide view's level 1 is its stored features ``fa`` / ``fb``)."""
-        from ..matching.turns import turn_matrix
+        from ..matching.turns import unturn_points
         from .extract import snap_factor
 
         m = self.matcher
@@ -332,10 +332,7 @@ class PairRunner:
         fw = stored if snap_factor(f_w, getattr(m, "levels_per_octave", 2)) == 1.0 else m.extract(iw, f_w, nw)
         turned = np.ascontiguousarray(np.rot90(ic, k)) if k else ic
         fc = m.extract(turned, f_c, (nc, "turn", k) if k else nc)
-        kc = fc.keypoints
-        if k:
-            M = np.linalg.inv(turn_matrix(k, ic.shape))
-            kc = (np.asarray(kc, np.float64) @ M[:2, :2].T + M[:2, 2]).astype(np.float32)
+        kc = unturn_points(fc.keypoints, k, ic.shape) if k else fc.keypoints
         if b_is_close:
             matches, costs = m.match_features(fw, fc)
             return fw.keypoints, kc, matches, costs_to_scores(costs, self.lightglue)

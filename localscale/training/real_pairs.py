@@ -28,6 +28,7 @@ from torch.utils.data import Dataset
 
 from .. import scales
 from ..errors import LocalScaleError
+from ..geometry import turn_matrix
 from ..preprocess import letterbox, to_tensor
 
 #: ``kind`` of a real pair in the training batches (after :data:`localscale.data.PAIR_KINDS`)
@@ -141,15 +142,6 @@ def global_log_scale(
     return float(np.log(db[ok][:num_pairs] / da[ok][:num_pairs]).mean())
 
 
-def quarter_turn_matrix(k: int, height: int, width: int) -> np.ndarray:
-    """3x3 map of pixel coordinates of an ``height x width`` image to those of ``np.rot90(image, k)``."""
-    T = np.eye(3)
-    for _ in range(k % 4):
-        T = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, width - 1.0], [0.0, 0.0, 1.0]]) @ T
-        height, width = width, height
-    return T
-
-
 def _apply(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return xy @ T[:2, :2].T + T[:2, 2]
 
@@ -253,7 +245,7 @@ class RealPairs(Dataset):
             crop = imgs[s][y0 : y0 + h, x0 : x0 + w]
             T = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1]])
             if s == 1 and turn:
-                T = quarter_turn_matrix(turn, h, w) @ T
+                T = turn_matrix(turn, (h, w)) @ T
                 crop = np.rot90(crop, turn)
             boxed, lb = letterbox(np.ascontiguousarray(crop), cfg.image_size)
             # COLMAP pixel centres are at +0.5; the letterbox matrix maps pixel-centre coordinates
