@@ -416,13 +416,17 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
         proc.wait(10)
     finally:
         _stop_group(proc)  # and anything of its cluster still running
-    done = {int(p.stem) for p in out.glob("*.txt")}
+    # a write the kill interrupted leaves only its hidden temporary file, never a partial output
+    done = {int(p.stem) for p in out.glob("[0-9]*.txt")}
     assert set(written) <= done and len(done) < 10
+    left = {p.name for p in out.iterdir() if p.name.startswith(".")}
+    assert all(n.endswith(f".tmp-{proc.pid}.txt") for n in left), left
     rerun = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=90, start_new_session=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     again = [int(line.split()[1]) for line in rerun.stdout.splitlines() if line.startswith("wrote")]
     assert sorted(again) == sorted(set(range(10)) - done)  # only what was missing, each once
-    assert {p.name: p.read_text() for p in out.iterdir()} == {f"{i}.txt": f"{i * i}\n" for i in range(10)}
+    outputs = {p.name: p.read_text() for p in out.iterdir() if not p.name.startswith(".")}
+    assert outputs == {f"{i}.txt": f"{i * i}\n" for i in range(10)}
 
 
 TWO_NODE_DRIVER = r"""
