@@ -16,7 +16,8 @@ centre of its source photo, so the distance between the two centres in the model
 distance of the cameras to their centroid) says whether a registered close-up sits where it
 should (column ``close-up centre err``).
 
-Pipelines (``--pipelines``):
+Pipelines (``--pipelines``), each mapped with ``--mapper`` (COLMAP's ``incremental`` mapper, or its
+``global`` one, GLOMAP: rows named ``PIPELINE+global``):
 
 * ``colmap-sift``: ``pycolmap.extract_features`` / ``match_exhaustive`` (COLMAP's SIFT, its own
   verification) / ``incremental_mapping``;
@@ -120,10 +121,16 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
 # ---------------------------------------------------------------- pipelines
 
 
-def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int) -> dict:
+def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int, mapper: str) -> dict:
     import pycolmap
 
-    from localscale.sfm.mapping import colmap_log, model_stats
+    from localscale.sfm.mapping import (
+        calibrate_view_graph,
+        colmap_log,
+        mapping_options,
+        model_stats,
+        needs_calibration,
+    )
 
     shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True)
@@ -145,10 +152,11 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
         seconds["match"] = time.perf_counter() - t
         t = time.perf_counter()
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.num_threads = threads
-        opts.random_seed = 0
-        models = pycolmap.incremental_mapping(db, images_dir, run_dir / "sparse", opts)
+        opts = mapping_options(threads, mapper=mapper)
+        run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
+        if mapper == "global" and needs_calibration(db):
+            calibrate_view_graph(db)  # as localscale's run_mapping does (COLMAP's advice for GLOMAP)
+        models = run(db, images_dir, run_dir / "sparse", opts)
         seconds["map"] = time.perf_counter() - t
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
     stats = model_stats(ordered[0]) if ordered else None
@@ -167,7 +175,13 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
 
 
 def run_ours(
-    images_dir: Path, run_dir: Path, correction: str, camera_mode: str, threads: int, auto_graph: bool = True
+    images_dir: Path,
+    run_dir: Path,
+    correction: str,
+    camera_mode: str,
+    threads: int,
+    auto_graph: bool = True,
+    mapper: str = "incremental",
 ) -> dict:
     from localscale.sfm import read_models, reconstruct
 
@@ -183,6 +197,7 @@ def run_ours(
         overwrite=True,
         show_progress=False,
         auto_graph=auto_graph,
+        mapper=mapper,
     )
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
@@ -255,6 +270,12 @@ def main(argv=None) -> int:
         default=int(os.environ.get("OMP_NUM_THREADS", "1")),
         help="COLMAP threads (torch follows OMP_NUM_THREADS)",
     )
+    p.add_argument(
+        "--mapper",
+        default="incremental",
+        choices=("incremental", "global"),
+        help="COLMAP's mapper for every pipeline (rows of the global one are named PIPELINE+global)",
+    )
     p.add_argument("-o", "--output", default="results/reconstruct_collections")
     p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
     a = p.parse_args(argv)
@@ -281,19 +302,26 @@ def main(argv=None) -> int:
                 images_dir = out / "_closeup_images" / c
                 closeups = make_closeups(root / c / "images", images_dir, tuple(a.zoom), a.seed)
                 camera_mode = "per_image"
-            for pipe in a.pipelines:
+            for method in a.pipelines:
+                pipe = method if a.mapper == "incremental" else f"{method}+{a.mapper}"
                 if (label, pipe) in done and not a.overwrite:
                     print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
                     continue
                 print(f"{label} / {pipe} ...", flush=True)
                 t0 = time.perf_counter()
                 run_dir = out / label / pipe
-                if pipe == "colmap-sift":
-                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads)
+                if method == "colmap-sift":
+                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads, a.mapper)
                 else:
-                    correction = "auto" if "-auto" in pipe else "none"
+                    correction = "auto" if "-auto" in method else "none"
                     res = run_ours(
-                        images_dir, run_dir, correction, camera_mode, a.threads, not pipe.endswith("per-pair")
+                        images_dir,
+                        run_dir,
+                        correction,
+                        camera_mode,
+                        a.threads,
+                        not method.endswith("per-pair"),
+                        a.mapper,
                     )
                 wall = time.perf_counter() - t0
                 st = res["stats"] or {

@@ -1,5 +1,6 @@
 """The pair graph of ``auto`` on a collection: relations compose along verified pairs."""
 
+import itertools
 import math
 
 import pytest
@@ -116,7 +117,7 @@ def test_auto_on_a_collection_tries_the_graphs_hypotheses_before_the_networks(tm
     # the anchor: the seed's geometry in its window, alone
     assert steps[("c", "p1")] == [("as_they_are",), ("seed",), ("hypotheses", [steps[("c", "p1")][-1][1][0]], False)]
     assert steps[("c", "p1")][-1][1][0].window is not None
-    assert list(stats.steps) == ["as they are", "seed", "anchors", "graph"]
+    assert list(stats.steps) == ["as they are", "seed", "anchors", "graph", "graph, more"]
     record = {(r.a, r.b): r for r in stats.pairs}
     assert sorted(record) == sorted(todo)  # every pair written once
     assert record[("c", "p2")].verified and record[("c", "p2")].relation.turn == 1
@@ -154,3 +155,30 @@ def test_mild_composed_zooms_are_not_tried_again():
     assert turned.turn == 1 and turned.scale == pytest.approx(1.2)
     (zoom,) = _graph_hypotheses(g, "a", "d", unverified, None, [], 0.25)
     assert zoom.turn == 0 and zoom.scale == pytest.approx(3.3 / 2**0.5)  # half an octave less
+
+
+def test_graph_pairs_run_in_two_rounds_charged_to_the_image_they_would_join():
+    """Each image first tries its best supported pairs; an image gets the rest of its pairs only when
+    one of those verified (hypotheses that keep failing for a close-up are not tried further)."""
+    from localscale.sfm.match import GRAPH_PAIRS_PER_IMAGE, _first_round, _second_round
+
+    g = PairGraph()
+    photos = [f"p{k}" for k in range(1, 8)]
+    for x, y in itertools.combinations(photos, 2):
+        g.add(x, y, Relation(1.0, 0, 100))
+    g.add("c", "p1", Relation(0.25, 1, 80))
+    g.add("d", "p1", Relation(0.3, 2, 60))
+    levels, support = {}, {}
+    for k, (close, photo) in enumerate(itertools.product(("c", "d"), photos[1:])):
+        levels[k] = (close, photo, "levels", [])
+        support[k] = 100 - k  # the lower the index, the better supported
+    first, rest, charged = _first_round(levels, support, g)
+    assert {charged[i] for i in levels} == {"c", "d"}  # the close-ups, joined to one photo each
+    assert sorted(i for i in first if charged[i] == "c") == [0, 1, 2]
+    assert sorted(i for i in first if charged[i] == "d") == [6, 7, 8]
+    assert len(first) == 2 * GRAPH_PAIRS_PER_IMAGE and set(first) | set(rest) == set(levels)
+    # c's first-round pair 1 verified (it left the open pairs), none of d's did
+    more = _second_round(first, rest, charged, set(levels) - {1})
+    assert sorted(more) == [3, 4, 5] and all(more[i] == levels[i] for i in more)
+    # a pair that verified but was charged to another image does not open c's rest
+    assert _second_round(first, rest, {**charged, 1: "p3"}, set(levels) - {1}) == {}

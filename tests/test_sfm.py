@@ -75,6 +75,39 @@ def test_reconstruct_registers_every_view_at_the_true_poses(scene, run):
     assert _similarity_residual(np.array([est[n] for n in names]), truth) < 0.05
 
 
+def test_global_mapper_registers_every_view_at_the_true_poses(scene, run, tmp_path):
+    """COLMAP's global mapper (GLOMAP) on the same matches: a rerun with ``mapper="global"`` resumes
+    the matching and maps again; every view sits at its true place up to a similarity."""
+    import shutil
+
+    folder, cameras = scene
+    out = tmp_path / "out"
+    shutil.copytree(run[0], out)
+    summary = reconstruct(
+        folder, out, matcher="sift", num_keypoints=2048, num_threads=1, show_progress=False, mapper="global"
+    )
+    assert summary["run"] == "resume" and summary["matching"]["matched"] == 0
+    assert summary["options"]["mapper"] == "global"
+    assert summary["registered"] == 6 and summary["mean_reprojection_error"] < 1.5
+    # no focal lengths known (COLMAP's 1.2 x side guess): the view-graph calibration found them first
+    assert summary["view_graph_calibrated"] is True
+    rec = pycolmap.Reconstruction(out / "sparse" / "0")
+    true_f = cameras[0].K[0, 0]
+    assert all(abs(c.focal_length / true_f - 1) < 0.1 for c in rec.cameras.values()), (true_f, rec.cameras)
+    est = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
+    names = sorted(est)
+    truth = np.array([cameras[int(n.split("_")[1].split(".")[0])].center for n in names])
+    assert _similarity_residual(np.array([est[n] for n in names]), truth) < 0.05
+
+
+def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path):
+    from localscale.errors import LocalScaleError
+
+    with pytest.raises(LocalScaleError, match="mapper must be one of incremental, global"):
+        reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper="glomap", show_progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_rerun_resumes_and_other_options_are_refused(scene, run):
     folder, _ = scene
     out, first = run

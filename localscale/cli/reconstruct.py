@@ -15,7 +15,7 @@ from .options import HelpFormatter, add_engine_options, executor_from_args, posi
 DESCRIPTION = """Reconstruct the images of a folder (COLMAP sparse model) with localscale's matching, hloc style:
 features (features.h5) -> pairs (pairs.txt) -> matches with a scale/turn correction (matches.h5,
 keypoints.h5) -> verified two-view geometries (geometries.h5) -> COLMAP database (database.db) ->
-pycolmap incremental mapping (sparse/0, largest model first) -> summary.json, reconstruction.png.
+pycolmap mapping, incremental or global (sparse/0, largest model first) -> summary.json, reconstruction.png.
 
 Images: every image file under IMAGES (recursively); names are paths relative to IMAGES, with their
 extension (a.jpg and a.png are two images). Other files and unreadable images are skipped with a
@@ -26,6 +26,7 @@ EXAMPLES = """examples:
   localscale reconstruct photos/ -o out/                              (ALIKED + LightGlue, no correction)
   localscale reconstruct photos/ -o out/ --correction auto            (scale and quarter-turn hypotheses per pair)
   localscale reconstruct photos/ -o out/ --matcher sift --pairs-nearest 10
+  localscale reconstruct photos/ -o out/ --correction auto --mapper global   (COLMAP's global mapper, GLOMAP)
   localscale reconstruct photos/ -o out/ --camera cameras.txt         (one COLMAP camera for every image)
   localscale reconstruct photos/ -o out/ --engine ray --workers 4     (extraction and matching on Ray)
       -> out/sparse/0/{cameras,images,points3D}.bin, out/summary.json, out/reconstruction.png"""
@@ -34,6 +35,7 @@ EXAMPLES = """examples:
 def _add_options(p: argparse.ArgumentParser) -> None:
     from ..matching import MATCHERS
     from ..sfm.database import CAMERA_MODES
+    from ..sfm.mapping import MAPPERS
     from ..sfm.match import SFM_CORRECTIONS
 
     p.add_argument("images", help="folder of images (searched recursively)")
@@ -86,6 +88,12 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="one camera for every image: a cameras.txt line, a COLMAP cameras.txt with one camera, or "
         "JSON (default: EXIF focal length, else 1.2 x the longer side)",
+    )
+    p.add_argument(
+        "--mapper",
+        default="incremental",
+        choices=MAPPERS,
+        help="COLMAP's incremental mapper (hloc's default) or its global mapper (GLOMAP: every camera at once)",
     )
     p.add_argument("--max-side", type=positive_int, default=1024, help="working resolution (longer side, pixels)")
     p.add_argument("--num-keypoints", type=positive_int, default=2048, help="keypoints per image at most")
@@ -173,4 +181,5 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         global_model=global_model,
         engine=executor,
         auto_graph=not args.auto_per_pair,
+        mapper=args.mapper,
     )

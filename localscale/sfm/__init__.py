@@ -9,7 +9,7 @@ Steps (each usable alone; :func:`reconstruct` runs them all):
    (``matches.h5``, ``keypoints.h5``; :func:`match_pairs`);
 5. :mod:`.geometry`: verified two-view geometries (``geometries.h5``; :func:`verify_pairs`);
 6. :mod:`.database`: the COLMAP database (:func:`write_database`, :func:`read_database`);
-7. :mod:`.mapping`: pycolmap's incremental mapping (``sparse/0``; :func:`run_mapping`);
+7. :mod:`.mapping`: pycolmap's incremental or global mapping (``sparse/0``; :func:`run_mapping`);
 8. :mod:`.viz`: the model from above and the pair graph (:func:`plot_reconstruction`).
 
 The submodules (torch, pycolmap, h5py) are imported on first use of a name below.

@@ -1,11 +1,19 @@
-"""Step 6: pycolmap's incremental mapping into ``OUT/sparse/0, 1, ...`` (binary COLMAP models).
+"""Step 6: pycolmap's mapping into ``OUT/sparse/0, 1, ...`` (binary COLMAP models).
 
-The models are numbered by size (``0``: the most registered images). The mapper writes into a
-temporary folder; ``sparse/`` is replaced only when it has finished.
+Two mappers (:data:`MAPPERS`): COLMAP's ``incremental`` one (registers one image after the other,
+bundle adjustment along the way: hloc's and COLMAP's default), and its ``global`` one (GLOMAP:
+rotations and positions of every camera at once from the verified pairs, then one bundle
+adjustment; COLMAP 4's ``global_mapper``). The global mapper needs focal lengths: when fewer than
+half of the cameras have a known one, COLMAP's view-graph calibration runs first
+(``colmap view_graph_calibrator``: focal lengths from the fundamental matrices; it updates the
+database's cameras and two-view geometries). The models are numbered by size (``0``: the most
+registered images). The mapper writes into a temporary folder; ``sparse/`` is replaced only when
+it has finished.
 
 Example::
 
     result = run_mapping("out/database.db", "photos/", "out/sparse")
+    result = run_mapping("out/database.db", "photos/", "out/sparse", mapper="global")
     result.stats[0]     # images registered, points, observations, mean track length, reprojection error
 """
 
@@ -16,10 +24,14 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from ..errors import LocalScaleError
+
+#: the mappers of :func:`run_mapping`
+MAPPERS = ("incremental", "global")
 
 
 @dataclass
@@ -29,6 +41,8 @@ class MappingResult:
     models: list = field(default_factory=list)
     stats: list = field(default_factory=list)
     seconds: float = 0.0
+    #: the global mapper's view-graph calibration: None (not run), True (done), False (failed)
+    calibrated: Optional[bool] = None
 
 
 def model_stats(rec) -> dict:
@@ -46,14 +60,45 @@ def model_stats(rec) -> dict:
     }
 
 
-def mapping_options(num_threads: int = -1, min_model_size: int = 3):
+def mapping_options(num_threads: int = -1, min_model_size: int = 3, mapper: str = "incremental"):
+    """pycolmap's options of ``mapper`` (``IncrementalPipelineOptions`` or ``GlobalPipelineOptions``)."""
     import pycolmap
 
-    opts = pycolmap.IncrementalPipelineOptions()
+    check_mapper(mapper)
+    opts = pycolmap.IncrementalPipelineOptions() if mapper == "incremental" else pycolmap.GlobalPipelineOptions()
     opts.num_threads = num_threads
     opts.min_model_size = min_model_size
     opts.random_seed = 0  # the same run gives the same model
     return opts
+
+
+def check_mapper(mapper: str) -> None:
+    if mapper not in MAPPERS:
+        raise LocalScaleError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
+
+
+def needs_calibration(database_path) -> bool:
+    """Whether fewer than half of the database's cameras have a known focal length
+    (``has_prior_focal_length``): the global mapper then needs the view-graph calibration."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        cameras = db.read_all_cameras()
+    finally:
+        db.close()
+    return 2 * sum(bool(c.has_prior_focal_length) for c in cameras) < len(cameras)
+
+
+def calibrate_view_graph(database_path) -> bool:
+    """COLMAP's view-graph calibration of ``database_path`` (in place): focal lengths from the
+    fundamental matrices of the verified pairs, the pairs upgraded to calibrated two-view
+    geometries. Returns whether it succeeded."""
+    import pycolmap
+
+    opts = pycolmap.ViewGraphCalibrationOptions()
+    opts.random_seed = 0
+    return bool(pycolmap.calibrate_view_graph(str(database_path), opts))
 
 
 @contextlib.contextmanager
@@ -70,25 +115,37 @@ def colmap_log(verbose: bool = False):
 
 
 def run_mapping(
-    database_path, image_dir, sparse_dir, options=None, num_threads: int = -1, verbose: bool = False
+    database_path,
+    image_dir,
+    sparse_dir,
+    options=None,
+    num_threads: int = -1,
+    verbose: bool = False,
+    mapper: str = "incremental",
 ) -> MappingResult:
-    """Incremental mapping of ``database_path``; writes ``sparse_dir/<i>`` (largest model first).
-    ``image_dir`` gives the points their colours (COLMAP reads the images)."""
+    """Mapping of ``database_path`` with ``mapper`` (:data:`MAPPERS`); writes ``sparse_dir/<i>``
+    (largest model first). ``image_dir`` gives the points their colours (COLMAP reads the images);
+    ``options``: pycolmap's options of that mapper (default :func:`mapping_options`)."""
     import pycolmap
 
+    check_mapper(mapper)
     database_path, sparse_dir = Path(database_path), Path(sparse_dir)
     if not database_path.is_file():
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
+    calibrated = None
     tmp = sparse_dir.with_name(f".{sparse_dir.name}.tmp")
     final_tmp = sparse_dir.with_name(f".{sparse_dir.name}.new")
     for d in (tmp, final_tmp):
         shutil.rmtree(d, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        opts = options or mapping_options(num_threads)
+        opts = options or mapping_options(num_threads, mapper=mapper)
+        run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
         with colmap_log(verbose):
-            models = pycolmap.incremental_mapping(database_path, image_dir, tmp, opts)
+            if mapper == "global" and needs_calibration(database_path):
+                calibrated = calibrate_view_graph(database_path)
+            models = run(database_path, image_dir, tmp, opts)
         ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
         final_tmp.mkdir()
         for i, rec in enumerate(ordered):
@@ -101,7 +158,8 @@ def run_mapping(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(final_tmp, ignore_errors=True)
-    return MappingResult(ordered, [model_stats(r) for r in ordered], time.perf_counter() - t0)
+    stats = [model_stats(r) for r in ordered]
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated)
 
 
 def read_models(sparse_dir) -> list:

@@ -240,6 +240,10 @@ ANCHOR_PAIRS_PER_IMAGE = 2
 #: hypotheses per pair in the graph step
 LEVEL_HYPOTHESES = 1
 
+#: pairs per image in the graph step's first round (its best supported); an image gets the rest of
+#: its pairs in a second round when one of its first round verified
+GRAPH_PAIRS_PER_IMAGE = 3
+
 #: a relation composed through the graph is tried when it turns, or zooms by at least this many
 #: octaves (a milder zoom the matcher takes as it is, which step 1 tried)
 COMPOSED_MIN_LOG2 = 1.0
@@ -265,7 +269,9 @@ def _match_with_graph(
        (:meth:`~.pair_runner.PairRunner.levels`: each image extracted once per level and turn
        whatever its pairs); a pair with none whose images the graph does not join runs the
        networks (on at most :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most
-       matches first).
+       matches first). The hypotheses run in two rounds (:func:`_first_round`): each image's
+       :data:`GRAPH_PAIRS_PER_IMAGE` best supported pairs, then the rest of the pairs of the
+       images that one of those joined.
 
     The pairs of step 1 with at least ``turn_inliers`` inliers, then those of step 3, fix the
     images' quarter turns (:func:`_quarter_turns`); a hypothesis or seed geometry that turns two
@@ -309,18 +315,55 @@ def _match_with_graph(
         if best[i].verified and best[i].relation.strength >= turn_inliers
     ]
     turns = _quarter_turns(clear)
-    items, quota = {}, {}
+    items, levels, quota = {}, {}, {}
     for i in sorted(open_, key=lambda i: (-len(best[i].matches), i)):
         a, b = todo[i]
         hyps = _graph_hypotheses(graph, a, b, best[i], seeds.get(i), tried[i], same_log2)
         hyps = [h for h in hyps if _turn_fits(turns, a, b, h.turn)][:LEVEL_HYPOTHESES]
         if hyps:
-            items[i] = (a, b, "levels", hyps)
+            levels[i] = (a, b, "levels", hyps)
         elif not graph.connected(a, b) and max(quota.get(a, 0), quota.get(b, 0)) < NETWORK_PAIRS_PER_IMAGE:
             quota[a], quota[b] = quota.get(a, 0) + 1, quota.get(b, 0) + 1
             items[i] = (a, b, "hypotheses", [], True)
-    open_ = _settle(run_items, items, "graph", open_, best, tried, graph, todo, sets, output, stats, flush_s)
+    support = {i: _support(graph, *todo[i], seeds.get(i), same_log2) for i in levels}
+    first, rest, charged = _first_round(levels, support, graph)
+    open_ = _settle(
+        run_items, {**items, **first}, "graph", open_, best, tried, graph, todo, sets, output, stats, flush_s
+    )
+    more = _second_round(first, rest, charged, set(open_))
+    open_ = _settle(run_items, more, "graph, more", open_, best, tried, graph, todo, sets, output, stats, flush_s)
     _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
+
+
+def _support(graph: PairGraph, a: str, b: str, seed, same_log2: float) -> int:
+    """Inliers behind a pair's hypotheses: the strongest of its seed geometry and the relations the
+    graph composes for it."""
+    relations = graph.composed(a, b, same_log2=same_log2)
+    relations += [] if seed is None or seed.relation is None else [seed.relation]
+    return max((r.strength for r in relations), default=0)
+
+
+def _first_round(levels: dict, support: dict, graph: PairGraph) -> tuple:
+    """``(first, rest, charged)``: the graph step's pairs split for its two rounds. Each pair is
+    charged to the image of the two with fewer verified pairs (the one the pair would join to the
+    collection: ``charged[i]``); the first round tries the :data:`GRAPH_PAIRS_PER_IMAGE` best
+    supported pairs of each image."""
+    first, rest, charged, count = {}, {}, {}, {}
+    for i in sorted(levels, key=lambda i: (-support[i], i)):
+        charged[i] = min(levels[i][:2], key=lambda x: (len(graph.neighbours(x)), x))
+        if count.get(charged[i], 0) < GRAPH_PAIRS_PER_IMAGE:
+            count[charged[i]] = count.get(charged[i], 0) + 1
+            first[i] = levels[i]
+        else:
+            rest[i] = levels[i]
+    return first, rest, charged
+
+
+def _second_round(first: dict, rest: dict, charged: dict, still_open: set) -> dict:
+    """The pairs of ``rest`` charged to an image that one of its own first-round pairs verified:
+    hypotheses that keep failing for an image are not tried further."""
+    joined = {charged[i] for i in first if i not in still_open}
+    return {i: item for i, item in rest.items() if charged[i] in joined}
 
 
 def _settle(run_items, items: dict, step: str, open_, best, tried, graph, todo, sets, output, stats, flush_s) -> list:

@@ -156,6 +156,7 @@ def reconstruct(
     global_model=None,
     engine=None,
     auto_graph: bool = True,
+    mapper: str = "incremental",
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -179,6 +180,8 @@ def reconstruct(
             (:func:`~localscale.engine.get_executor`; the caller closes it). The outputs are the same.
         auto_graph: ``auto`` driven by the pair graph (:func:`~.match.match_pairs`); False: the
             whole hypothesis loop on every pair that does not verify clearly as it is.
+        mapper: ``incremental`` (COLMAP's incremental mapper) or ``global`` (its global mapper,
+            GLOMAP): :func:`~.mapping.run_mapping`.
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
@@ -203,6 +206,7 @@ def reconstruct(
         global_model=global_model,
         engine=engine,
         auto_graph=auto_graph,
+        mapper=mapper,
     )
     return run.run(t_total)
 
@@ -235,6 +239,7 @@ class _Reconstruction:
     global_model: Any
     engine: Any = None
     auto_graph: bool = True
+    mapper: str = "incremental"
     seconds: dict = field(default_factory=dict)
 
     def run(self, t_total: float) -> dict:
@@ -277,6 +282,9 @@ class _Reconstruction:
             self.max_side,
             self.num_keypoints,
         )
+        from .mapping import check_mapper
+
+        check_mapper(self.mapper)
         if self.out.resolve() == self.images_dir.resolve():
             raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
         check_writable_dir(self.out)
@@ -292,6 +300,7 @@ class _Reconstruction:
             "camera_file_sha1": None,
             "merge_px": self.merge_px,
             "auto_graph": self.auto_graph if self.correction == "auto" else None,
+            "mapper": self.mapper,
         }
 
     def read_inputs(self) -> None:
@@ -436,7 +445,7 @@ class _Reconstruction:
             )
 
     def map_model(self) -> None:
-        """``sparse/``: pycolmap's incremental mapping."""
+        """``sparse/``: pycolmap's mapping (:attr:`mapper`)."""
         from .mapping import run_mapping
 
         with self._timed("mapping"):
@@ -446,6 +455,7 @@ class _Reconstruction:
                 self.out / "sparse",
                 num_threads=self.num_threads,
                 verbose=self.verbose,
+                mapper=self.mapper,
             )
 
     def summarize(self) -> dict:
@@ -503,6 +513,8 @@ def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, secon
             {n for s in mapping.stats[1:] for n in s["registered_images"]} - set(best["registered_images"])
         ),
         "models": [{k: v for k, v in s.items() if k != "registered_images"} for s in mapping.stats],
+        "mapper": options.get("mapper", "incremental"),
+        "view_graph_calibrated": mapping.calibrated,
         "pairs": len(pair_list),
         "pairs_verified": gstats.verified,
         "geometry_estimator": gstats.estimator,
@@ -532,6 +544,8 @@ def _flag(summary: dict) -> None:
             f"the images split into {len(summary['models'])} models: {len(summary['images_in_other_models'])} "
             f"image(s) are only in smaller models, not aligned with the largest ({shown})"
         )
+    if summary.get("view_graph_calibrated") is False:
+        warn("the view-graph calibration failed: the global mapper ran on guessed focal lengths")
     err = summary["mean_reprojection_error"]
     if err is not None and err > 2.0:
         warn(f"mean reprojection error {err:.2f} px is high: wrong matches or a wrong camera model")
