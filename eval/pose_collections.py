@@ -13,7 +13,11 @@ Collections (``--root``, default ``/work/shared/data/collections``), each read w
   tracks from ``colmap_sparse_0/points3D.bin`` (image id k = ``%02d.jpg``);
 * ``kermit_bundler``: COLMAP text model derived from Bundler (``derived/colmap_txt``), with tracks;
 * ``temple_sparse_ring_middlebury``: calibrated ``K, R, t`` (``derived/templeSR_par_jpgnames.txt``),
-  no 3D points.
+  no 3D points;
+* any other collection with ``--gt-model NAME=DIR``: a COLMAP model (binary or text, read with
+  pycolmap) of ``NAME/images`` as pseudo ground truth, e.g. the ``colmap-sift`` reconstruction of
+  ``eval/reconstruct_collections.py`` (``OUT/NAME/colmap-sift/sparse/0``), as MegaDepth's poses come
+  from COLMAP.
 
 Pairs (seeded): two registered images sharing at least ``--min-covisible`` 3D points and that share
 of the smaller track set; without tracks (temple), optical axes within ``--max-axis-angle`` degrees.
@@ -156,14 +160,41 @@ def _read_points3d_bin(path: Path):
     return xyz, seen
 
 
-def load_collection(root: Path, name: str) -> Collection:
-    """Registered views (camera, pose, co-visible 3D point ids) of one collection."""
+def load_model_collection(base: Path, name: str, model_dir: Path) -> Collection:
+    """The registered views of a COLMAP model (``model_dir``, binary or text) of ``base/images``."""
+    import pycolmap
+
+    if not model_dir.is_dir():
+        raise LocalScaleError(f"--gt-model {name}: no model folder {model_dir}")
+    rec = pycolmap.Reconstruction(model_dir)
+    points = {pid: np.asarray(p.xyz) for pid, p in rec.points3D.items()}
+    seen: Dict[int, set] = {}
+    for pid, p in rec.points3D.items():
+        for el in p.track.elements:
+            seen.setdefault(el.image_id, set()).add(pid)
+    views: Dict[str, View] = {}
+    for image_id, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        R, t = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+        cam = Camera.from_pycolmap(rec.cameras[im.camera_id])
+        views[im.name] = View(im.name, base / "images" / im.name, cam, R, t, seen.get(image_id, set()))
+    return Collection(name, views, points)
+
+
+def load_collection(root: Path, name: str, model_dir=None) -> Collection:
+    """Registered views (camera, pose, co-visible 3D point ids) of one collection (``model_dir``:
+    a COLMAP model as its pseudo ground truth, for a collection without a reader)."""
     base = root / name
     if not base.is_dir():
         raise LocalScaleError(f"collection {base} does not exist")
     views: Dict[str, View] = {}
     points: Dict[int, np.ndarray] = {}
-    if name in ("skull_alansartlog", "kermit_bundler"):
+    if model_dir is not None:
+        col = load_model_collection(base, name, Path(model_dir))
+        views, points = col.views, col.points
+    elif name in ("skull_alansartlog", "kermit_bundler"):
         model = base / "derived" / ("colmap_txt_resized" if name == "skull_alansartlog" else "colmap_txt")
         cams = read_cameras_txt(model / "cameras.txt")
         images = _read_images_txt(model / "images.txt")
@@ -420,7 +451,16 @@ def markdown(rows: List[dict]) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--root", default="/work/shared/data/collections")
-    p.add_argument("--collections", nargs="+", default=list(COLLECTIONS), choices=COLLECTIONS)
+    p.add_argument(
+        "--collections", nargs="+", default=list(COLLECTIONS), help=f"{', '.join(COLLECTIONS)}, or one of --gt-model"
+    )
+    p.add_argument(
+        "--gt-model",
+        nargs="+",
+        default=[],
+        metavar="NAME=DIR",
+        help="a COLMAP model (binary or text) of collection NAME as its pseudo ground truth",
+    )
     p.add_argument("--methods", nargs="+", default=["opencv-sift", "aliked-lightglue:none", "aliked-lightglue:auto"])
     p.add_argument("--pairs", type=int, default=55, help="plain pairs per collection (each also gives a zoom pair)")
     p.add_argument("--kinds", nargs="+", default=["plain", "zoom"], choices=("plain", "zoom"))
@@ -436,6 +476,12 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.pairs < 1 or not 1 <= a.zoom[0] <= a.zoom[1]:
         p.error("--pairs must be >= 1 and 1 <= --zoom MIN <= MAX")
+    if any("=" not in g for g in a.gt_model):
+        p.error("--gt-model takes NAME=DIR")
+    gt_models = dict(g.split("=", 1) for g in a.gt_model)
+    unknown = [c for c in a.collections if c not in COLLECTIONS and c not in gt_models]
+    if unknown:
+        p.error(f"no reader for {', '.join(unknown)}: give its --gt-model NAME=DIR (known: {', '.join(COLLECTIONS)})")
     try:
         import torch
 
@@ -447,6 +493,8 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     cache_path = Path(a.cache) if a.cache else out.with_suffix(".pairs.jsonl")
     options = {"max_side": a.max_side, "max_error": a.max_error, "zoom": list(a.zoom), "seed": a.seed}
+    if gt_models:
+        options["gt_models"] = gt_models
     done = {}
     if cache_path.exists():
         for ln in cache_path.read_text().splitlines():
@@ -461,7 +509,7 @@ def main(argv=None) -> int:
     # the pairs and windows, fixed by the seed
     jobs = []
     for name in a.collections:
-        col = load_collection(Path(a.root), name)
+        col = load_collection(Path(a.root), name, gt_models.get(name))
         pairs = choose_pairs(col, a.pairs, a.seed, a.min_covisible, a.min_share, a.max_axis_angle)
         print(f"{name}: {len(col.views)} registered views, {len(pairs)} pairs", file=sys.stderr)
         for ia, ib in pairs:
