@@ -69,6 +69,10 @@ def mapping_options(num_threads: int = -1, min_model_size: int = 3, mapper: str 
     opts.num_threads = num_threads
     opts.min_model_size = min_model_size
     opts.random_seed = 0  # the same run gives the same model
+    if mapper == "global" and not getattr(pycolmap, "has_cuda", False):
+        # its solvers ask for the GPU by default and warn on a CPU build of COLMAP
+        opts.mapper.bundle_adjustment.ceres.use_gpu = False
+        opts.mapper.global_positioning.use_gpu = False
     return opts
 
 
