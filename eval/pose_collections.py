@@ -179,6 +179,7 @@ def load_model_collection(base: Path, name: str, model_dir: Path) -> Collection:
         pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         R, t = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
         cam = Camera.from_pycolmap(rec.cameras[im.camera_id])
+        cam.has_prior_focal_length = True  # refined by the model: known, as calibrated cameras are
         views[im.name] = View(im.name, base / "images" / im.name, cam, R, t, seen.get(image_id, set()))
     return Collection(name, views, points)
 
