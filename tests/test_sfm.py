@@ -100,6 +100,25 @@ def test_global_mapper_registers_every_view_at_the_true_poses(scene, run, tmp_pa
     assert _similarity_residual(np.array([est[n] for n in names]), truth) < 0.05
 
 
+def test_implausible_intrinsics_are_flagged(run, capsys):
+    """A model whose camera drifted to an absurd focal length (COLMAP's own bounds: 0.1-10 x the
+    image size) is named in the summary and gets a warning instead of being reported as fine."""
+    from localscale.sfm.mapping import model_stats
+    from localscale.sfm.reconstruction import _flag
+
+    out, summary = run
+    rec = pycolmap.Reconstruction(out / "sparse" / "0")
+    assert model_stats(rec)["bogus_cameras"] == [] and summary["implausible_cameras"] == []
+    image = next(im for im in rec.images.values() if im.has_pose)
+    camera = rec.cameras[image.camera_id]
+    camera.params = [3e7, *list(camera.params)[1:]]
+    rec.cameras[image.camera_id] = camera
+    bad = [im.name for im in rec.images.values() if im.has_pose and im.camera_id == image.camera_id]
+    assert model_stats(rec)["bogus_cameras"] == sorted(bad)
+    _flag({**summary, "implausible_cameras": sorted(bad)})
+    assert "implausible intrinsics" in capsys.readouterr().err
+
+
 def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path):
     from localscale.errors import LocalScaleError
 

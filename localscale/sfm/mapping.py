@@ -45,11 +45,23 @@ class MappingResult:
     calibrated: Optional[bool] = None
 
 
+#: COLMAP's bounds of plausible intrinsics (its mapper's ``min/max_focal_length_ratio``,
+#: ``max_extra_param``): focal length over the longer side, and distortion terms
+FOCAL_RATIO_RANGE = (0.1, 10.0)
+MAX_EXTRA_PARAM = 1.0
+
+
 def model_stats(rec) -> dict:
     """Images registered (their names), 3D points, observations, mean track length, mean
-    reprojection error (pixels) of a ``pycolmap.Reconstruction``."""
+    reprojection error (pixels) of a ``pycolmap.Reconstruction``, and the registered images whose
+    camera has implausible intrinsics (``bogus_cameras``: COLMAP's own test)."""
     names = sorted(im.name for im in rec.images.values() if im.has_pose)
     points = rec.num_points3D()
+    bogus = sorted(
+        im.name
+        for im in rec.images.values()
+        if im.has_pose and rec.cameras[im.camera_id].has_bogus_params(*FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM)
+    )
     return {
         "registered": len(names),
         "points": int(points),
@@ -57,6 +69,7 @@ def model_stats(rec) -> dict:
         "mean_track_length": float(rec.compute_mean_track_length()) if points else 0.0,
         "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if points else None,
         "registered_images": names,
+        "bogus_cameras": bogus,
     }
 
 

@@ -498,6 +498,7 @@ def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, secon
             "mean_track_length": 0.0,
             "mean_reprojection_error": None,
             "registered_images": [],
+            "bogus_cameras": [],
         }
     )
     names = [im.name for im in images]
@@ -509,10 +510,13 @@ def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, secon
         "mean_track_length": best["mean_track_length"],
         "mean_reprojection_error": best["mean_reprojection_error"],
         "unregistered_images": sorted(set(names) - set(best["registered_images"])),
+        "implausible_cameras": best.get("bogus_cameras", []),
         "images_in_other_models": sorted(
             {n for s in mapping.stats[1:] for n in s["registered_images"]} - set(best["registered_images"])
         ),
-        "models": [{k: v for k, v in s.items() if k != "registered_images"} for s in mapping.stats],
+        "models": [
+            {k: v for k, v in s.items() if k not in ("registered_images", "bogus_cameras")} for s in mapping.stats
+        ],
         "mapper": options.get("mapper", "incremental"),
         "view_graph_calibrated": mapping.calibrated,
         "pairs": len(pair_list),
@@ -543,6 +547,12 @@ def _flag(summary: dict) -> None:
         warn(
             f"the images split into {len(summary['models'])} models: {len(summary['images_in_other_models'])} "
             f"image(s) are only in smaller models, not aligned with the largest ({shown})"
+        )
+    if summary.get("implausible_cameras"):
+        shown = ", ".join(summary["implausible_cameras"][:6])
+        warn(
+            f"{len(summary['implausible_cameras'])} registered image(s) have implausible intrinsics (focal "
+            f"length outside 0.1-10 x the image size or distortion > 1): their poses are not to be trusted ({shown})"
         )
     if summary.get("view_graph_calibrated") is False:
         warn("the view-graph calibration failed: the global mapper ran on guessed focal lengths")
