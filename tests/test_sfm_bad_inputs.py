@@ -228,3 +228,22 @@ def test_command_in_a_fresh_process(views, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["registered"] == 5, summary["registered"]
+
+
+def test_global_mapper_with_nothing_to_calibrate_says_so(tmp_path, capsys):
+    """Images that share nothing: the global mapper's view-graph calibration has no pair to use; the
+    run says the calibration failed and that no model was built, and exits with 1."""
+    import json
+
+    import cv2
+
+    d = tmp_path / "imgs"
+    d.mkdir()
+    rng = np.random.default_rng(3)
+    for i in range(3):
+        cv2.imwrite(str(d / f"noise_{i}.png"), (rng.random((240, 320, 3)) * 255).astype(np.uint8))
+    out = tmp_path / "out"
+    assert run_cli([str(d), "-o", str(out), *FAST, "--mapper", "global"]) == 1
+    err = capsys.readouterr().err
+    assert "warning: the view-graph calibration failed" in err and "warning: no model" in err
+    assert json.loads((out / "summary.json").read_text())["view_graph_calibrated"] is False

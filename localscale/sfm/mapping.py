@@ -110,12 +110,13 @@ def needs_calibration(database_path) -> bool:
 def calibrate_view_graph(database_path) -> bool:
     """COLMAP's view-graph calibration of ``database_path`` (in place): focal lengths from the
     fundamental matrices of the verified pairs, the pairs upgraded to calibrated two-view
-    geometries. Returns whether it succeeded."""
+    geometries. Returns whether it succeeded (at least half of the cameras have a focal length then)."""
     import pycolmap
 
     opts = pycolmap.ViewGraphCalibrationOptions()
     opts.random_seed = 0
-    return bool(pycolmap.calibrate_view_graph(str(database_path), opts))
+    done = bool(pycolmap.calibrate_view_graph(str(database_path), opts))
+    return done and not needs_calibration(database_path)  # it reports success with no pair to use
 
 
 @contextlib.contextmanager
