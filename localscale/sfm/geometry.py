@@ -1,8 +1,7 @@
 """Step 4: the verified two-view geometry of every matched pair (``geometries.h5``).
 
 Each pair's matches (``keypoints.h5`` / ``matches.h5``) and the two cameras
-(:func:`~.database.image_cameras`) go to :func:`localscale.two_view.estimate_two_view_geometry`
-when that module exists, else to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
+(:func:`~.database.image_cameras`) go to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
 verification: E, F and H by RANSAC, the configuration that explains the matches, its inliers).
 A pair with fewer than ``min_inliers`` inliers, or a degenerate configuration, is kept with no
 inlier matches (COLMAP's mapper then ignores it).
@@ -48,40 +47,6 @@ class GeometryStats:
         }
 
 
-def _two_view_module():
-    try:
-        from ..matching import two_view
-    except ImportError:
-        return None
-    return two_view if hasattr(two_view, "estimate_two_view_geometry") else None
-
-
-def _as_pycolmap(tv, matches: np.ndarray):
-    """A ``pycolmap.TwoViewGeometry`` from the project's two-view result (configuration name or
-    value, F, E, H, inlier mask over ``matches``)."""
-    import pycolmap
-
-    g = pycolmap.TwoViewGeometry()
-    config = getattr(tv, "configuration", getattr(tv, "config", "UNDEFINED"))
-    name = config if isinstance(config, str) else getattr(config, "name", str(config))
-    g.config = pycolmap.TwoViewGeometryConfiguration.__members__.get(
-        str(name).upper(), pycolmap.TwoViewGeometryConfiguration.UNDEFINED
-    )
-    mask = getattr(tv, "inlier_mask", getattr(tv, "inliers", None))
-    mask = np.zeros(len(matches), bool) if mask is None else np.asarray(mask, bool).reshape(-1)
-    g.inlier_matches = np.ascontiguousarray(matches[mask], np.uint32).reshape(-1, 2)
-    for k in ("F", "E", "H"):
-        v = getattr(tv, k, None)
-        if v is not None:
-            setattr(g, k, np.asarray(v, np.float64))
-    R, t = getattr(tv, "R", None), getattr(tv, "t", None)
-    if R is not None and t is not None:
-        g.cam2_from_cam1 = pycolmap.Rigid3d(
-            pycolmap.Rotation3d(np.asarray(R, np.float64)), np.asarray(t, np.float64).reshape(3)
-        )
-    return g
-
-
 def _to_pycolmap(camera):
     return camera.to_pycolmap() if hasattr(camera, "to_pycolmap") else camera
 
@@ -101,22 +66,17 @@ def estimate_pair(
     (keypoints.h5's convention), ``matches`` ``K x 2`` indices into them."""
     import pycolmap
 
-    mod = _two_view_module()
-    if mod is not None:
-        tv = mod.estimate_two_view_geometry(points_a[matches[:, 0]], points_b[matches[:, 1]], camera_a, camera_b)
-        g = _as_pycolmap(tv, matches)
-    else:
-        opts = pycolmap.TwoViewGeometryOptions()
-        opts.min_num_inliers = min_inliers
-        opts.ransac.random_seed = 0
-        g = pycolmap.estimate_two_view_geometry(
-            _to_pycolmap(camera_a),
-            np.asarray(points_a, np.float64) + 0.5,
-            _to_pycolmap(camera_b),
-            np.asarray(points_b, np.float64) + 0.5,
-            np.ascontiguousarray(matches, np.uint32),
-            opts,
-        )
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.min_num_inliers = min_inliers
+    opts.ransac.random_seed = 0
+    g = pycolmap.estimate_two_view_geometry(
+        _to_pycolmap(camera_a),
+        np.asarray(points_a, np.float64) + 0.5,
+        _to_pycolmap(camera_b),
+        np.asarray(points_b, np.float64) + 0.5,
+        np.ascontiguousarray(matches, np.uint32),
+        opts,
+    )
     if config_name(g) not in VERIFIED_CONFIGS or len(g.inlier_matches) < min_inliers:
         g.inlier_matches = np.zeros((0, 2), np.uint32)
     return g
@@ -133,7 +93,7 @@ def verify_pairs(
 ) -> GeometryStats:
     """Verify every pair of ``matches_path`` and write ``geometries_path`` (anew, atomically)."""
     t0 = time.perf_counter()
-    stats = GeometryStats(estimator="localscale.two_view" if _two_view_module() else "pycolmap")
+    stats = GeometryStats()
     names = {im.name for im in images}
     kps = {
         n: read_group(keypoints_path, n, ("keypoints",))["keypoints"]
