@@ -88,6 +88,7 @@ def test_global_mapper_registers_every_view_at_the_true_poses(scene, run, tmp_pa
     )
     assert summary["run"] == "resume" and summary["matching"]["matched"] == 0
     assert summary["options"]["mapper"] == "global"
+    assert summary["mapping_runs"] == [{"seed": 0, "registered": 6}]  # all registered: one run
     assert summary["registered"] == 6 and summary["mean_reprojection_error"] < 1.5
     # no focal lengths known (COLMAP's 1.2 x side guess): the view-graph calibration found them first
     assert summary["view_graph_calibrated"] is True
@@ -117,6 +118,31 @@ def test_implausible_intrinsics_are_flagged(run, capsys):
     assert model_stats(rec)["bogus_cameras"] == sorted(bad)
     _flag({**summary, "implausible_cameras": sorted(bad)})
     assert "implausible intrinsics" in capsys.readouterr().err
+
+
+def test_the_mapper_runs_again_while_images_are_left_out(run, tmp_path, monkeypatch):
+    """The incremental mapper depends on its random seed; while its largest model leaves images out,
+    it runs again with the next seed and the run that registers the most is kept."""
+    from localscale.sfm.mapping import run_mapping
+
+    out, _ = run
+    full = pycolmap.Reconstruction(out / "sparse" / "0")
+    partial = pycolmap.Reconstruction(out / "sparse" / "0")
+    partial.deregister_frame(next(im.frame_id for im in partial.images.values() if im.has_pose))
+    seeds = []
+
+    def mapper(database, images, output, options):  # seed 0 leaves one image out, seed 1 does not
+        seeds.append(options.random_seed)
+        return {0: partial if options.random_seed == 0 else full}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapper)
+    res = run_mapping(out / "database.db", out, tmp_path / "sparse", num_threads=1, trials=3)
+    assert seeds == [0, 1] and res.stats[0]["registered"] == 6
+    assert res.trials == [{"seed": 0, "registered": 5}, {"seed": 1, "registered": 6}]
+    assert pycolmap.Reconstruction(tmp_path / "sparse" / "0").num_reg_images() == 6
+    seeds.clear()
+    assert run_mapping(out / "database.db", out, tmp_path / "one", num_threads=1, trials=1).stats[0]["registered"] == 5
+    assert seeds == [0]
 
 
 def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path):

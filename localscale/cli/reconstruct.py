@@ -95,6 +95,14 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         choices=MAPPERS,
         help="COLMAP's incremental mapper (hloc's default) or its global mapper (GLOMAP: every camera at once)",
     )
+    p.add_argument(
+        "--mapping-trials",
+        type=positive_int,
+        default=3,
+        metavar="N",
+        help="runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out; "
+        "the run that registers the most is kept",
+    )
     p.add_argument("--max-side", type=positive_int, default=1024, help="working resolution (longer side, pixels)")
     p.add_argument("--num-keypoints", type=positive_int, default=2048, help="keypoints per image at most")
     p.add_argument(
@@ -182,4 +190,5 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         engine=executor,
         auto_graph=not args.auto_per_pair,
         mapper=args.mapper,
+        mapping_trials=args.mapping_trials,
     )

@@ -33,6 +33,9 @@ from ..errors import LocalScaleError
 #: the mappers of :func:`run_mapping`
 MAPPERS = ("incremental", "global")
 
+#: runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out
+MAPPING_TRIALS = 3
+
 
 @dataclass
 class MappingResult:
@@ -43,6 +46,8 @@ class MappingResult:
     seconds: float = 0.0
     #: the global mapper's view-graph calibration: None (not run), True (done), False (failed)
     calibrated: Optional[bool] = None
+    #: each run of the mapper: ``{"seed", "registered"}`` (:func:`run_mapping`'s ``trials``)
+    trials: list = field(default_factory=list)
 
 
 #: COLMAP's bounds of plausible intrinsics (its mapper's ``min/max_focal_length_ratio``,
@@ -140,13 +145,21 @@ def run_mapping(
     num_threads: int = -1,
     verbose: bool = False,
     mapper: str = "incremental",
+    trials: int = MAPPING_TRIALS,
 ) -> MappingResult:
     """Mapping of ``database_path`` with ``mapper`` (:data:`MAPPERS`); writes ``sparse_dir/<i>``
     (largest model first). ``image_dir`` gives the points their colours (COLMAP reads the images);
-    ``options``: pycolmap's options of that mapper (default :func:`mapping_options`)."""
+    ``options``: pycolmap's options of that mapper (default :func:`mapping_options`).
+
+    ``trials``: while the largest model leaves images of the database out, the mapper runs again
+    with the next random seed (0, 1, ...), at most ``trials`` times in all; the run whose largest
+    model registers the most images (then has the most observations) is kept
+    (:attr:`MappingResult.trials`: each run's seed and images registered)."""
     import pycolmap
 
     check_mapper(mapper)
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise LocalScaleError(f"mapping trials must be an integer >= 1, got {trials!r}")
     database_path, sparse_dir = Path(database_path), Path(sparse_dir)
     if not database_path.is_file():
         raise LocalScaleError(f"database not found: {database_path}")
@@ -163,8 +176,7 @@ def run_mapping(
         with colmap_log(verbose):
             if mapper == "global" and needs_calibration(database_path):
                 calibrated = calibrate_view_graph(database_path)
-            models = run(database_path, image_dir, tmp, opts)
-        ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+            ordered, runs = _best_of_trials(run, database_path, image_dir, tmp, opts, trials)
         final_tmp.mkdir()
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
@@ -177,7 +189,32 @@ def run_mapping(
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(final_tmp, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
-    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated)
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs)
+
+
+def _best_of_trials(run, database_path, image_dir, tmp: Path, opts, trials: int) -> tuple:
+    """``(models of the best run, largest first; [{"seed", "registered"}] of each run)``."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        num_images = db.num_images()
+    finally:
+        db.close()
+    rank = lambda ms: (ms[0].num_reg_images(), ms[0].compute_num_observations()) if ms else (0, 0)  # noqa: E731
+    best, runs = [], []
+    for seed in range(trials):
+        opts.random_seed = seed
+        out = tmp / str(seed)
+        out.mkdir()
+        models = run(database_path, image_dir, out, opts)
+        ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+        runs.append({"seed": seed, "registered": rank(ordered)[0]})
+        if not runs[:-1] or rank(ordered) > rank(best):
+            best = ordered
+        if rank(best)[0] >= num_images:
+            break
+    return best, runs
 
 
 def read_models(sparse_dir) -> list:

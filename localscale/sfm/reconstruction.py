@@ -157,6 +157,7 @@ def reconstruct(
     engine=None,
     auto_graph: bool = True,
     mapper: str = "incremental",
+    mapping_trials: int = 3,
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -182,6 +183,8 @@ def reconstruct(
             whole hypothesis loop on every pair that does not verify clearly as it is.
         mapper: ``incremental`` (COLMAP's incremental mapper) or ``global`` (its global mapper,
             GLOMAP): :func:`~.mapping.run_mapping`.
+        mapping_trials: runs of the mapper (random seeds 0, 1, ...) while its largest model leaves
+            images out; the run that registers the most is kept.
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
@@ -207,6 +210,7 @@ def reconstruct(
         engine=engine,
         auto_graph=auto_graph,
         mapper=mapper,
+        mapping_trials=mapping_trials,
     )
     return run.run(t_total)
 
@@ -240,6 +244,7 @@ class _Reconstruction:
     engine: Any = None
     auto_graph: bool = True
     mapper: str = "incremental"
+    mapping_trials: int = 3
     seconds: dict = field(default_factory=dict)
 
     def run(self, t_total: float) -> dict:
@@ -285,6 +290,8 @@ class _Reconstruction:
         from .mapping import check_mapper
 
         check_mapper(self.mapper)
+        if isinstance(self.mapping_trials, bool) or not isinstance(self.mapping_trials, int) or self.mapping_trials < 1:
+            raise LocalScaleError(f"--mapping-trials must be an integer >= 1, got {self.mapping_trials!r}")
         if self.out.resolve() == self.images_dir.resolve():
             raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
         check_writable_dir(self.out)
@@ -301,6 +308,7 @@ class _Reconstruction:
             "merge_px": self.merge_px,
             "auto_graph": self.auto_graph if self.correction == "auto" else None,
             "mapper": self.mapper,
+            "mapping_trials": self.mapping_trials,
         }
 
     def read_inputs(self) -> None:
@@ -456,6 +464,7 @@ class _Reconstruction:
                 num_threads=self.num_threads,
                 verbose=self.verbose,
                 mapper=self.mapper,
+                trials=self.mapping_trials,
             )
 
     def summarize(self) -> dict:
@@ -519,6 +528,7 @@ def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, secon
         ],
         "mapper": options.get("mapper", "incremental"),
         "view_graph_calibrated": mapping.calibrated,
+        "mapping_runs": mapping.trials,
         "pairs": len(pair_list),
         "pairs_verified": gstats.verified,
         "geometry_estimator": gstats.estimator,
