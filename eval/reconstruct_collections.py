@@ -20,7 +20,7 @@ Pipelines (``--pipelines``), each mapped with ``--mapper`` (COLMAP's ``increment
 ``global`` one, GLOMAP: rows named ``PIPELINE+global``):
 
 * ``colmap-sift``: ``pycolmap.extract_features`` / ``match_exhaustive`` (COLMAP's SIFT, its own
-  verification) / ``incremental_mapping``;
+  verification) / the mapper of ``--mapper``, one run (:func:`localscale.sfm.mapping.run_mapping`, ``trials=1``);
 * ``aliked-lg``: :func:`localscale.sfm.reconstruct` with ALIKED + LightGlue, 2048 keypoints at 1024 px,
   exhaustive pairs, no correction (what an hloc user runs);
 * ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
@@ -124,13 +124,7 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
 def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int, mapper: str) -> dict:
     import pycolmap
 
-    from localscale.sfm.mapping import (
-        calibrate_view_graph,
-        colmap_log,
-        mapping_options,
-        model_stats,
-        needs_calibration,
-    )
+    from localscale.sfm.mapping import colmap_log, run_mapping
 
     shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True)
@@ -151,18 +145,12 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         mopt.num_threads = threads
         pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
         seconds["match"] = time.perf_counter() - t
-        t = time.perf_counter()
-        opts = mapping_options(threads, mapper=mapper)
-        run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
-        if mapper == "global" and needs_calibration(db):
-            calibrate_view_graph(db)  # as localscale's run_mapping does (COLMAP's advice for GLOMAP)
-        models = run(db, images_dir, run_dir / "sparse", opts)
-        seconds["map"] = time.perf_counter() - t
-    ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
-    stats = model_stats(ordered[0]) if ordered else None
+    # the mapping step of localscale's pipeline, one run as COLMAP makes it
+    mapped = run_mapping(db, images_dir, run_dir / "sparse", num_threads=threads, mapper=mapper, trials=1)
+    seconds["map"] = mapped.seconds
     return {
-        "stats": stats,
-        "model": ordered[0] if ordered else None,
+        "stats": mapped.stats[0] if mapped.stats else None,
+        "model": mapped.models[0] if mapped.models else None,
         "images": len(names),
         "seconds": {
             "extract": seconds["extract"],

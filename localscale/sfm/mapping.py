@@ -99,6 +99,11 @@ def check_mapper(mapper: str) -> None:
         raise LocalScaleError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
 
 
+def check_trials(trials: int) -> None:
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise LocalScaleError(f"--mapping-trials must be an integer >= 1, got {trials!r}")
+
+
 def needs_calibration(database_path) -> bool:
     """Whether fewer than half of the database's cameras have a known focal length
     (``has_prior_focal_length``): the global mapper then needs the view-graph calibration."""
@@ -158,8 +163,7 @@ def run_mapping(
     import pycolmap
 
     check_mapper(mapper)
-    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
-        raise LocalScaleError(f"mapping trials must be an integer >= 1, got {trials!r}")
+    check_trials(trials)
     database_path, sparse_dir = Path(database_path), Path(sparse_dir)
     if not database_path.is_file():
         raise LocalScaleError(f"database not found: {database_path}")
@@ -210,7 +214,7 @@ def _best_of_trials(run, database_path, image_dir, tmp: Path, opts, trials: int)
         models = run(database_path, image_dir, out, opts)
         ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
         runs.append({"seed": seed, "registered": rank(ordered)[0]})
-        if not runs[:-1] or rank(ordered) > rank(best):
+        if rank(ordered) > rank(best):
             best = ordered
         if rank(best)[0] >= num_images:
             break

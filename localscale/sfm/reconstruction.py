@@ -287,11 +287,10 @@ class _Reconstruction:
             self.max_side,
             self.num_keypoints,
         )
-        from .mapping import check_mapper
+        from .mapping import check_mapper, check_trials
 
         check_mapper(self.mapper)
-        if isinstance(self.mapping_trials, bool) or not isinstance(self.mapping_trials, int) or self.mapping_trials < 1:
-            raise LocalScaleError(f"--mapping-trials must be an integer >= 1, got {self.mapping_trials!r}")
+        check_trials(self.mapping_trials)
         if self.out.resolve() == self.images_dir.resolve():
             raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
         check_writable_dir(self.out)
