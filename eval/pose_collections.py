@@ -29,7 +29,11 @@ pose come from :func:`localscale.cameras.window_camera`.
 Methods: ``opencv-sift`` (OpenCV SIFT, 4096 features, ratio 0.8, mutual nearest neighbours) and
 ``MATCHER:CORRECTION`` for the library's ``match_pair(A, B, correction, matcher=MATCHER)``
 (e.g. ``aliked-lightglue:none``, ``aliked-lightglue:auto``); only the returned matches are used.
-``MATCHER:CORRECTION:cameras`` also passes the known cameras (two-view verification with the
+``MATCHER:truth`` and ``MATCHER:truth-window`` are upper bounds of ``auto``'s choice: the matcher
+is given the true zoom and quarter turn as its only hypothesis (B' shrunk, as the matcher rectifies),
+and with ``truth-window`` also the part of A that B' shows (the co-visible 3D points that project
+into B's window, their box in A grown by a quarter on each side), enlarged instead; temple has no
+points, so no window. ``MATCHER:CORRECTION:cameras`` also passes the known cameras (two-view verification with the
 essential matrix), ``MATCHER:CORRECTION:two_view`` verifies by COLMAP's homography / fundamental
 matrix choice without cameras.
 
@@ -44,6 +48,7 @@ summary written atomically to ``--out``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import random
@@ -367,12 +372,72 @@ class LibraryMatcher:
         return np.asarray(res.keypoints_a, np.float64)[m[:, 0]], np.asarray(res.keypoints_b, np.float64)[m[:, 1]]
 
 
+class TruthMatcher:
+    """The matcher given the true relation of the pair as its only hypothesis
+    (:func:`localscale.matching.auto_match` without the images as they are, the seed or the networks)."""
+
+    def __init__(self, name: str, max_side: int, window: bool):
+        from localscale.matching import get_matcher
+
+        self.matcher = get_matcher(name, max_side=max_side)
+        self.window = window
+        self.truth = None
+        self.trials = None
+
+    def tell(self, scale: float, turn: int, window_a):
+        self.truth = (scale, turn, window_a if self.window else None)
+
+    def match(self, key_a, a, key_b, b, cameras=(None, None)):
+        from localscale.matching import Hypothesis, auto_match
+
+        if max(a.shape[:2] + b.shape[:2]) > self.matcher.config.max_side:
+            raise LocalScaleError("truth methods need images within --max-side")
+        scale, turn, window = self.truth
+        h = Hypothesis(scale, turn, "truth", window=None if window is None else (0, *window))
+        config = dataclasses.replace(self.matcher.config.auto, locate=False)
+        out = auto_match(self.matcher, a, b, config=config, keys=(key_a, key_b), hypotheses=[h], networks=False)
+        self.trials = out.to_dict()
+        m = np.asarray(out.matches.matches, int).reshape(-1, 2)
+        return np.asarray(out.matches.keypoints_a, np.float64)[m[:, 0]], np.asarray(
+            out.matches.keypoints_b, np.float64
+        )[m[:, 1]]
+
+
+def true_relation(col: Collection, a: View, b: View, window, turns: int, z: float, margin: float = 0.25):
+    """``(S_{A->B'}, the quarter turn that undoes B''s, window of A or None)`` of a pair
+    (``window`` None: the plain pair, ``turns`` 0, ``z`` 1). The scale is the median over the
+    co-visible 3D points in the window of ``z`` times the ratio of their depths and focal lengths
+    (``z`` without points); the window, the box of their projections in A grown by ``margin``."""
+    scale, box = z, None
+    shared = sorted(a.point_ids & b.point_ids)
+    if shared:
+        X = np.array([col.points[i] for i in shared])
+        in_a, in_b = X @ a.R.T + a.t, X @ b.R.T + b.t
+        pa, pb = a.camera.project(in_a), b.camera.project(in_b)
+        x0, y0, w, h = window if window is not None else (0, 0, b.camera.width, b.camera.height)
+        ok = (in_a[:, 2] > 0) & (in_b[:, 2] > 0) & (pb[:, 0] >= x0) & (pb[:, 0] < x0 + w)
+        ok &= (pb[:, 1] >= y0) & (pb[:, 1] < y0 + h)
+        if ok.sum() >= 3:
+            scale = z * float(np.median(in_a[ok, 2] / in_b[ok, 2])) * b.camera.params[0] / a.camera.params[0]
+            (ax0, ay0), (ax1, ay1) = pa[ok].min(0), pa[ok].max(0)
+            mx, my = margin * (ax1 - ax0) + 8, margin * (ay1 - ay0) + 8
+            box = (
+                max(0, int(ax0 - mx)),
+                max(0, int(ay0 - my)),
+                min(a.camera.width, int(ax1 + mx)),
+                min(a.camera.height, int(ay1 + my)),
+            )
+    return scale, (4 - turns) % 4, box
+
+
 def make_method(spec: str, max_side: int, models_cache: dict):
     if spec == "opencv-sift":
         return SiftMatcher()
     if ":" not in spec:
         raise LocalScaleError(f"method {spec!r}: use opencv-sift or MATCHER:CORRECTION (e.g. aliked-lightglue:auto)")
     name, correction, *given = spec.split(":")
+    if correction in ("truth", "truth-window") and not given:
+        return TruthMatcher(name, max_side, correction == "truth-window")
     if len(given) > 1 or (given and given[0] not in ("cameras", "two_view")):
         raise LocalScaleError(f"method {spec!r}: the third part must be cameras or two_view")
     if "models" not in models_cache:
@@ -543,6 +608,11 @@ def main(argv=None) -> int:
                     )
                     R, t = R_turn @ R, R_turn @ t
                     key_b = f"{vb.path}|{window}|{turns}"
+                if hasattr(method, "tell"):
+                    if kind == "zoom":
+                        method.tell(*true_relation(col, va, vb, window, turns, z))
+                    else:
+                        method.tell(*true_relation(col, va, vb, None, 0, 1.0))
                 rec = evaluate_pair(method, str(va.path), img_a, va.camera, key_b, img_b, cam_b, R, t, cfg)
                 rec.update(
                     key=key,

@@ -216,7 +216,7 @@ def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
 
 
 def test_a_degenerate_geometry_gives_no_window():
-    from localscale.matching.auto import _window
+    from localscale.matching.localization import homography_window as _window
 
     assert _window(np.zeros((3, 3)), 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
     assert _window(np.full((3, 3), np.nan), 2.0, (100, 100), (100, 100), 0.25, 0.5) is None

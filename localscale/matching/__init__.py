@@ -3,7 +3,8 @@ refinement, correction methods, ``auto`` and the pipeline that runs them.
 
 One module per concept: :mod:`.config` (:class:`MatchConfig`, :data:`MATCHERS`), :mod:`.matcher`
 (:class:`Matcher`), :mod:`.nearest_neighbour`, :mod:`.lightglue`, :mod:`.rectification`,
-:mod:`.correction`, :mod:`.verification` (with :mod:`localscale.two_view`), :mod:`.refinement`, :mod:`.auto`,
+:mod:`.correction`, :mod:`.verification` (with :mod:`localscale.two_view`), :mod:`.refinement`,
+:mod:`.hypotheses`, :mod:`.localization`, :mod:`.auto`,
 :mod:`.metrics`, :mod:`.result`, :mod:`.viz` and :mod:`.pipeline` (:func:`match_pair`).
 The submodules (torch, kornia, OpenCV) are imported on first use of a name below.
 
@@ -51,13 +52,9 @@ _EXPORTS = {
         "describe_and_match",
         "sift_seed_points",
     ),
-    ".auto": (
-        "AutoConfig",
-        "AutoResult",
-        "Hypothesis",
-        "auto_match",
-        "propose",
-    ),
+    ".hypotheses": ("Hypothesis", "propose"),
+    ".localization": ("locate_window", "locate_turn", "homography_window"),
+    ".auto": ("AutoConfig", "AutoResult", "auto_match"),
     ".turns": ("turn_matrix", "nearest_turn", "unturn_points", "match_turned"),
     ".result": ("MatchResult", "save_matches"),
     ".viz": ("draw_matches",),

@@ -17,8 +17,12 @@
    runs, the keypoints are mapped back to the original pixels and the matches are verified.
    A verified result whose own geometry (:func:`geometry_hypothesis`) gives another scale or
    quarter turn than its hypothesis is matched again at the geometry's, before anything else.
-4. **The choice**: the verified result with the most inliers; if none verifies, the identity's
-   result, flagged unverified. At most ``budget`` matcher runs per pair.
+4. **Located zooms**: if nothing verified, the strong zoom whose matches agree most on where the
+   zoomed view lies in the wide one (:func:`~.localization.locate_window`) is matched again in
+   that window of the wide view, enlarged rather than the zoomed view shrunk (then at its own
+   geometry's scale and turn if that differs).
+5. **The choice**: the verified result with the most inliers; if none verifies, the identity's
+   result, flagged unverified. At most ``budget`` matcher runs per pair, and two for a located zoom.
 
 Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 """
@@ -35,6 +39,8 @@ import cv2
 import numpy as np
 
 from ..errors import LocalScaleError
+from .hypotheses import Hypothesis, propose
+from .localization import homography_window, locate_turn, locate_window
 from .turns import match_turned, nearest_turn
 from .verification import VerificationConfig, VerificationResult, verify_matches
 
@@ -72,6 +78,14 @@ class AutoConfig:
             A strong zoom shows a small, nearly planar part of the wide view, where a fundamental
             or essential matrix also fits wrong matches; the chosen result is verified again with
             the pair's model (two-view geometry and pose with cameras) when it is another.
+        locate, locate_votes: when nothing verified within the budget, the zoom of at least
+            ``zoom_min_log2`` octaves whose matches agree most (at least ``locate_votes``) on where
+            the zoomed view lies (:func:`~.localization.locate_window`) is matched again in that
+            window of the wide view (at most two more runs). The seed's matches also vote, at the
+            networks' first scale, for a quarter turn and its window, tried first when clear.
+        zoom_min_coverage: the inliers' coverage (``VerificationConfig.min_coverage``) that a zoom
+            of ``zoom_min_log2`` octaves or more needs (``None``: the pair's): its inliers lie in
+            the small, nearly planar part of the wide view that the close-up shows.
     """
 
     budget: int = 4
@@ -85,6 +99,9 @@ class AutoConfig:
     accept_consistent: bool = False
     zoom_model: Optional[str] = "homography"
     zoom_min_log2: float = 1.0
+    locate: bool = True
+    locate_votes: int = 6
+    zoom_min_coverage: Optional[float] = 0.025
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -108,31 +125,13 @@ class AutoConfig:
                 raise LocalScaleError(
                     f"auto zoom_model must be None or one of {', '.join(VERIFICATION_MODELS)}, got {self.zoom_model!r}"
                 )
+        if isinstance(self.locate_votes, bool) or not isinstance(self.locate_votes, int) or self.locate_votes < 3:
+            raise LocalScaleError(f"auto locate_votes must be an integer >= 3, got {self.locate_votes!r}")
+        if self.zoom_min_coverage is not None and not (0 <= self.zoom_min_coverage <= 1):
+            raise LocalScaleError(f"auto zoom_min_coverage must be None or in [0, 1], got {self.zoom_min_coverage!r}")
         if not self.zoom_min_log2 >= 0:
             raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
         return self
-
-
-@dataclass
-class Hypothesis:
-    """A guess of the pair's relation: B turned by ``turn`` quarter turns, then ``S_{A->B} = scale``.
-
-    ``maps``: ``(map of A, map of B)`` for the patch matcher (B's in the turned frame); ``None``: the
-    constant ``scale`` and ``1 / scale``. ``window``: ``(image, x0, y0, x1, y1)``, the part of A
-    (``image`` 0) or B (1, before its turn) that the other image shows, in its pixels; only that part
-    is matched (a verified geometry's, so that the wide view of a strong zoom is enlarged rather
-    than the zoomed view shrunk)."""
-
-    scale: float
-    turn: int
-    source: str
-    maps: Optional[tuple] = None
-    window: Optional[tuple] = None
-
-    def describe(self) -> str:
-        turn = f", B turned {90 * self.turn} deg" if self.turn else ""
-        window = f", in a window of {'AB'[self.window[0]]}" if self.window else ""
-        return f"{self.source}: x{self.scale:.3g}{turn}{window}"
 
 
 @dataclass
@@ -190,72 +189,6 @@ class AutoResult:
         return bool(self.verification.verified)
 
 
-# ---------------------------------------------------------------- hypotheses
-
-
-def _level(pred, gate) -> float:
-    """The level of a Local-ScaleNet map over the part of A that B shows (weighted median, log2)."""
-    from .correction import weighted_quantile
-
-    s = np.asarray(pred.scale, np.float64).ravel()
-    w = gate.weights_of(pred)
-    w = None if w is None else np.asarray(w, np.float64).ravel()
-    ok = np.isfinite(s) & (s > 0)
-    return float(2.0 ** weighted_quantile(np.log2(s[ok]), None if w is None else w[ok], 0.5)) if ok.any() else 1.0
-
-
-def propose(
-    image_a: np.ndarray,
-    image_b: np.ndarray,
-    local_model=None,
-    global_model=None,
-    gate=None,
-    patches: bool = False,
-    bf16: bool = False,
-) -> tuple:
-    """The hypotheses of the networks, strongest evidence first, and a function that ranks B's
-    quarter turns at a scale (called only when the first hypotheses fail).
-
-    Returns ``(hypotheses, more, maps)``: ``more(scale) -> [Hypothesis, ...]`` gives B's three other
-    quarter turns ranked by ScaleNet's consistency on each; ``maps`` are Local-ScaleNet's ungated
-    ``(S_{A->B} on A, S_{B->A} on B)`` (``None`` without a local model).
-    """
-    from .correction import CorrectionGate
-
-    gate = gate or CorrectionGate()
-    out, maps_ab = [], None
-    if global_model is not None:
-        g = global_model.predict(image_a, image_b, bf16=bf16)
-        if math.isfinite(g.scale) and g.scale > 0:
-            turn = (g.turns[1] - g.turns[0]) % 4
-            out.append(Hypothesis(float(g.scale), turn, "ScaleNet" + (" (turned)" if turn else "")))
-    if local_model is not None:
-        pa = local_model.predict(image_a, image_b, bf16=bf16)
-        pb = local_model.predict(image_b, image_a, bf16=bf16)
-        level = math.sqrt(_level(pa, gate) / _level(pb, gate))
-        maps = gate.apply_predictions(pa, pb) if patches else None
-        out.append(Hypothesis(level, 0, "Local-ScaleNet", maps))
-        maps_ab = (np.asarray(pa.scale, np.float32), np.asarray(pb.scale, np.float32))
-    out.append(Hypothesis(1.0, 0, "identity"))
-
-    def more(scale: float) -> list:
-        if global_model is None:
-            return [Hypothesis(scale, k, "turn") for k in (2, 1, 3)]
-        ranked = []
-        for k in (1, 2, 3):
-            p = global_model.predict(image_a, np.rot90(image_b, k), bf16=bf16, turns=False)
-            ranked.append(
-                (
-                    p.inconsistency_log2 if math.isfinite(p.inconsistency_log2) else math.inf,
-                    k,
-                    float(p.scale) if math.isfinite(p.scale) and p.scale > 0 else scale,
-                )
-            )
-        return [Hypothesis(s, k, "ScaleNet turn") for _, k, s in sorted(ranked)]
-
-    return out, more, maps_ab
-
-
 def _same(h: Hypothesis, tried: list, same_log2: float) -> bool:
     return any(
         t.turn == h.turn
@@ -288,37 +221,14 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
     turn, window = 0, None
     if v.H is not None:
         turn = nearest_turn(v.H, pa.mean(0), v.shape_b)
-        window = _window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
+        window = homography_window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
     else:  # a fundamental or essential matrix: a similarity fitted to the inliers stands in for H
         M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
         if M is not None and np.isfinite(M).all():
             S = np.vstack([M, [0.0, 0.0, 1.0]])
             turn = nearest_turn(S, pa.mean(0), v.shape_b)
-            window = _window(S, scale, v.shape_a, v.shape_b, margin, max_share)
+            window = homography_window(S, scale, v.shape_a, v.shape_b, margin, max_share)
     return Hypothesis(scale, turn, "geometry", window=window)
-
-
-def _window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin: float, max_share: float):
-    """``(image, x0, y0, x1, y1)``: the part of the image whose content is smaller (B if
-    ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
-    if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
-        return None
-    wide, M, shape_wide, shape_other = (
-        (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
-    )
-    h, w = shape_other[:2]
-    corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
-    if not (np.isfinite(corners).all() and (corners[:4, 2] * corners[4, 2] > 0).all()):
-        return None  # part of the other image is behind the camera: no bounded window
-    xy = corners[:, :2] / corners[:, 2:]
-    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
-    mx, my = margin * (x1 - x0), margin * (y1 - y0)
-    H_w, W_w = shape_wide[:2]
-    x0, y0 = max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my)))
-    x1, y1 = min(W_w, int(math.ceil(x1 + mx))), min(H_w, int(math.ceil(y1 + my)))
-    if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > max_share * W_w * H_w:
-        return None
-    return (wide, x0, y0, x1, y1)
 
 
 # ---------------------------------------------------------------- the loop
@@ -369,6 +279,7 @@ def auto_match(
         verification or matcher.config.verification,
     )
     network_maps = loop.run(local_model, global_model, seed_matcher, hypotheses, networks)
+    loop.run_located()
     if not loop.runs:  # every hypothesis given was the images as they are
         loop.attempt(loop.identity)
     found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
@@ -396,11 +307,17 @@ class _Loop:
         # a small part of the wide one, and all of itself
         self.vconf = dataclasses.replace(verification, coverage_of="either")
         # the model of the seed and of strong zooms (the other runs keep the pair's)
-        self.zoom_vconf = dataclasses.replace(self.vconf, model=config.zoom_model or verification.model)
+        self.zoom_vconf = dataclasses.replace(
+            self.vconf,
+            model=config.zoom_model or verification.model,
+            min_coverage=self.vconf.min_coverage if config.zoom_min_coverage is None else config.zoom_min_coverage,
+        )
         self.geometric_vconf = dataclasses.replace(
             self.vconf, min_inliers=min(self.vconf.min_inliers, GEOMETRY_MIN_INLIERS)
         )
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
+        self.located = []  # (votes, hypothesis in the window they agree on)
+        self.seed_matches = []  # the seed's matched points, which vote with every zoom's
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
 
@@ -416,13 +333,61 @@ class _Loop:
         # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
         vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
         zoom = h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
-        if zoom and self.zoom_vconf.model != vconf.model:
-            return dataclasses.replace(vconf, model=self.zoom_vconf.model)
+        if zoom:
+            return dataclasses.replace(vconf, model=self.zoom_vconf.model, min_coverage=self.zoom_vconf.min_coverage)
         return vconf
 
     def clear(self, v) -> bool:
         c = self.config
         return bool(v.verified) and v.num_inliers >= c.accept_inliers and v.inlier_ratio >= c.accept_ratio
+
+    def note_location(self, h: Hypothesis) -> None:
+        """Keeps where the last run's matches and the seed's put the zoomed view in the wide one, for a zoom of
+        ``zoom_min_log2`` octaves or more matched without a window (:meth:`run_located`)."""
+        c = self.config
+        if not c.locate or h.window is not None or h is self.identity or abs(math.log2(h.scale)) < c.zoom_min_log2:
+            return
+        found = self.runs[-1][0]
+        m = found.matches
+        pa, pb = zip((found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]]), *self.seed_matches)
+        located = locate_window(
+            np.concatenate(pa),
+            np.concatenate(pb),
+            h.scale,
+            h.turn,
+            self.a.shape[:2],
+            self.b.shape[:2],
+            min_votes=c.locate_votes,
+            max_share=c.window_share,
+        )
+        if located is not None:
+            window, votes = located
+            self.located.append((votes, Hypothesis(h.scale, h.turn, h.source + ", located", window=window)))
+
+    def seed_located(self, h: Hypothesis) -> Optional[Hypothesis]:
+        """At the networks' first scale (a zoom of ``zoom_min_log2`` octaves or more): the quarter
+        turn and window the seed's matches agree on (:func:`~.localization.locate_turn`), or ``None``."""
+        c = self.config
+        if not (c.locate and self.seed_matches) or abs(math.log2(h.scale)) < c.zoom_min_log2:
+            return None
+        pa, pb = (np.concatenate(p) for p in zip(*self.seed_matches))
+        found = locate_turn(
+            pa, pb, h.scale, self.a.shape[:2], self.b.shape[:2], min_votes=c.locate_votes, max_share=c.window_share
+        )
+        if found is None:
+            return None
+        turn, window, _ = found
+        return Hypothesis(h.scale, turn, "seed located at " + h.source, window=window)
+
+    def run_located(self) -> None:
+        """When nothing verified: the zoom whose matches agreed most on where the zoomed view lies,
+        matched again in that window of the wide view, and its own geometry's if that differs."""
+        if self.best is not None or not self.located:
+            return
+        h = max(self.located, key=lambda vh: vh[0])[1]
+        self.queue = []
+        if not self.settled(self.attempt(h), h) and self.queue:
+            self.attempt(self.queue.pop(0))
 
     def attempt(self, h: Hypothesis):
         self.tried.append(h)
@@ -443,6 +408,8 @@ class _Loop:
         anything was clear. The identity's clear verification is final."""
         if h.source.endswith("geometry"):  # the geometry confirmed by the matcher ends the loop
             return bool(v.verified) or any(self.clear(r[1]) for r in self.runs)
+        if not v.verified:
+            self.note_location(h)
         g = geometry_hypothesis(v, max_share=self.config.window_share)
         if (
             g is not None
@@ -474,6 +441,7 @@ class _Loop:
                 self.trials,
                 c.window_share,
                 self.cameras,
+                self.seed_matches,
             )
             if g is not None and not _same(g, self.tried, c.geometry_log2):
                 self.queue.insert(0, g)
@@ -494,6 +462,9 @@ class _Loop:
                         m.config.bf16,
                     )
                     self.queue += [h for h in hyps if h.source != "identity"]
+                    seeded = self.seed_located(hyps[0])
+                    if seeded is not None:
+                        self.queue.insert(0, seeded)
                     continue
                 if turns_added or not c.turns:
                     break
@@ -518,9 +489,11 @@ def seed_hypothesis(
     trials: list,
     window_share: float,
     cameras: tuple = (None, None),
+    matched: Optional[list] = None,
 ) -> Optional[Hypothesis]:
     """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
-    its verified geometry gives (``None`` if it did not verify)."""
+    its verified geometry gives (``None`` if it did not verify). ``matched``: a list the run's
+    matched points ``(N x 2 in A, N x 2 in B)`` are appended to."""
     name = seed_matcher.name
     seed = Hypothesis(1.0, 0, f"seed ({name})")
     t0 = time.perf_counter()
@@ -530,6 +503,8 @@ def seed_hypothesis(
     trials.append(
         Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
     )
+    if matched is not None:
+        matched.append((found.keypoints_a[found.matches[:, 0]], found.keypoints_b[found.matches[:, 1]]))
     g = geometry_hypothesis(v, max_share=window_share)
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 

@@ -1,0 +1,150 @@
+"""Where the zoomed view lies in the wide one, from matches that did not verify.
+
+A strong zoom matched at roughly the right scale and quarter turn, with the zoomed view shrunk,
+often returns too few correct matches to verify, hidden among wrong ones. The correct ones agree
+on one thing the wrong ones do not: once the scale and the turn are undone, they are related by a
+translation only. :func:`locate_window` finds the translation most matches agree on (a vote in the
+wide view's pixels) and returns the part of the wide view that the zoomed view shows under it, so
+that this window can be enlarged and matched at full detail instead.
+:func:`homography_window` gives the same window from a verified geometry.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from ..geometry import turn_matrix
+
+
+def _points(p) -> np.ndarray:
+    return np.asarray(p, np.float64).reshape(-1, 2)
+
+
+def translation_votes(offsets: np.ndarray, radius: float) -> tuple[np.ndarray, int]:
+    """The offset (``2``) with the most offsets within ``radius`` of it, refined as their median,
+    and that count. ``offsets``: ``N x 2``."""
+    d2 = ((offsets[:, None, :] - offsets[None, :, :]) ** 2).sum(-1)
+    near = d2 <= radius * radius
+    counts = near.sum(1)
+    best = int(np.argmax(counts))
+    return np.median(offsets[near[best]], axis=0), int(counts[best])
+
+
+def homography_window(H: np.ndarray, scale: float, shape_a: tuple, shape_b: tuple, margin: float, max_share: float):
+    """``(image, x0, y0, x1, y1)``: the part of the image whose content is smaller (B if
+    ``scale < 1``) that the other one covers under ``H``, or ``None`` (not small, or not in front)."""
+    if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
+        return None
+    wide, M, shape_wide, shape_other = (
+        (1, H, shape_b, shape_a) if scale < 1 else (0, np.linalg.inv(H), shape_a, shape_b)
+    )
+    h, w = shape_other[:2]
+    corners = np.array([[0.0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]]) @ M.T
+    if not (np.isfinite(corners).all() and (corners[:4, 2] * corners[4, 2] > 0).all()):
+        return None  # part of the other image is behind the camera: no bounded window
+    xy = corners[:, :2] / corners[:, 2:]
+    (x0, y0), (x1, y1) = xy.min(0), xy.max(0)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    H_w, W_w = shape_wide[:2]
+    x0, y0 = max(0, int(math.floor(x0 - mx))), max(0, int(math.floor(y0 - my)))
+    x1, y1 = min(W_w, int(math.ceil(x1 + mx))), min(H_w, int(math.ceil(y1 + my)))
+    if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > max_share * W_w * H_w:
+        return None
+    return (wide, x0, y0, x1, y1)
+
+
+def _vote(pa: np.ndarray, pb: np.ndarray, scale: float, turn: int, shape_a: tuple, shape_b: tuple, radius: float):
+    """The offset most matches agree on under ``(scale, turn)``, their count, the count expected by
+    chance, and the frame: ``(shrink, zoomed width, height, wide width, height, B's turn matrix)``."""
+    T = turn_matrix(turn, shape_b)
+    qb = pb @ T[:2, :2].T + T[:2, 2]  # points of B in the turned B
+    hb, wb = (shape_b[1], shape_b[0]) if turn % 2 else shape_b[:2]  # turned B's size
+    if scale >= 1:  # B is the zoomed view: its points shrunk by S land in A
+        wide, zoomed, shrink, zh, zw = pa, qb, 1.0 / scale, hb, wb
+        wh, ww = shape_a[:2]
+    else:  # A is the zoomed view: its points shrunk by 1 / S land in the turned B
+        wide, zoomed, shrink, zh, zw = qb, pa, scale, shape_a[0], shape_a[1]
+        wh, ww = hb, wb
+    centre = np.array([(zw - 1) / 2, (zh - 1) / 2])
+    offsets = wide - shrink * (zoomed - centre)
+    r = radius * max(wh, ww)
+    u, votes = translation_votes(offsets, r)
+    chance = (len(offsets) - 1) * math.pi * r * r / (ww * wh)
+    return u, votes, chance, (shrink, zw, zh, ww, wh, T)
+
+
+def locate_window(
+    points_a,
+    points_b,
+    scale: float,
+    turn: int,
+    shape_a: tuple,
+    shape_b: tuple,
+    min_votes: int = 6,
+    radius: float = 0.04,
+    margin: float = 0.25,
+    max_share: float = 0.5,
+) -> Optional[tuple[tuple, int]]:
+    """The window of the wide view that the zoomed view shows, voted by matched points.
+
+    Under the hypothesis ``S_{A->B} = scale`` with B turned by ``turn`` quarter turns (counter-
+    clockwise), a correct match satisfies ``q = S (p_A - c) + u`` with ``q`` its point in the turned B
+    (``S > 1``: B is the zoomed view) or ``p_A = (q - c') / S + u`` (``S < 1``: A is), ``c``/``c'``
+    the zoomed view's centre and ``u`` the point of the wide view where that centre lies.
+
+    Args:
+        points_a, points_b: ``N x 2`` matched points in the pixels of A and of B as given.
+        scale, turn: the hypothesis.
+        shape_a, shape_b: ``(H, W)`` of A and B.
+        min_votes: matches that must agree on ``u``; more when many matches could agree by
+            chance (random offsets spread over the wide view).
+        radius: how far (share of the wide view's longer side) an agreeing offset may lie.
+        margin: the window is the zoomed view's outline grown by this share of its size on each side.
+        max_share: a window larger than this share of the wide view is no window.
+    Returns:
+        ``(window, votes)``: ``window`` = ``(image, x0, y0, x1, y1)`` (``image`` 0: a window of A;
+        1: of B before its turn; integer pixels), as :attr:`~.auto.Hypothesis.window`, and the
+        matches that agree on it; ``None`` without enough agreeing matches.
+    """
+    pa, pb = _points(points_a), _points(points_b)
+    if len(pa) < min_votes or not (np.isfinite(scale) and scale > 0):
+        return None
+    u, votes, chance, (shrink, zw, zh, ww, wh, T) = _vote(pa, pb, scale, turn, shape_a, shape_b, radius)
+    # random matches spread their offsets over the wide view: the vote must stand out of that
+    if votes < max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2):
+        return None
+    half = shrink * np.array([zw, zh]) * (0.5 + margin)
+    x0, y0 = np.maximum(0, np.floor(u - half)).astype(int)
+    x1, y1 = np.minimum([ww, wh], np.ceil(u + half)).astype(int)
+    if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > max_share * ww * wh:
+        return None
+    if scale >= 1:
+        return (0, int(x0), int(y0), int(x1), int(y1)), votes
+    # a window of the turned B: back to B as given
+    Ti = np.linalg.inv(T)
+    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], np.float64) @ Ti[:2, :2].T + Ti[:2, 2]
+    (bx0, by0), (bx1, by1) = np.floor(corners.min(0)), np.ceil(corners.max(0))
+    window = (1, int(max(0, bx0)), int(max(0, by0)), int(min(shape_b[1], bx1 + 1)), int(min(shape_b[0], by1 + 1)))
+    return window, votes
+
+
+def locate_turn(
+    points_a, points_b, scale: float, shape_a: tuple, shape_b: tuple, ratio: float = 1.5, **options
+) -> Optional[tuple[int, tuple, int]]:
+    """The quarter turn of B under which the matches agree most on where the zoomed view lies,
+    when it gathers at least ``ratio`` times the votes of any other turn: ``(turn, window,
+    votes)`` (:func:`locate_window`, whose ``options`` apply), else ``None``. Matches of a scale- and
+    rotation-invariant matcher on the images as they are vote for the turn as for the window."""
+    pa, pb = _points(points_a), _points(points_b)
+    if not len(pa) or not (np.isfinite(scale) and scale > 0):
+        return None
+    radius = options.get("radius", 0.04)
+    votes = [_vote(pa, pb, scale, k, shape_a, shape_b, radius)[1] for k in range(4)]
+    best = int(np.argmax(votes))
+    if votes[best] < ratio * max(v for k, v in enumerate(votes) if k != best):
+        return None
+    located = locate_window(pa, pb, scale, best, shape_a, shape_b, **options)
+    return None if located is None else (best, *located)
