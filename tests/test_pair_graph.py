@@ -157,13 +157,14 @@ def test_mild_composed_zooms_are_not_tried_again():
     assert zoom.turn == 0 and zoom.scale == pytest.approx(3.3 / 2**0.5)  # half an octave less
 
 
-def test_graph_pairs_run_in_two_rounds_charged_to_the_image_they_would_join():
-    """Each image first tries its best supported pairs; an image gets the rest of its pairs only when
-    one of those verified (hypotheses that keep failing for a close-up are not tried further)."""
-    from localscale.sfm.match import GRAPH_PAIRS_PER_IMAGE, _first_round, _second_round
+def test_graph_pairs_run_in_rounds_charged_to_the_image_they_would_join():
+    """Each image first tries its best supported pairs; an image gets its next best pairs only when
+    one of its pairs of the round before verified (hypotheses that keep failing for a close-up are
+    not tried further)."""
+    from localscale.sfm.match import GRAPH_PAIRS_PER_IMAGE, _first_round, _next_round
 
     g = PairGraph()
-    photos = [f"p{k}" for k in range(1, 8)]
+    photos = [f"p{k}" for k in range(1, 11)]
     for x, y in itertools.combinations(photos, 2):
         g.add(x, y, Relation(1.0, 0, 100))
     g.add("c", "p1", Relation(0.25, 1, 80))
@@ -175,10 +176,15 @@ def test_graph_pairs_run_in_two_rounds_charged_to_the_image_they_would_join():
     first, rest, charged = _first_round(levels, support, g)
     assert {charged[i] for i in levels} == {"c", "d"}  # the close-ups, joined to one photo each
     assert sorted(i for i in first if charged[i] == "c") == [0, 1, 2]
-    assert sorted(i for i in first if charged[i] == "d") == [6, 7, 8]
+    assert sorted(i for i in first if charged[i] == "d") == [9, 10, 11]
     assert len(first) == 2 * GRAPH_PAIRS_PER_IMAGE and set(first) | set(rest) == set(levels)
-    # c's first-round pair 1 verified (it left the open pairs), none of d's did
-    more = _second_round(first, rest, charged, set(levels) - {1})
-    assert sorted(more) == [3, 4, 5] and all(more[i] == levels[i] for i in more)
+    # c's first-round pair 1 verified (it left the open pairs), none of d's did: c's next best three
+    second, rest2 = _next_round(first, rest, charged, set(levels) - {1})
+    assert sorted(second) == [3, 4, 5] and all(second[i] == levels[i] for i in second)
+    assert set(second) | set(rest2) == set(rest) and not set(second) & set(rest2)
+    # pair 4 of that round verified: the next three; none did: no third round
+    third, _ = _next_round(second, rest2, charged, set(levels) - {1, 4})
+    assert sorted(third) == [6, 7, 8]
+    assert _next_round(second, rest2, charged, set(levels) - {1})[0] == {}
     # a pair that verified but was charged to another image does not open c's rest
-    assert _second_round(first, rest, {**charged, 1: "p3"}, set(levels) - {1}) == {}
+    assert _next_round(first, rest, {**charged, 1: "p3"}, set(levels) - {1})[0] == {}

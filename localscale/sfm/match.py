@@ -269,9 +269,9 @@ def _match_with_graph(
        (:meth:`~.pair_runner.PairRunner.levels`: each image extracted once per level and turn
        whatever its pairs); a pair with none whose images the graph does not join runs the
        networks (on at most :data:`NETWORK_PAIRS_PER_IMAGE` pairs per image, those with the most
-       matches first). The hypotheses run in two rounds (:func:`_first_round`): each image's
-       :data:`GRAPH_PAIRS_PER_IMAGE` best supported pairs, then the rest of the pairs of the
-       images that one of those joined.
+       matches first). The hypotheses run in rounds (:func:`_first_round`, :func:`_next_round`): each
+       image's :data:`GRAPH_PAIRS_PER_IMAGE` best supported pairs, then, for each image that one
+       of its pairs of the round before joined, its next :data:`GRAPH_PAIRS_PER_IMAGE`.
 
     The pairs of step 1 with at least ``turn_inliers`` inliers, then those of step 3, fix the
     images' quarter turns (:func:`_quarter_turns`); a hypothesis or seed geometry that turns two
@@ -330,8 +330,13 @@ def _match_with_graph(
     open_ = _settle(
         run_items, {**items, **first}, "graph", open_, best, tried, graph, todo, sets, output, stats, flush_s
     )
-    more = _second_round(first, rest, charged, set(open_))
-    open_ = _settle(run_items, more, "graph, more", open_, best, tried, graph, todo, sets, output, stats, flush_s)
+    done_round = first
+    while True:
+        more, rest = _next_round(done_round, rest, charged, set(open_))
+        open_ = _settle(run_items, more, "graph, more", open_, best, tried, graph, todo, sets, output, stats, flush_s)
+        if not more:
+            break
+        done_round = more
     _apply_some(sorted(open_), best, todo, sets, output, stats, flush_s)
 
 
@@ -344,7 +349,7 @@ def _support(graph: PairGraph, a: str, b: str, seed, same_log2: float) -> int:
 
 
 def _first_round(levels: dict, support: dict, graph: PairGraph) -> tuple:
-    """``(first, rest, charged)``: the graph step's pairs split for its two rounds. Each pair is
+    """``(first, rest, charged)``: the graph step's first round and the pairs left. Each pair is
     charged to the image of the two with fewer verified pairs (the one the pair would join to the
     collection: ``charged[i]``); the first round tries the :data:`GRAPH_PAIRS_PER_IMAGE` best
     supported pairs of each image."""
@@ -359,11 +364,19 @@ def _first_round(levels: dict, support: dict, graph: PairGraph) -> tuple:
     return first, rest, charged
 
 
-def _second_round(first: dict, rest: dict, charged: dict, still_open: set) -> dict:
-    """The pairs of ``rest`` charged to an image that one of its own first-round pairs verified:
-    hypotheses that keep failing for an image are not tried further."""
-    joined = {charged[i] for i in first if i not in still_open}
-    return {i: item for i, item in rest.items() if charged[i] in joined}
+def _next_round(done_round: dict, rest: dict, charged: dict, still_open: set) -> tuple:
+    """``(next, rest)``: the next round of the graph step takes, of the pairs ``rest``, the
+    :data:`GRAPH_PAIRS_PER_IMAGE` best supported charged to each image that one of its own pairs of
+    the round just run verified: hypotheses that keep failing for an image are not tried further."""
+    joined = {charged[i] for i in done_round if i not in still_open}
+    taken, left, count = {}, {}, {}
+    for i, item in rest.items():  # in the order of support
+        if charged[i] in joined and count.get(charged[i], 0) < GRAPH_PAIRS_PER_IMAGE:
+            count[charged[i]] = count.get(charged[i], 0) + 1
+            taken[i] = item
+        else:
+            left[i] = item
+    return taken, left
 
 
 def _settle(run_items, items: dict, step: str, open_, best, tried, graph, todo, sets, output, stats, flush_s) -> list:
@@ -420,7 +433,12 @@ def _run_some(run_items, items: dict, step: str, stats: MatchStats) -> dict:
             raise r
         out[keys[k]] = r
     verified = sum(bool(r.verified) or (r.verified is None and r.relation is not None) for r in out.values())
-    stats.steps[step] = {"pairs": len(keys), "verified": verified, "seconds": round(time.perf_counter() - t0, 2)}
+    done = stats.steps.get(step, {"pairs": 0, "verified": 0, "seconds": 0.0})  # a step may run in rounds
+    stats.steps[step] = {
+        "pairs": done["pairs"] + len(keys),
+        "verified": done["verified"] + verified,
+        "seconds": round(done["seconds"] + time.perf_counter() - t0, 2),
+    }
     return out
 
 
