@@ -353,14 +353,9 @@ def _first_round(levels: dict, support: dict, graph: PairGraph) -> tuple:
     charged to the image of the two with fewer verified pairs (the one the pair would join to the
     collection: ``charged[i]``); the first round tries the :data:`GRAPH_PAIRS_PER_IMAGE` best
     supported pairs of each image."""
-    first, rest, charged, count = {}, {}, {}, {}
-    for i in sorted(levels, key=lambda i: (-support[i], i)):
-        charged[i] = min(levels[i][:2], key=lambda x: (len(graph.neighbours(x)), x))
-        if count.get(charged[i], 0) < GRAPH_PAIRS_PER_IMAGE:
-            count[charged[i]] = count.get(charged[i], 0) + 1
-            first[i] = levels[i]
-        else:
-            rest[i] = levels[i]
+    ordered = {i: levels[i] for i in sorted(levels, key=lambda i: (-support[i], i))}
+    charged = {i: min(item[:2], key=lambda x: (len(graph.neighbours(x)), x)) for i, item in ordered.items()}
+    first, rest = _best_per_image(ordered, charged, set(charged.values()))
     return first, rest, charged
 
 
@@ -368,10 +363,15 @@ def _next_round(done_round: dict, rest: dict, charged: dict, still_open: set) ->
     """``(next, rest)``: the next round of the graph step takes, of the pairs ``rest``, the
     :data:`GRAPH_PAIRS_PER_IMAGE` best supported charged to each image that one of its own pairs of
     the round just run verified: hypotheses that keep failing for an image are not tried further."""
-    joined = {charged[i] for i in done_round if i not in still_open}
+    return _best_per_image(rest, charged, {charged[i] for i in done_round if i not in still_open})
+
+
+def _best_per_image(items: dict, charged: dict, images: set) -> tuple:
+    """``(taken, left)``: of ``items`` (in the order of support), the first
+    :data:`GRAPH_PAIRS_PER_IMAGE` charged to each of ``images``, and the others."""
     taken, left, count = {}, {}, {}
-    for i, item in rest.items():  # in the order of support
-        if charged[i] in joined and count.get(charged[i], 0) < GRAPH_PAIRS_PER_IMAGE:
+    for i, item in items.items():
+        if charged[i] in images and count.get(charged[i], 0) < GRAPH_PAIRS_PER_IMAGE:
             count[charged[i]] = count.get(charged[i], 0) + 1
             taken[i] = item
         else:
