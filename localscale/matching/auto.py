@@ -332,10 +332,13 @@ class _Loop:
         inliers), the zoom model for a zoom of ``zoom_min_log2`` octaves or more."""
         # a run at a verified geometry's scale and turn confirms that geometry: fewer inliers will do
         vconf = self.geometric_vconf if h.source.endswith("geometry") else self.vconf
-        zoom = h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
-        if zoom:
+        if self.is_zoom(h):
             return dataclasses.replace(vconf, model=self.zoom_vconf.model, min_coverage=self.zoom_vconf.min_coverage)
         return vconf
+
+    def is_zoom(self, h: Hypothesis) -> bool:
+        """Whether ``h`` zooms by ``zoom_min_log2`` octaves or more."""
+        return h is not self.identity and abs(math.log2(h.scale)) >= self.config.zoom_min_log2
 
     def clear(self, v) -> bool:
         c = self.config
@@ -345,7 +348,7 @@ class _Loop:
         """Keeps where the last run's matches and the seed's put the zoomed view in the wide one, for a zoom of
         ``zoom_min_log2`` octaves or more matched without a window (:meth:`run_located`)."""
         c = self.config
-        if not c.locate or h.window is not None or h is self.identity or abs(math.log2(h.scale)) < c.zoom_min_log2:
+        if not (c.locate and h.window is None and self.is_zoom(h)):
             return
         found = self.runs[-1][0]
         m = found.matches
@@ -368,7 +371,7 @@ class _Loop:
         """At the networks' first scale (a zoom of ``zoom_min_log2`` octaves or more): the quarter
         turn and window the seed's matches agree on (:func:`~.localization.locate_turn`), or ``None``."""
         c = self.config
-        if not (c.locate and self.seed_matches) or abs(math.log2(h.scale)) < c.zoom_min_log2:
+        if not (c.locate and self.seed_matches and self.is_zoom(h)):
             return None
         pa, pb = (np.concatenate(p) for p in zip(*self.seed_matches))
         found = locate_turn(

@@ -18,6 +18,11 @@ import numpy as np
 
 from ..geometry import turn_matrix
 
+#: defaults of :func:`locate_window` and :func:`locate_turn`: agreeing matches needed, how far an
+#: agreeing offset may lie (share of the wide view's longer side), the window's margin on each side
+#: (share of the zoomed view's outline) and its largest share of the wide view
+MIN_VOTES, RADIUS, MARGIN, MAX_SHARE = 6, 0.04, 0.25, 0.5
+
 
 def _points(p) -> np.ndarray:
     return np.asarray(p, np.float64).reshape(-1, 2)
@@ -83,10 +88,10 @@ def locate_window(
     turn: int,
     shape_a: tuple,
     shape_b: tuple,
-    min_votes: int = 6,
-    radius: float = 0.04,
-    margin: float = 0.25,
-    max_share: float = 0.5,
+    min_votes: int = MIN_VOTES,
+    radius: float = RADIUS,
+    margin: float = MARGIN,
+    max_share: float = MAX_SHARE,
 ) -> Optional[tuple[tuple, int]]:
     """The window of the wide view that the zoomed view shows, voted by matched points.
 
@@ -112,7 +117,14 @@ def locate_window(
     pa, pb = _points(points_a), _points(points_b)
     if len(pa) < min_votes or not (np.isfinite(scale) and scale > 0):
         return None
-    u, votes, chance, (shrink, zw, zh, ww, wh, T) = _vote(pa, pb, scale, turn, shape_a, shape_b, radius)
+    return _window_of(
+        _vote(pa, pb, scale, turn, shape_a, shape_b, radius), scale, shape_b, min_votes, margin, max_share
+    )
+
+
+def _window_of(vote: tuple, scale: float, shape_b: tuple, min_votes: int, margin: float, max_share: float):
+    """:func:`locate_window`'s result from a :func:`_vote`."""
+    u, votes, chance, (shrink, zw, zh, ww, wh, T) = vote
     # random matches spread their offsets over the wide view: the vote must stand out of that
     if votes < max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2):
         return None
@@ -132,19 +144,27 @@ def locate_window(
 
 
 def locate_turn(
-    points_a, points_b, scale: float, shape_a: tuple, shape_b: tuple, ratio: float = 1.5, **options
+    points_a,
+    points_b,
+    scale: float,
+    shape_a: tuple,
+    shape_b: tuple,
+    ratio: float = 1.5,
+    min_votes: int = MIN_VOTES,
+    radius: float = RADIUS,
+    margin: float = MARGIN,
+    max_share: float = MAX_SHARE,
 ) -> Optional[tuple[int, tuple, int]]:
     """The quarter turn of B under which the matches agree most on where the zoomed view lies,
     when it gathers at least ``ratio`` times the votes of any other turn: ``(turn, window,
-    votes)`` (:func:`locate_window`, whose ``options`` apply), else ``None``. Matches of a scale- and
+    votes)`` (the other arguments as :func:`locate_window`'s), else ``None``. Matches of a scale- and
     rotation-invariant matcher on the images as they are vote for the turn as for the window."""
     pa, pb = _points(points_a), _points(points_b)
     if not len(pa) or not (np.isfinite(scale) and scale > 0):
         return None
-    radius = options.get("radius", 0.04)
-    votes = [_vote(pa, pb, scale, k, shape_a, shape_b, radius)[1] for k in range(4)]
-    best = int(np.argmax(votes))
-    if votes[best] < ratio * max(v for k, v in enumerate(votes) if k != best):
+    votes = [_vote(pa, pb, scale, k, shape_a, shape_b, radius) for k in range(4)]
+    best = int(np.argmax([v[1] for v in votes]))
+    if votes[best][1] < ratio * max(v[1] for k, v in enumerate(votes) if k != best):
         return None
-    located = locate_window(pa, pb, scale, best, shape_a, shape_b, **options)
+    located = _window_of(votes[best], scale, shape_b, min_votes, margin, max_share)
     return None if located is None else (best, *located)
