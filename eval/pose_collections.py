@@ -267,18 +267,27 @@ def _axes_meeting_point(col: Collection) -> np.ndarray:
     return np.linalg.solve(A, rhs)
 
 
+def covisible_projections(col: Collection, a: View, b: View):
+    """``(in_a, in_b, p_a, p_b)`` of the 3D points A and B share: camera coordinates (``N x 3``) and
+    pixels (``N x 2``) in each; ``None`` without shared points."""
+    shared = sorted(a.point_ids & b.point_ids)
+    if not shared:
+        return None
+    X = np.array([col.points[i] for i in shared])
+    in_a, in_b = X @ a.R.T + a.t, X @ b.R.T + b.t
+    return in_a, in_b, a.camera.project(in_a), b.camera.project(in_b)
+
+
 def zoom_window(col: Collection, a: View, b: View, rng: random.Random, zoom_range) -> Tuple[tuple, int, float]:
     """A window ``(x0, y0, w, h)`` of B (integer pixels) showing 1/z of it around co-visible content,
     a quarter turn (1-3) and ``z``."""
     W, H = b.camera.width, b.camera.height
     z = math.exp(rng.uniform(math.log(zoom_range[0]), math.log(zoom_range[1])))
     w, h = int(round(W / z)), int(round(H / z))
-    shared = sorted(a.point_ids & b.point_ids)
+    projected = covisible_projections(col, a, b)
     centres = []
-    if shared:
-        X = np.array([col.points[i] for i in shared])
-        in_b, in_a = X @ b.R.T + b.t, X @ a.R.T + a.t
-        pb, pa = b.camera.project(in_b), a.camera.project(in_a)
+    if projected is not None:
+        in_a, in_b, pa, pb = projected
         ok = (
             (in_b[:, 2] > 0)
             & (in_a[:, 2] > 0)
@@ -409,11 +418,9 @@ def true_relation(col: Collection, a: View, b: View, window, turns: int, z: floa
     co-visible 3D points in the window of ``z`` times the ratio of their depths and focal lengths
     (``z`` without points); the window, the box of their projections in A grown by ``margin``."""
     scale, box = z, None
-    shared = sorted(a.point_ids & b.point_ids)
-    if shared:
-        X = np.array([col.points[i] for i in shared])
-        in_a, in_b = X @ a.R.T + a.t, X @ b.R.T + b.t
-        pa, pb = a.camera.project(in_a), b.camera.project(in_b)
+    projected = covisible_projections(col, a, b)
+    if projected is not None:
+        in_a, in_b, pa, pb = projected
         x0, y0, w, h = window if window is not None else (0, 0, b.camera.width, b.camera.height)
         ok = (in_a[:, 2] > 0) & (in_b[:, 2] > 0) & (pb[:, 0] >= x0) & (pb[:, 0] < x0 + w)
         ok &= (pb[:, 1] >= y0) & (pb[:, 1] < y0 + h)
