@@ -133,3 +133,30 @@ def test_strong_zooms_are_verified_with_their_own_coverage():
     assert loop.vconf_for(Hypothesis(0.3, 0, "ScaleNet")).min_coverage == 0.02
     assert loop.vconf_for(Hypothesis(1.5, 0, "ScaleNet")).min_coverage == 0.05
     assert loop.vconf_for(loop.identity).min_coverage == 0.05
+
+
+def test_a_window_is_enlarged_no_larger_than_the_image_it_is_cut_from(rng):
+    """A close-up (A) of 8x the content of a 100-px window of B: the window is enlarged to B's own
+    size (640 px, not the matcher's 1024) and the close-up shrunk for the rest of the zoom."""
+    from localscale.matching import auto
+    from localscale.matching.config import match_config
+    from localscale.matching.matcher import Matcher
+    from localscale.matching.verification import VerificationConfig
+
+    matcher = Matcher(match_config("sift", max_side=1024), cache_size=0)
+    factors = {}
+    extract = matcher.extract
+
+    def recorded(image, scale=None, key=None):
+        factors[image.shape[:2]] = scale
+        return extract(image, scale, key)
+
+    matcher.extract = recorded
+    a = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    b = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    window = (1, 200, 150, 300, 225)  # 100 x 75 px of B
+    h = auto.Hypothesis(0.125, 0, "test", window=window)
+    auto._run(matcher, a, b, h, (None, None), VerificationConfig())
+    f_window, f_close = factors[(75, 100)], factors[(480, 640)]
+    assert f_window * 100 == pytest.approx(640)
+    assert f_close == pytest.approx(0.125 * f_window)  # the pair still brought to one scale

@@ -223,9 +223,9 @@ class _Keyed:
         self.config, self.name, self.extractor = matcher.config, matcher.name, matcher.extractor
         self.wall = self.standalone = 0.0  #: seconds spent in match, and what they cost on their own
 
-    def match(self, a, b, scale_a=None, scale_b=None, keys=None):
+    def match(self, a, b, scale_a=None, scale_b=None, keys=None, max_side=None):
         t0 = time.perf_counter()
-        found = self._m.match(a, b, scale_a, scale_b, self._keys if keys is None else keys)
+        found = self._m.match(a, b, scale_a, scale_b, self._keys if keys is None else keys, max_side=max_side)
         self.wall += time.perf_counter() - t0
         self.standalone += found.seconds
         return found

@@ -514,17 +514,23 @@ def seed_hypothesis(
 
 def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras: tuple = (None, None)):
     """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale, map the
-    keypoints back to the given images' pixels, verify."""
+    keypoints back to the given images' pixels, verify. A window is enlarged no larger than the
+    image it is cut from (its extraction costs at most that image's)."""
     keys = list(keys)
     offsets = [np.zeros(2, np.float32), np.zeros(2, np.float32)]
     images = [a, b]
+    max_side = None
     if h.window is not None:
         i, x0, y0, x1, y1 = h.window
+        if matcher.config.max_side is not None:
+            max_side = min(matcher.config.max_side, max(images[i].shape[:2]))
         images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
         offsets[i] = np.array([x0, y0], np.float32)
         keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
     sa, sb = h.maps if h.maps is not None else (h.scale, 1.0 / h.scale)
-    found = match_turned(matcher, images[0], images[1], sa, sb, h.turn, tuple(keys), maps_turned=True)
+    found = match_turned(
+        matcher, images[0], images[1], sa, sb, h.turn, tuple(keys), maps_turned=True, max_side=max_side
+    )
     found = dataclasses.replace(
         found, keypoints_a=found.keypoints_a + offsets[0], keypoints_b=found.keypoints_b + offsets[1]
     )

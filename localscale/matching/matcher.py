@@ -195,13 +195,20 @@ class Matcher:
         return m, (1.0 - scores).astype(np.float32)
 
     def match(
-        self, image_a: np.ndarray, image_b: np.ndarray, scale_a=None, scale_b=None, keys: tuple = (None, None)
+        self,
+        image_a: np.ndarray,
+        image_b: np.ndarray,
+        scale_a=None,
+        scale_b=None,
+        keys: tuple = (None, None),
+        max_side: Optional[int] = None,
     ) -> Matches:
         """Extract and match two images (``H x W x 3`` uint8 RGB) with their scale maps.
 
         ``scale_a`` / ``scale_b``: ``S_{A->B}`` on A and ``S_{B->A}`` on B (maps, floats or None).
         The patch extractor corrects each patch's size by them; every other extractor
-        shrinks the image whose content is bigger by the pair's level (:func:`~.rectification.pair_scale`).
+        shrinks the image whose content is bigger by the pair's level (:func:`~.rectification.pair_scale`)
+        and enlarges the other up to a longer side of ``max_side`` (None: ``config.max_side``).
         ``keys``: cache keys of the two images (e.g. their paths).
         """
         c = self.config
@@ -217,7 +224,7 @@ class Matcher:
                 pair_scale(scale_a, scale_b),
                 shapes=(image_a.shape, image_b.shape),
                 min_side=c.rectify_min_side,
-                max_side=c.max_side,
+                max_side=c.max_side if max_side is None else max_side,
             )
             fa, fb = self.extract(image_a, factors[0], keys[0]), self.extract(image_b, factors[1], keys[1])
         t0 = time.perf_counter()

@@ -36,15 +36,16 @@ def match_turned(
     turn: int = 0,
     keys: tuple = (None, None),
     maps_turned: bool = False,
+    max_side=None,
 ):
     """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
     pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
-    (``maps_turned``), or a float."""
+    (``maps_turned``), or a float. ``max_side``: :meth:`~.matcher.Matcher.match`'s."""
     if turn % 4 == 0:
-        return matcher.match(image_a, image_b, scale_a, scale_b, keys)
+        return matcher.match(image_a, image_b, scale_a, scale_b, keys, max_side=max_side)
     bt = np.ascontiguousarray(np.rot90(image_b, turn))
     if isinstance(scale_b, np.ndarray) and scale_b.ndim == 2 and not maps_turned:
         scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
     key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
-    found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b))
+    found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b), max_side=max_side)
     return dataclasses.replace(found, keypoints_b=unturn_points(found.keypoints_b, turn, image_b.shape))
