@@ -84,7 +84,7 @@ def test_auto_matches_again_where_the_matches_of_a_failed_zoom_agree(rng, monkey
     a = np.zeros(SHAPE + (3,), np.uint8)
     b = np.zeros((SHAPE[1], SHAPE[0], 3), np.uint8)  # B as given is turned
 
-    def stand_in_run(matcher, a_, b_, h, keys, vconf, cameras=(None, None)):
+    def stand_in_run(matcher, a_, b_, h, keys, vconf, cameras=(None, None), window_max_side=None):
         n_true, n_false = (80, 5) if h.window is not None else (12, 40)
         pa, pb, _ = _zoomed_matches(rng, zoom, turn, centre, n_true, n_false)
         idx = np.arange(len(pa))
@@ -135,9 +135,11 @@ def test_strong_zooms_are_verified_with_their_own_coverage():
     assert loop.vconf_for(loop.identity).min_coverage == 0.05
 
 
-def test_a_window_is_enlarged_no_larger_than_the_image_it_is_cut_from(rng):
-    """A close-up (A) of 8x the content of a 100-px window of B: the window is enlarged to B's own
-    size (640 px, not the matcher's 1024) and the close-up shrunk for the rest of the zoom."""
+@pytest.mark.parametrize("window_max_side, side", [(None, 800), (640, 640)])
+def test_a_window_is_enlarged_up_to_window_max_side(rng, window_max_side, side):
+    """A close-up (A) of 8x the content of a 100-px window of B: the window is enlarged to the
+    matcher's max_side (1024: 8x gives 800 px) or to window_max_side, and the close-up shrunk for
+    the rest of the zoom."""
     from localscale.matching import auto
     from localscale.matching.config import match_config
     from localscale.matching.matcher import Matcher
@@ -156,7 +158,13 @@ def test_a_window_is_enlarged_no_larger_than_the_image_it_is_cut_from(rng):
     b = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
     window = (1, 200, 150, 300, 225)  # 100 x 75 px of B
     h = auto.Hypothesis(0.125, 0, "test", window=window)
-    auto._run(matcher, a, b, h, (None, None), VerificationConfig())
+    auto._run(matcher, a, b, h, (None, None), VerificationConfig(), window_max_side=window_max_side)
     f_window, f_close = factors[(75, 100)], factors[(480, 640)]
-    assert f_window * 100 == pytest.approx(640)
+    assert f_window * 100 == pytest.approx(side)
     assert f_close == pytest.approx(0.125 * f_window)  # the pair still brought to one scale
+
+
+@pytest.mark.parametrize("bad", [0, -5, 1.5, True])
+def test_a_bad_window_max_side_is_refused(bad):
+    with pytest.raises(LocalScaleError, match="window_max_side"):
+        AutoConfig(window_max_side=bad).check()

@@ -83,6 +83,8 @@ class AutoConfig:
             the zoomed view lies (:func:`~.localization.locate_window`) is matched again in that
             window of the wide view (at most two more runs). The seed's matches also vote, at the
             networks' first scale, for a quarter turn and its window, tried first when clear.
+        window_max_side: the longest side a window of the wide view is enlarged to (``None``: the
+            matcher's ``max_side``); the close-up is shrunk for the rest of the zoom.
         zoom_min_coverage: the inliers' coverage (``VerificationConfig.min_coverage``) that a zoom
             of ``zoom_min_log2`` octaves or more needs (``None``: the pair's): its inliers lie in
             the small, nearly planar part of the wide view that the close-up shows.
@@ -102,6 +104,7 @@ class AutoConfig:
     locate: bool = True
     locate_votes: int = 6
     zoom_min_coverage: Optional[float] = 0.025
+    window_max_side: Optional[int] = None
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -129,6 +132,12 @@ class AutoConfig:
             raise LocalScaleError(f"auto locate_votes must be an integer >= 3, got {self.locate_votes!r}")
         if self.zoom_min_coverage is not None and not (0 <= self.zoom_min_coverage <= 1):
             raise LocalScaleError(f"auto zoom_min_coverage must be None or in [0, 1], got {self.zoom_min_coverage!r}")
+        if self.window_max_side is not None and (
+            isinstance(self.window_max_side, bool)
+            or not isinstance(self.window_max_side, int)
+            or self.window_max_side < 1
+        ):
+            raise LocalScaleError(f"auto window_max_side must be None or an integer >= 1, got {self.window_max_side!r}")
         if not self.zoom_min_log2 >= 0:
             raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
         return self
@@ -395,7 +404,9 @@ class _Loop:
     def attempt(self, h: Hypothesis):
         self.tried.append(h)
         t0 = time.perf_counter()
-        found, v = _run(self.matcher, self.a, self.b, h, self.keys, self.vconf_for(h), self.cameras)
+        found, v = _run(
+            self.matcher, self.a, self.b, h, self.keys, self.vconf_for(h), self.cameras, self.config.window_max_side
+        )
         self.trials.append(
             Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
         )
@@ -512,18 +523,19 @@ def seed_hypothesis(
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
 
 
-def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras: tuple = (None, None)):
-    """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale, map the
-    keypoints back to the given images' pixels, verify. A window is enlarged no larger than the
-    image it is cut from (its extraction costs at most that image's)."""
+def _run(
+    matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras=(None, None), window_max_side=None
+):
+    """One hypothesis: crop its window (enlarged up to ``window_max_side``, None: the matcher's
+    ``max_side``), turn B, match with the hypothesis's maps or scale, map the keypoints back to the
+    given images' pixels, verify."""
     keys = list(keys)
     offsets = [np.zeros(2, np.float32), np.zeros(2, np.float32)]
     images = [a, b]
     max_side = None
     if h.window is not None:
         i, x0, y0, x1, y1 = h.window
-        if matcher.config.max_side is not None:
-            max_side = min(matcher.config.max_side, max(images[i].shape[:2]))
+        max_side = window_max_side
         images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
         offsets[i] = np.array([x0, y0], np.float32)
         keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))
