@@ -49,6 +49,11 @@ from .verification import VerificationConfig, VerificationResult, verify_matches
 GEOMETRY_MIN_INLIERS = 10
 
 
+def _is_int_at_least(value, low: int) -> bool:
+    """Whether ``value`` is an integer (not a bool) of at least ``low``."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
 @dataclass
 class AutoConfig:
     """The hypothesis loop of ``correction="auto"``.
@@ -115,7 +120,7 @@ class AutoConfig:
             raise LocalScaleError(
                 f"auto same_log2 and geometry_log2 must be >= 0, got {self.same_log2!r}, {self.geometry_log2!r}"
             )
-        if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
+        if not _is_int_at_least(self.budget, 1):
             raise LocalScaleError(f"auto budget must be an integer >= 1, got {self.budget!r}")
         if not (isinstance(self.accept_inliers, int) and self.accept_inliers >= 4):
             raise LocalScaleError(f"auto accept_inliers must be an integer >= 4, got {self.accept_inliers!r}")
@@ -128,15 +133,11 @@ class AutoConfig:
                 raise LocalScaleError(
                     f"auto zoom_model must be None or one of {', '.join(VERIFICATION_MODELS)}, got {self.zoom_model!r}"
                 )
-        if isinstance(self.locate_votes, bool) or not isinstance(self.locate_votes, int) or self.locate_votes < 3:
+        if not _is_int_at_least(self.locate_votes, 3):
             raise LocalScaleError(f"auto locate_votes must be an integer >= 3, got {self.locate_votes!r}")
         if self.zoom_min_coverage is not None and not (0 <= self.zoom_min_coverage <= 1):
             raise LocalScaleError(f"auto zoom_min_coverage must be None or in [0, 1], got {self.zoom_min_coverage!r}")
-        if self.window_max_side is not None and (
-            isinstance(self.window_max_side, bool)
-            or not isinstance(self.window_max_side, int)
-            or self.window_max_side < 1
-        ):
+        if self.window_max_side is not None and not _is_int_at_least(self.window_max_side, 1):
             raise LocalScaleError(f"auto window_max_side must be None or an integer >= 1, got {self.window_max_side!r}")
         if not self.zoom_min_log2 >= 0:
             raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
