@@ -168,3 +168,172 @@ def test_a_window_is_enlarged_up_to_window_max_side(rng, window_max_side, side):
 def test_a_bad_window_max_side_is_refused(bad):
     with pytest.raises(LocalScaleError, match="window_max_side"):
         AutoConfig(window_max_side=bad).check()
+
+
+def _close_up(photo, box, zoom, turn):
+    """B: ``box`` (x0, y0, x1, y1) of ``photo`` enlarged ``zoom`` times, then turned ``turn`` quarter turns."""
+    import cv2
+
+    x0, y0, x1, y1 = box
+    crop = photo[y0:y1, x0:x1]
+    big = cv2.resize(crop, (round((x1 - x0) * zoom), round((y1 - y0) * zoom)), interpolation=cv2.INTER_CUBIC)
+    return np.ascontiguousarray(np.rot90(big, turn))
+
+
+@pytest.mark.parametrize("turn", [0, 1, 3])
+def test_sift_frames_give_the_scale_turn_and_window_of_a_close_up(photos, turn):
+    """OpenCV SIFT matches of a photo and a 3x close-up of part of it, turned: the similarity their
+    keypoints' sizes and orientations agree on gives the zoom, the turn that undoes B's, and a
+    window of A around the part B shows."""
+    from localscale.matching.auto import mapping_hypothesis
+    from localscale.matching.localization import locate_similarity
+    from localscale.matching.matcher import Matcher
+
+    a = np.ascontiguousarray(photos["astronaut"])  # 512 x 512
+    box, zoom = (200, 60, 360, 220), 3.0
+    b = _close_up(a, box, zoom, turn)
+    found = Matcher("sift").match(a, b)
+    assert found.frames_a is not None and found.frames_a.shape == (len(found.keypoints_a), 2)
+    m = found.matches
+    pa, pb = found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]]
+    located = locate_similarity(pa, pb, found.frames_a[m[:, 0]], found.frames_b[m[:, 1]], a.shape[:2], b.shape[:2])
+    assert located is not None
+    M, votes, inliers = located
+    assert votes >= 20 and inliers.sum() == votes
+    scale = float(np.sqrt(np.linalg.det(M[:2, :2])))
+    assert scale == pytest.approx(zoom, rel=0.1)
+    h = mapping_hypothesis(M, scale, pa[inliers], a.shape[:2], b.shape[:2], "test")
+    assert h.turn == (4 - turn) % 4
+    assert h.window is not None and h.window[0] == 0
+    _, x0, y0, x1, y1 = h.window
+    assert x0 <= box[0] + 10 and y0 <= box[1] + 10 and x1 >= box[2] - 10 and y1 >= box[3] - 10
+    assert (x1 - x0) * (y1 - y0) < 0.4 * a.shape[0] * a.shape[1]
+
+
+def test_random_frames_locate_no_similarity(rng):
+    from localscale.matching.localization import locate_similarity
+
+    pa, pb = rng.random((300, 2)) * [800, 600], rng.random((300, 2)) * [800, 600]
+    frames_a = np.stack([rng.uniform(2, 40, 300), rng.uniform(0, 360, 300)], 1)
+    frames_b = np.stack([rng.uniform(2, 40, 300), rng.uniform(0, 360, 300)], 1)
+    assert locate_similarity(pa, pb, frames_a, frames_b, SHAPE, SHAPE) is None
+    assert locate_similarity(pa, pb, None, None, SHAPE, SHAPE) is None  # a detector without frames
+
+
+def test_an_unverified_seed_proposes_the_similarity_of_its_keypoints_first(photos, monkeypatch):
+    """The loop's wiring, with a stand-in matcher that finds nothing: the SIFT seed's real matches
+    are taken as unverified, and the similarity of their keypoints is the first hypothesis the
+    matcher runs after it, with the zoom, the turn and a window of A."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from localscale.matching import auto
+    from localscale.matching.matcher import Matcher, Matches
+    from localscale.matching.verification import VerificationConfig
+
+    a = np.ascontiguousarray(photos["astronaut"])
+    b = _close_up(a, (200, 60, 360, 220), 3.0, 1)
+    seed, real_run = Matcher("sift"), auto._run
+
+    def stand_in_run(matcher, a_, b_, h, keys, vconf, cameras=(None, None), window_max_side=None):
+        if matcher is seed:
+            found, v = real_run(matcher, a_, b_, h, keys, vconf, cameras)
+            return found, dataclasses.replace(v, verified=False)
+        none = np.zeros((0, 2), np.float32)
+        found = Matches(none, none, np.zeros((0, 2), np.int64), np.zeros(0))
+        return found, auto._verify(found, a_, b_, vconf, cameras)
+
+    monkeypatch.setattr(auto, "_run", stand_in_run)
+    matcher = SimpleNamespace(config=SimpleNamespace(name="stand-in"))
+    config = AutoConfig(budget=2, turns=False)
+    res = auto.auto_match(
+        matcher, a, b, config=config, seed_matcher=seed, verification=VerificationConfig(), networks=False
+    )
+    assert [t.hypothesis.source for t in res.trials] == ["identity", "seed (sift)", "seed similarity"]
+    h = res.trials[2].hypothesis
+    assert h.scale == pytest.approx(3.0, rel=0.1) and h.turn == 3 and h.window is not None and h.window[0] == 0
+    assert not res.verified
+    # without locating, the seed's unverified matches propose nothing
+    res = auto.auto_match(
+        matcher,
+        a,
+        b,
+        config=dataclasses.replace(config, locate=False),
+        seed_matcher=seed,
+        verification=VerificationConfig(),
+        networks=False,
+    )
+    assert [t.hypothesis.source for t in res.trials] == ["identity", "seed (sift)"]
+
+
+@pytest.mark.parametrize("turn", [1, 3])
+def test_a_few_correct_sift_matches_among_many_wrong_ones_still_agree(photos, rng, turn):
+    """Eight correct SIFT matches of a 3x close-up, turned, hidden among 150 random ones (random
+    points, sizes and orientations): their sizes and orientations put them in one Hough bin."""
+    from localscale.matching.localization import locate_similarity, similarity_votes
+    from localscale.matching.matcher import Matcher
+
+    a = np.ascontiguousarray(photos["astronaut"])
+    box, zoom = (200, 60, 360, 220), 3.0
+    b = _close_up(a, box, zoom, turn)
+    found = Matcher("sift").match(a, b)
+    m = found.matches
+    pa, pb = found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]]
+    fa, fb = found.frames_a[m[:, 0]], found.frames_b[m[:, 1]]
+    # the correct ones: B's point back in A within 3 px
+    T = np.linalg.inv(turn_matrix(turn, (round(160 * zoom), round(160 * zoom))))
+    back = (pb @ T[:2, :2].T + T[:2, 2]) / zoom + np.array(box[:2]) + (1 / zoom - 1) / 2
+    correct = np.flatnonzero(np.linalg.norm(back - pa, axis=1) < 3)
+    assert len(correct) >= 20
+    # each correct match alone says where B's centre lies in A (the box's centre) and its zoom
+    log_s, _, centre = similarity_votes(pa[correct], pb[correct], fa[correct], fb[correct], b.shape[:2])
+    near = np.linalg.norm(centre - [(box[0] + box[2] - 1) / 2, (box[1] + box[3] - 1) / 2], axis=1) < 12
+    assert near.mean() > 0.8 and np.median(log_s) == pytest.approx(np.log2(zoom), abs=0.15)
+    keep = rng.choice(correct, 8, replace=False)
+    n = 150
+    pa = np.vstack([pa[keep], rng.random((n, 2)) * 512])
+    pb = np.vstack([pb[keep], rng.random((n, 2)) * 480])
+    fa = np.vstack([fa[keep], np.stack([rng.uniform(2, 30, n), rng.uniform(0, 360, n)], 1)])
+    fb = np.vstack([fb[keep], np.stack([rng.uniform(6, 90, n), rng.uniform(0, 360, n)], 1)])
+    located = locate_similarity(pa, pb, fa, fb, a.shape[:2], b.shape[:2])
+    assert located is not None
+    M, votes, inliers = located
+    assert inliers[:8].sum() >= 7 and votes <= 10
+    assert float(np.sqrt(np.linalg.det(M[:2, :2]))) == pytest.approx(zoom, rel=0.15)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, "wide"])
+def test_a_bad_similarity_margin_is_refused(bad):
+    with pytest.raises(LocalScaleError, match="similarity_margin"):
+        AutoConfig(similarity_margin=bad).check()
+
+
+def test_a_collection_seed_that_does_not_verify_gives_its_similarity(photos, monkeypatch):
+    """``reconstruct``'s seed step: the SIFT seed's matches taken as unverified give the pair no
+    relation (nothing for the pair graph) but the similarity's hypothesis, with its window of the
+    wide view and the matches that agree with it (what ranks the anchors)."""
+    import dataclasses
+
+    pytest.importorskip("h5py")
+    from localscale.matching import auto
+    from localscale.matching.matcher import Matcher
+    from localscale.sfm.pair_runner import PairRunner
+
+    a = np.ascontiguousarray(photos["astronaut"])
+    images = {"wide": a, "close": _close_up(a, (200, 60, 360, 220), 3.0, 1)}
+    real_run = auto._run
+
+    def unverified_run(*args, **kwargs):
+        found, v = real_run(*args, **kwargs)
+        return found, dataclasses.replace(v, verified=False)
+
+    monkeypatch.setattr(auto, "_run", unverified_run)
+    runner = PairRunner({}, None, None, "auto", "cpu", Matcher("hardnet"), None, None, 2)
+    runner._image = lambda name: (images[name], 1.0)
+    r = runner.seed("wide", "close")
+    assert r.relation is None and r.hypothesis is not None and r.hypothesis.source == "seed similarity"
+    assert r.hypothesis.scale == pytest.approx(3.0, rel=0.1) and r.hypothesis.turn == 3
+    assert r.hypothesis.window is not None and r.hypothesis.window[0] == 0 and r.support >= 20
+    monkeypatch.setattr(auto, "_run", real_run)  # verified: the geometry's relation and hypothesis
+    r = runner.seed("wide", "close")
+    assert r.relation is not None and r.relation.turn == 3 and r.hypothesis.source == "sift geometry"

@@ -49,6 +49,8 @@ class Features:
         image_shape: ``(H, W)`` of that image.
         radii: ``N`` patch radii (:class:`PatchExtractor`), else ``None``.
         lafs: ``1 x N x 2 x 3`` kornia LAFs (:class:`PatchExtractor`), else ``None``.
+        frames: ``N x 2`` float32 ``(size, angle)``: the detector's own support diameter in pixels
+            of the image given and orientation in degrees, OpenCV's convention (:class:`SIFT`), else ``None``.
         factor: the resize factor the image was extracted at (1: as given).
         seconds: the time the extraction took (also when the features come from a cache).
     """
@@ -59,6 +61,7 @@ class Features:
     image_shape: tuple
     radii: Optional[np.ndarray] = None
     lafs: Optional[torch.Tensor] = None
+    frames: Optional[np.ndarray] = None
     factor: float = 1.0
     seconds: float = 0.0
 
@@ -90,7 +93,8 @@ def to_given_pixels(points: np.ndarray, fx: float, fy: float) -> np.ndarray:
 class Extractor:
     """Base of the extractors: their options; the dense ones ``extract(image, factor)`` -> :class:`Features`.
 
-    Subclasses set ``default_conf`` and implement ``_extract(image) -> (xy N x 2, desc N x D, scores N)``.
+    Subclasses set ``default_conf`` and implement ``_extract(image) -> (xy N x 2, desc N x D, scores N)``,
+    or ``(..., frames N x 2)`` for a detector with its own size and orientation (:attr:`Features.frames`).
     ``lightglue`` names the LightGlue configuration of kornia whose weights fit the descriptors (None: none).
     """
 
@@ -116,13 +120,17 @@ class Extractor:
         keypoints in pixels of ``image``."""
         t0 = time.perf_counter()
         img, fx, fy = resize_image(np.asarray(image), float(factor))
-        xy, desc, scores = self._extract(img)
+        xy, desc, scores, *rest = self._extract(img)
+        factor = float(np.sqrt(fx * fy))
+        # sizes in the given image's pixels; the orientation is unchanged by the resize
+        frames = (rest[0] * np.array([1.0 / factor, 1.0], np.float32)).astype(np.float32) if rest else None
         return Features(
             to_given_pixels(xy, fx, fy),
             desc,
             scores,
             tuple(image.shape[:2]),
-            factor=float(np.sqrt(fx * fy)),
+            frames=frames,
+            factor=factor,
             seconds=time.perf_counter() - t0,
         )
 
@@ -154,7 +162,8 @@ class SIFT(Extractor):
         )
         xy = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
         d = torch.from_numpy(np.zeros((0, 128), np.float32) if desc is None else desc)
-        return xy, d, np.array([k.response for k in kps], np.float32)
+        frames = np.array([(k.size, k.angle) for k in kps], np.float32).reshape(-1, 2)
+        return xy, d, np.array([k.response for k in kps], np.float32), frames
 
 
 class ALIKED(Extractor):

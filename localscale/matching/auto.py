@@ -7,7 +7,10 @@
    with the inliers' coverage counted in either image). A clear verification (:class:`AutoConfig`)
    ends the loop there, and the networks never run.
 2. **Hypotheses** ``(scale S_{A->B}, quarter turn of B)`` otherwise: first the geometry of a
-   cheap scale- and rotation-invariant seed matcher (OpenCV SIFT) when it verifies; then, in the
+   cheap scale- and rotation-invariant seed matcher (OpenCV SIFT) when it verifies; if it does not
+   (or gives no window for a strong zoom), the similarity most of its matches agree on by their
+   keypoints' own sizes and orientations (:func:`~.localization.locate_similarity`: scale, turn and
+   window at once); then, in the
    order of the networks' evidence (:func:`propose`): ScaleNet's consistency-checked scale, with the quarter turn it chose
    when the upright images disagreed; the Local-ScaleNet maps (their level over the part of A that
    B shows; the patch matcher uses the maps themselves); then B's other quarter turns at ScaleNet's
@@ -40,7 +43,7 @@ import numpy as np
 
 from ..errors import LocalScaleError
 from .hypotheses import Hypothesis, propose
-from .localization import homography_window, locate_turn, locate_window
+from .localization import homography_window, locate_similarity, locate_turn, locate_window
 from .turns import match_turned, nearest_turn
 from .verification import VerificationConfig, VerificationResult, verify_matches
 
@@ -86,13 +89,17 @@ class AutoConfig:
         locate, locate_votes: when nothing verified within the budget, the zoom of at least
             ``zoom_min_log2`` octaves whose matches agree most (at least ``locate_votes``) on where
             the zoomed view lies (:func:`~.localization.locate_window`) is matched again in that
-            window of the wide view (at most two more runs). The seed's matches also vote, at the
+            window of the wide view (at most two more runs). The seed's matches also vote: for the
+            similarity their keypoints' sizes and orientations agree on (SIFT), tried first when
+            the seed's geometry does not verify (or gives a strong zoom no window); and at the
             networks' first scale, for a quarter turn and its window, tried first when clear.
         window_max_side: the longest side a window of the wide view is enlarged to (``None``: the
             matcher's ``max_side``); the close-up is shrunk for the rest of the zoom.
         zoom_min_coverage: the inliers' coverage (``VerificationConfig.min_coverage``) that a zoom
             of ``zoom_min_log2`` octaves or more needs (``None``: the pair's): its inliers lie in
             the small, nearly planar part of the wide view that the close-up shows.
+        similarity_margin: the window of the seed's similarity is the zoomed view's outline under
+            it grown by this share of its size on each side.
     """
 
     budget: int = 4
@@ -110,6 +117,7 @@ class AutoConfig:
     locate_votes: int = 6
     zoom_min_coverage: Optional[float] = 0.025
     window_max_side: Optional[int] = None
+    similarity_margin: float = 0.25
 
     def check(self) -> "AutoConfig":
         if self.seed is not None and not isinstance(self.seed, str):
@@ -139,6 +147,8 @@ class AutoConfig:
             raise LocalScaleError(f"auto zoom_min_coverage must be None or in [0, 1], got {self.zoom_min_coverage!r}")
         if self.window_max_side is not None and not _is_int_at_least(self.window_max_side, 1):
             raise LocalScaleError(f"auto window_max_side must be None or an integer >= 1, got {self.window_max_side!r}")
+        if not (isinstance(self.similarity_margin, (int, float)) and 0 <= self.similarity_margin <= 1):
+            raise LocalScaleError(f"auto similarity_margin must be in [0, 1], got {self.similarity_margin!r}")
         if not self.zoom_min_log2 >= 0:
             raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
         return self
@@ -228,17 +238,31 @@ def geometry_hypothesis(v: VerificationResult, margin: float = 0.25, max_share: 
         return None
     scale = float(np.exp(np.median(np.log(s))))
     pa, pb = np.asarray(v.points_a, np.float64)[inl], np.asarray(v.points_b, np.float64)[inl]
-    turn, window = 0, None
     if v.H is not None:
-        turn = nearest_turn(v.H, pa.mean(0), v.shape_b)
-        window = homography_window(v.H, scale, v.shape_a, v.shape_b, margin, max_share)
-    else:  # a fundamental or essential matrix: a similarity fitted to the inliers stands in for H
-        M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
-        if M is not None and np.isfinite(M).all():
-            S = np.vstack([M, [0.0, 0.0, 1.0]])
-            turn = nearest_turn(S, pa.mean(0), v.shape_b)
-            window = homography_window(S, scale, v.shape_a, v.shape_b, margin, max_share)
-    return Hypothesis(scale, turn, "geometry", window=window)
+        return mapping_hypothesis(v.H, scale, pa, v.shape_a, v.shape_b, "geometry", margin, max_share)
+    # a fundamental or essential matrix: a similarity fitted to the inliers stands in for H
+    M, _ = cv2.estimateAffinePartial2D(pa, pb, method=cv2.LMEDS) if len(pa) >= 3 else (None, None)
+    if M is None or not np.isfinite(M).all():
+        return Hypothesis(scale, 0, "geometry")
+    S = np.vstack([M, [0.0, 0.0, 1.0]])
+    return mapping_hypothesis(S, scale, pa, v.shape_a, v.shape_b, "geometry", margin, max_share)
+
+
+def mapping_hypothesis(
+    H: np.ndarray,
+    scale: float,
+    points_a: np.ndarray,
+    shape_a: tuple,
+    shape_b: tuple,
+    source: str,
+    margin: float = 0.25,
+    max_share: float = 0.5,
+) -> Hypothesis:
+    """The hypothesis of a mapping ``H`` (``3 x 3``, A's pixels to B's) at ``scale``: the quarter
+    turn of B that brings its rotation at the centre of ``points_a`` (``N x 2``) closest to none, and
+    the window of the image whose content is smaller that the other covers (:func:`homography_window`)."""
+    turn = nearest_turn(H, np.asarray(points_a, np.float64).reshape(-1, 2).mean(0), shape_b)
+    return Hypothesis(scale, turn, source, window=homography_window(H, scale, shape_a, shape_b, margin, max_share))
 
 
 # ---------------------------------------------------------------- the loop
@@ -328,6 +352,7 @@ class _Loop:
         self.tried, self.trials, self.runs, self.queue = [], [], [], []
         self.located = []  # (votes, hypothesis in the window they agree on)
         self.seed_matches = []  # the seed's matched points, which vote with every zoom's
+        self.seed_frames = []  # their keypoints' sizes and orientations (a seed such as SIFT)
         self.best = None
         self.identity = Hypothesis(1.0, 0, "identity")
 
@@ -391,6 +416,15 @@ class _Loop:
             return None
         turn, window, _ = found
         return Hypothesis(h.scale, turn, "seed located at " + h.source, window=window)
+
+    def seed_similarity(self) -> Optional[Hypothesis]:
+        """:func:`seed_similarity` of the seed's run, or ``None``."""
+        if not (self.config.locate and self.seed_frames):
+            return None
+        found = seed_similarity(
+            *self.seed_matches[0], *self.seed_frames[0], self.a.shape[:2], self.b.shape[:2], self.config
+        )
+        return None if found is None else found[0]
 
     def run_located(self) -> None:
         """When nothing verified: the zoom whose matches agreed most on where the zoomed view lies,
@@ -457,9 +491,16 @@ class _Loop:
                 c.window_share,
                 self.cameras,
                 self.seed_matches,
+                self.seed_frames,
             )
-            if g is not None and not _same(g, self.tried, c.geometry_log2):
-                self.queue.insert(0, g)
+            similarity = self.seed_similarity()
+            first = [g]
+            # unverified, or a zoom its geometry gives no window for: the similarity its keypoints agree on first
+            if g is None:
+                first = [similarity]
+            elif g.window is None and self.is_zoom(g) and similarity is not None and similarity.window is not None:
+                first = [similarity, g]
+            self.queue[:0] = [h for h in first if h is not None and not _same(h, self.tried, c.geometry_log2)]
         hyps = more = network_maps = None  # the networks run once the geometry's hypotheses are spent
         turns_added = False
         while sum(not t.hypothesis.source.startswith("seed") for t in self.trials) < c.budget:
@@ -505,10 +546,12 @@ def seed_hypothesis(
     window_share: float,
     cameras: tuple = (None, None),
     matched: Optional[list] = None,
+    frames: Optional[list] = None,
 ) -> Optional[Hypothesis]:
     """The seed matcher's run on the images as they are (listed in ``trials``), and the hypothesis
     its verified geometry gives (``None`` if it did not verify). ``matched``: a list the run's
-    matched points ``(N x 2 in A, N x 2 in B)`` are appended to."""
+    matched points ``(N x 2 in A, N x 2 in B)`` are appended to; ``frames``: one their keypoints'
+    ``(size, angle)`` (``N x 2`` each) are appended to, when the seed's detector has them."""
     name = seed_matcher.name
     seed = Hypothesis(1.0, 0, f"seed ({name})")
     t0 = time.perf_counter()
@@ -518,10 +561,38 @@ def seed_hypothesis(
     trials.append(
         Trial(seed, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
     )
+    m = found.matches
     if matched is not None:
-        matched.append((found.keypoints_a[found.matches[:, 0]], found.keypoints_b[found.matches[:, 1]]))
+        matched.append((found.keypoints_a[m[:, 0]], found.keypoints_b[m[:, 1]]))
+    if frames is not None and found.frames_a is not None and found.frames_b is not None:
+        frames.append((found.frames_a[m[:, 0]], found.frames_b[m[:, 1]]))
     g = geometry_hypothesis(v, max_share=window_share)
     return None if g is None else dataclasses.replace(g, source=f"{name} geometry")
+
+
+def seed_similarity(
+    points_a, points_b, frames_a, frames_b, shape_a: tuple, shape_b: tuple, config: AutoConfig
+) -> Optional[tuple[Hypothesis, int]]:
+    """The scale, quarter turn and window (``config.similarity_margin``, ``config.window_share``)
+    that the seed's matches (``N x 2`` points and ``(size, angle)`` frames in A and B) agree on by
+    their keypoints' own sizes and orientations (:func:`~.localization.locate_similarity`, at least
+    ``config.locate_votes``), and how many agree; ``None`` without such agreement."""
+    found = locate_similarity(points_a, points_b, frames_a, frames_b, shape_a, shape_b, min_votes=config.locate_votes)
+    if found is None:
+        return None
+    M, votes, inliers = found
+    scale = float(np.sqrt(abs(np.linalg.det(M[:2, :2]))))
+    h = mapping_hypothesis(
+        M,
+        scale,
+        np.asarray(points_a)[inliers],
+        shape_a,
+        shape_b,
+        "seed similarity",
+        config.similarity_margin,
+        config.window_share,
+    )
+    return h, votes
 
 
 def _run(

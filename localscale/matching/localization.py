@@ -7,6 +7,10 @@ translation only. :func:`locate_window` finds the translation most matches agree
 wide view's pixels) and returns the part of the wide view that the zoomed view shows under it, so
 that this window can be enlarged and matched at full detail instead.
 :func:`homography_window` gives the same window from a verified geometry.
+
+A detector with its own size and orientation (SIFT) needs no hypothesis to vote: each match
+alone gives a similarity, and :func:`locate_similarity` finds the one most matches agree on
+(Lowe's Hough transform, Lowe 2004, Sec. 7), the scale, the turn and the window with it.
 """
 
 from __future__ import annotations
@@ -22,6 +26,9 @@ from ..geometry import turn_matrix
 #: agreeing offset may lie (share of the wide view's longer side), the window's margin on each side
 #: (share of the zoomed view's outline) and its largest share of the wide view
 MIN_VOTES, RADIUS, MARGIN, MAX_SHARE = 6, 0.04, 0.25, 0.5
+#: bins of :func:`locate_similarity`'s vote: half an octave of scale, 30 degrees of rotation, and a
+#: quarter of B's extent in A for where B's centre lies (Lowe's, with half his scale bin)
+SCALE_BIN, ANGLE_BIN, PLACE_BIN = 0.5, 30.0, 0.25
 
 
 def _points(p) -> np.ndarray:
@@ -168,3 +175,118 @@ def locate_turn(
         return None
     located = _window_of(votes[best], scale, shape_b, min_votes, margin, max_share)
     return None if located is None else (best, *located)
+
+
+def similarity_votes(points_a, points_b, frames_a, frames_b, shape_b: tuple):
+    """What each match says on its own: ``(log2 S_{A->B} (N), rotation from B to A in degrees
+    [0, 360) (N), where B's centre lies in A (N x 2))``, from the sizes and orientations
+    (:attr:`~localscale.features.Features.frames`, OpenCV's convention) of its two keypoints."""
+    pa, pb = _points(points_a), _points(points_b)
+    fa, fb = np.asarray(frames_a, np.float64).reshape(-1, 2), np.asarray(frames_b, np.float64).reshape(-1, 2)
+    log_s = np.log2(np.maximum(fb[:, 0], 1e-6) / np.maximum(fa[:, 0], 1e-6))
+    angle = np.mod(fa[:, 1] - fb[:, 1], 360.0)
+    t = np.radians(angle)
+    d = np.array([(shape_b[1] - 1) / 2, (shape_b[0] - 1) / 2]) - pb
+    turned = np.stack([np.cos(t) * d[:, 0] - np.sin(t) * d[:, 1], np.sin(t) * d[:, 0] + np.cos(t) * d[:, 1]], 1)
+    return log_s, angle, pa + turned / np.exp2(log_s)[:, None]
+
+
+def _hough_bins(log_s: np.ndarray, angle: np.ndarray, centre: np.ndarray, extent_b: float):
+    """Each vote in the two nearest bins of each dimension (16 bins): ``(bins 16N x 4, vote 16N)``."""
+    n = len(log_s)
+    s0 = np.floor(log_s / SCALE_BIN - 0.5)
+    a0 = np.floor(angle / ANGLE_BIN - 0.5)
+    rows, owners = [], []
+    for ds in (0, 1):
+        sb = s0 + ds
+        place = PLACE_BIN * extent_b / np.exp2((sb + 0.5) * SCALE_BIN)  # at the bin's scale
+        x0, y0 = np.floor(centre[:, 0] / place - 0.5), np.floor(centre[:, 1] / place - 0.5)
+        for da in (0, 1):
+            ab = np.mod(a0 + da, round(360 / ANGLE_BIN))
+            for dx in (0, 1):
+                for dy in (0, 1):
+                    rows.append(np.stack([sb, ab, x0 + dx, y0 + dy], 1))
+                    owners.append(np.arange(n))
+    return np.concatenate(rows).astype(np.int64), np.concatenate(owners)
+
+
+def locate_similarity(
+    points_a,
+    points_b,
+    frames_a,
+    frames_b,
+    shape_a: tuple,
+    shape_b: tuple,
+    min_votes: int = MIN_VOTES,
+    radius: float = RADIUS,
+    candidates: int = 3,
+) -> Optional[tuple[np.ndarray, int, np.ndarray]]:
+    """The similarity between A and B that most matches agree on, from the keypoints' own sizes
+    and orientations (Lowe's Hough transform): each match votes for its scale, rotation and the
+    point of A where B's centre lies; the ``candidates`` fullest bins are each fitted with a
+    similarity, and the one most matches agree with (within ``radius`` of the wide view's longer
+    side, in its pixels) is returned if that count stands out of what random matches give.
+
+    Args:
+        points_a, points_b: ``N x 2`` matched points in the pixels of A and of B.
+        frames_a, frames_b: ``N x 2`` ``(size, angle)`` of the matched keypoints
+            (:attr:`~localscale.features.Features.frames`).
+        shape_a, shape_b: ``(H, W)`` of A and B.
+        min_votes, radius: as :func:`locate_window`'s.
+        candidates: bins fitted, fullest first.
+    Returns:
+        ``(M, votes, inliers)``: ``M`` the ``3 x 3`` similarity from A's pixels to B's
+        (``sqrt(det M)`` is ``S_{A->B}``), the matches that agree with it and their ``N`` mask;
+        ``None`` without enough agreeing matches.
+    """
+    pa, pb = _points(points_a), _points(points_b)
+    n = len(pa)
+    if n < max(3, min_votes) or frames_a is None or frames_b is None:
+        return None
+    log_s, angle, centre = similarity_votes(pa, pb, frames_a, frames_b, shape_b)
+    bins, owners = _hough_bins(log_s, angle, centre, float(max(shape_b[:2])))
+    keys, inverse, counts = np.unique(bins, axis=0, return_inverse=True, return_counts=True)
+    best = None
+    for k in np.argsort(-counts, kind="stable")[:candidates]:
+        members = owners[inverse.reshape(-1) == k]
+        if len(members) < 3:
+            break
+        fitted = _fit_similarity(pa, pb, members, shape_a, shape_b, radius)
+        if fitted is not None and (best is None or fitted[1].sum() > best[1].sum()):
+            best = fitted
+    if best is None:
+        return None
+    M, inliers = best
+    votes = int(inliers.sum())
+    wide = shape_a if np.linalg.det(M[:2, :2]) >= 1 else shape_b
+    r = radius * max(wide[:2])
+    chance = (n - 1) * math.pi * r * r / (wide[0] * wide[1])
+    if votes < max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2):
+        return None
+    return M, votes, inliers
+
+
+def _fit_similarity(pa: np.ndarray, pb: np.ndarray, members: np.ndarray, shape_a, shape_b, radius: float):
+    """A similarity (A -> B, ``3 x 3``) fitted to ``members``, refitted once to every match that agrees
+    with it in the wide view, and that ``N`` mask; ``None`` if it cannot be fitted."""
+    import cv2
+
+    inliers = np.zeros(len(pa), bool)
+    inliers[members] = True
+    M = None
+    for _ in range(2):
+        A, _ = cv2.estimateAffinePartial2D(pa[inliers], pb[inliers], method=cv2.LMEDS)
+        if A is None or not np.isfinite(A).all() or abs(np.linalg.det(A[:, :2])) < 1e-9:
+            return None if M is None else (M, inliers)
+        M = np.vstack([A, [0.0, 0.0, 1.0]])
+        zoom_b = np.linalg.det(M[:2, :2]) >= 1  # B shows A's content bigger: A is the wide view
+        if zoom_b:
+            q = pb @ np.linalg.inv(M)[:2, :2].T + np.linalg.inv(M)[:2, 2]
+            err, wide = np.linalg.norm(q - pa, axis=1), shape_a
+        else:
+            err, wide = np.linalg.norm(pa @ M[:2, :2].T + M[:2, 2] - pb, axis=1), shape_b
+        agree = err <= radius * max(wide[:2])
+        if agree.sum() < 3:
+            return None
+        inliers = agree
+    return M, inliers

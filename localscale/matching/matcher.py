@@ -44,6 +44,8 @@ class Matches:
         distances: ``K`` match costs, lower is better: descriptor distance (mutual NN) or
             ``1 - confidence`` (LightGlue).
         radii_a, radii_b: patch radii (patch extractor), else ``None``.
+        frames_a, frames_b: the detector's own ``(size, angle)`` of each keypoint
+            (:attr:`~localscale.features.Features.frames`; SIFT), else ``None``.
         factors: resize factors ``(A, B)`` the features were extracted at (scale rectification).
         seconds: what extraction and matching cost on their own (cached features count their
             extraction time).
@@ -55,6 +57,8 @@ class Matches:
     distances: np.ndarray
     radii_a: Optional[np.ndarray] = None
     radii_b: Optional[np.ndarray] = None
+    frames_a: Optional[np.ndarray] = None
+    frames_b: Optional[np.ndarray] = None
     factors: tuple = (1.0, 1.0)
     seconds: float = 0.0
 
@@ -230,7 +234,18 @@ class Matcher:
         t0 = time.perf_counter()
         m, dist = self.match_features(fa, fb)
         seconds = fa.seconds + fb.seconds + time.perf_counter() - t0
-        return Matches(fa.keypoints, fb.keypoints, m, dist, fa.radii, fb.radii, (fa.factor, fb.factor), seconds)
+        return Matches(
+            fa.keypoints,
+            fb.keypoints,
+            m,
+            dist,
+            fa.radii,
+            fb.radii,
+            fa.frames,
+            fb.frames,
+            (fa.factor, fb.factor),
+            seconds,
+        )
 
 
 def _log2_map(scale_map, h: int, w: int) -> np.ndarray:

@@ -40,7 +40,8 @@ def match_turned(
 ):
     """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
     pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
-    (``maps_turned``), or a float. ``max_side``: :meth:`~.matcher.Matcher.match`'s."""
+    (``maps_turned``), or a float. ``max_side``: :meth:`~.matcher.Matcher.match`'s. B's
+    ``frames_b`` are ``None`` when B was turned."""
     if turn % 4 == 0:
         return matcher.match(image_a, image_b, scale_a, scale_b, keys, max_side=max_side)
     bt = np.ascontiguousarray(np.rot90(image_b, turn))
@@ -48,4 +49,5 @@ def match_turned(
         scale_b = np.ascontiguousarray(np.rot90(scale_b, turn))
     key_b = None if keys[1] is None else (keys[1], "turn", turn % 4)
     found = matcher.match(image_a, bt, scale_a, scale_b, (keys[0], key_b), max_side=max_side)
-    return dataclasses.replace(found, keypoints_b=unturn_points(found.keypoints_b, turn, image_b.shape))
+    # the frames' angles are those of the turned B: dropped
+    return dataclasses.replace(found, keypoints_b=unturn_points(found.keypoints_b, turn, image_b.shape), frames_b=None)

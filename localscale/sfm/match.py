@@ -257,10 +257,12 @@ def _match_with_graph(
 
     1. every pair as it is (the stored features, two-view verification): settled when it verifies
        clearly or with no scale change or turn to try;
-    2. the seed's (SIFT) geometry of each open pair;
-    3. anchors: the seed's geometry matched in the window of the wide view that the close-up shows
+    2. the seed's (SIFT) geometry of each open pair; where it does not verify (or gives a strong
+       zoom no window), the similarity its matches' keypoints agree on
+       (:meth:`~.pair_runner.PairRunner.seed`);
+    3. anchors: the seed's hypothesis matched in the window of the wide view that the close-up shows
        (:attr:`~localscale.matching.AutoConfig.window_share`), on at most
-       :data:`ANCHOR_PAIRS_PER_IMAGE` pairs per image, the seed's strongest first;
+       :data:`ANCHOR_PAIRS_PER_IMAGE` pairs per image, the best supported first;
     4. the verified pairs (steps 1 to 3, and a resumed run's) make a :class:`~.pair_graph.PairGraph`;
        each open pair tries :data:`LEVEL_HYPOTHESES` of: the seed's scale and turn, its own
        geometry's, and those composed through a common neighbour that turn or zoom by
@@ -295,15 +297,14 @@ def _match_with_graph(
     seeds = _run_some(run_items, {i: (*todo[i], "seed") for i in open_}, "seed", stats)
     for i, r in seeds.items():
         stats.feature_sets += r.computed
-        if r.relation is not None and not _turn_fits(turns, *todo[i], r.relation.turn):
+        h = r.relation if r.relation is not None else r.hypothesis
+        if h is not None and not _turn_fits(turns, *todo[i], h.turn % 4):
             r.relation = r.hypothesis = None
         if r.relation is not None:
             graph.add(*todo[i], r.relation)
     tried: dict = {i: [] for i in open_}
     anchors, count = {}, {}
-    for i in sorted(
-        (i for i in open_ if seeds[i].hypothesis is not None), key=lambda i: (-seeds[i].relation.strength, i)
-    ):
+    for i in sorted((i for i in open_ if seeds[i].hypothesis is not None), key=lambda i: (-seeds[i].support, i)):
         a, b = todo[i]
         if seeds[i].hypothesis.window is not None and max(count.get(a, 0), count.get(b, 0)) < ANCHOR_PAIRS_PER_IMAGE:
             count[a], count[b] = count.get(a, 0) + 1, count.get(b, 0) + 1

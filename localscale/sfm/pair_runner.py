@@ -20,8 +20,9 @@ from .pair_graph import Relation
 class PairResult:
     """What matching one pair gives the driver: the keypoints of A and B (full-image pixels), K x 2
     matches, K scores, whether it verified (None: not checked), the hypothesis chosen, the pair's
-    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window),
-    whether the pair needs no other hypothesis, seconds and feature sets computed for it."""
+    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window)
+    and the seed's matches that agree with it, whether the pair needs no other hypothesis, seconds
+    and feature sets computed for it."""
 
     kp_a: np.ndarray
     kp_b: np.ndarray
@@ -31,6 +32,7 @@ class PairResult:
     chosen: str = ""
     relation: Optional[Relation] = None
     hypothesis: Any = None
+    support: int = 0
     final: bool = False  #: ``as_they_are``: verified clearly, or with no scale change or turn to try
     seconds: float = 0.0
     computed: int = 0
@@ -214,10 +216,13 @@ class PairRunner:
 
     def seed(self, a: str, b: str) -> "PairResult":
         """The seed matcher's (SIFT) run on the images as they are: no matches kept, only the
-        relation and the hypothesis (with its window) of its verified geometry."""
+        relation and the hypothesis (with its window) of its verified geometry; when it does not
+        verify, or gives a strong zoom no window, the hypothesis of the similarity its matches'
+        keypoints agree on (:func:`~localscale.matching.auto.seed_similarity`), if any."""
         import dataclasses
+        import math
 
-        from ..matching.auto import seed_hypothesis
+        from ..matching.auto import seed_hypothesis, seed_similarity
 
         empty = PairResult(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64))
         if self.seed_matcher is None:
@@ -225,11 +230,18 @@ class PairRunner:
         (ia, _), (ib, _) = self._image(a), self._image(b)
         cfg = self.matcher.config
         vconf = dataclasses.replace(cfg.verification, coverage_of="either")
-        trials: list = []
-        g = seed_hypothesis(self.seed_matcher, ia, ib, (a, b), vconf, trials, cfg.auto.window_share)
+        trials, matched, frames = [], [], []
+        g = seed_hypothesis(
+            self.seed_matcher, ia, ib, (a, b), vconf, trials, cfg.auto.window_share, matched=matched, frames=frames
+        )
         if g is not None:
             empty.relation = Relation(g.scale, g.turn % 4, trials[-1].num_inliers)
-            empty.hypothesis = g
+            empty.hypothesis, empty.support = g, trials[-1].num_inliers
+        zoom_without_window = g is not None and g.window is None and abs(math.log2(g.scale)) >= cfg.auto.zoom_min_log2
+        if cfg.auto.locate and frames and (g is None or zoom_without_window):
+            found = seed_similarity(*matched[0], *frames[0], ia.shape[:2], ib.shape[:2], cfg.auto)
+            if found is not None and (g is None or found[0].window is not None):
+                empty.hypothesis, empty.support = found
         return empty
 
     def hypotheses(self, a: str, b: str, hypotheses, networks: bool, per_pair: bool = False) -> "PairResult":
