@@ -337,3 +337,9 @@ def test_a_collection_seed_that_does_not_verify_gives_its_similarity(photos, mon
     monkeypatch.setattr(auto, "_run", real_run)  # verified: the geometry's relation and hypothesis
     r = runner.seed("wide", "close")
     assert r.relation is not None and r.relation.turn == 3 and r.hypothesis.source == "sift geometry"
+
+
+@pytest.mark.parametrize("bad", [0, 2.5, True])
+def test_a_bad_seed_feature_count_is_refused(bad):
+    with pytest.raises(LocalScaleError, match="seed_features"):
+        AutoConfig(seed_features=bad).check()

@@ -76,6 +76,9 @@ class AutoConfig:
             ``"sift"``) run once when the identity is not clear; its verified geometry is the first
             hypothesis of the matcher's. Its run is listed among the trials but is not one of the
             budget's and never the result. ``None``: no seed.
+        seed_features: keypoints of the seed matcher of a single pair (its ``num_features``;
+            ``None``: its configuration's): a close-up's few correct SIFT matches are more among
+            more keypoints. ``reconstruct``'s seed keeps its configuration's.
         window_share: a verified geometry's hypothesis matches only the window of the image whose
             content is smaller that the other image shows, when it is at most this share of that
             image (0: never a window).
@@ -109,6 +112,7 @@ class AutoConfig:
     same_log2: float = 0.25
     geometry_log2: float = 0.5
     seed: Optional[str] = "sift"
+    seed_features: Optional[int] = 8192
     window_share: float = 0.5
     accept_consistent: bool = False
     zoom_model: Optional[str] = "homography"
@@ -141,6 +145,8 @@ class AutoConfig:
                 raise LocalScaleError(
                     f"auto zoom_model must be None or one of {', '.join(VERIFICATION_MODELS)}, got {self.zoom_model!r}"
                 )
+        if self.seed_features is not None and not _is_int_at_least(self.seed_features, 1):
+            raise LocalScaleError(f"auto seed_features must be None or an integer >= 1, got {self.seed_features!r}")
         if not _is_int_at_least(self.locate_votes, 3):
             raise LocalScaleError(f"auto locate_votes must be an integer >= 3, got {self.locate_votes!r}")
         if self.zoom_min_coverage is not None and not (0 <= self.zoom_min_coverage <= 1):

@@ -23,14 +23,14 @@ import dataclasses
 import functools
 import sys
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import cv2
 import numpy as np
 
 from ..io import load_image, load_working_image, read_homography
 from .auto import auto_match
-from .config import MatchConfig
+from .config import MatchConfig, match_config
 from .correction import Correction, get_correction
 from .matcher import Matcher, Matches, get_matcher
 from .metrics import reprojection_errors
@@ -182,9 +182,10 @@ def match_result(m: Matcher, found: Matches, H, correction: Correction) -> Match
 
 
 @functools.lru_cache(maxsize=2)
-def _seed_matcher(name: str) -> Matcher:
-    """The seed matcher of ``correction="auto"``, built once per process."""
-    return Matcher(name)
+def _seed_matcher(name: str, num_features: Optional[int] = None) -> Matcher:
+    """The seed matcher of ``correction="auto"`` (``num_features``: None, its configuration's), built
+    once per process."""
+    return Matcher(name if num_features is None else match_config(name, num_features=num_features))
 
 
 def match_auto(
@@ -213,7 +214,7 @@ def match_auto(
         local_model,
         global_model,
         keys=keys,
-        seed_matcher=None if seed is None else _seed_matcher(seed),
+        seed_matcher=None if seed is None else _seed_matcher(seed, m.config.auto.seed_features),
         cameras=cameras,
         verification=verification,
     )

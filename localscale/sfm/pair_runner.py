@@ -20,9 +20,9 @@ from .pair_graph import Relation
 class PairResult:
     """What matching one pair gives the driver: the keypoints of A and B (full-image pixels), K x 2
     matches, K scores, whether it verified (None: not checked), the hypothesis chosen, the pair's
-    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window)
-    and the seed's matches that agree with it, whether the pair needs no other hypothesis, seconds
-    and feature sets computed for it."""
+    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window),
+    whether the pair needs no other hypothesis, seconds and feature sets computed for it, and the
+    seed's matches that agree with its hypothesis (what ranks the anchors)."""
 
     kp_a: np.ndarray
     kp_b: np.ndarray
@@ -32,10 +32,10 @@ class PairResult:
     chosen: str = ""
     relation: Optional[Relation] = None
     hypothesis: Any = None
-    support: int = 0
     final: bool = False  #: ``as_they_are``: verified clearly, or with no scale change or turn to try
     seconds: float = 0.0
     computed: int = 0
+    support: int = 0
 
 
 def relation_of(v, hypothesis) -> Optional[Relation]:
@@ -126,6 +126,8 @@ class PairRunner:
             from ..matching import match_config
             from .extract import LevelMatcher
 
+            # the seed matcher's own keypoints (not ``auto.seed_features``): a collection's pairs
+            # verify each other through the pair graph
             self.seed_matcher = LevelMatcher(
                 match_config(seed_name, max_side=None), device, cache_size=max(8, 2 * num_images)
             )
