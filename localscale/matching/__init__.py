@@ -53,7 +53,7 @@ _EXPORTS = {
         "sift_seed_points",
     ),
     ".hypotheses": ("Hypothesis", "propose"),
-    ".localization": ("locate_window", "locate_turn", "homography_window"),
+    ".localization": ("locate_window", "locate_turn", "locate_similarity", "homography_window"),
     ".auto": ("AutoConfig", "AutoResult", "auto_match"),
     ".turns": ("turn_matrix", "nearest_turn", "unturn_points", "match_turned"),
     ".result": ("MatchResult", "save_matches"),
