@@ -76,9 +76,9 @@ class AutoConfig:
             ``"sift"``) run once when the identity is not clear; its verified geometry is the first
             hypothesis of the matcher's. Its run is listed among the trials but is not one of the
             budget's and never the result. ``None``: no seed.
-        seed_features: keypoints of the seed matcher of a single pair (its ``num_features``;
-            ``None``: its configuration's): a close-up's few correct SIFT matches are more among
-            more keypoints. ``reconstruct``'s seed keeps its configuration's.
+        seed_features: keypoints of the seed matcher (its ``num_features``; ``None``: its
+            configuration's, 4096 for ``sift``): a close-up's few correct SIFT matches are more
+            among more keypoints, and so is the seed's geometry's support.
         window_share: a verified geometry's hypothesis matches only the window of the image whose
             content is smaller that the other image shows, when it is at most this share of that
             image (0: never a window).
@@ -112,7 +112,7 @@ class AutoConfig:
     same_log2: float = 0.25
     geometry_log2: float = 0.5
     seed: Optional[str] = "sift"
-    seed_features: Optional[int] = 8192
+    seed_features: Optional[int] = None
     window_share: float = 0.5
     accept_consistent: bool = False
     zoom_model: Optional[str] = "homography"

@@ -126,10 +126,10 @@ class PairRunner:
             from ..matching import match_config
             from .extract import LevelMatcher
 
-            # the seed matcher's own keypoints (not ``auto.seed_features``): a collection's pairs
-            # verify each other through the pair graph
+            features = self.matcher.config.auto.seed_features
+            options = {} if features is None else {"num_features": features}
             self.seed_matcher = LevelMatcher(
-                match_config(seed_name, max_side=None), device, cache_size=max(8, 2 * num_images)
+                match_config(seed_name, max_side=None, **options), device, cache_size=max(8, 2 * num_images)
             )
         self._features: OrderedDict = OrderedDict()
         self._images: OrderedDict = OrderedDict()
