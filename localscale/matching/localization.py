@@ -31,6 +31,12 @@ MIN_VOTES, RADIUS, MARGIN, MAX_SHARE = 6, 0.04, 0.25, 0.5
 SCALE_BIN, ANGLE_BIN, PLACE_BIN = 0.5, 30.0, 0.25
 
 
+def _stands_out(votes: int, chance: float, min_votes: int) -> bool:
+    """Whether ``votes`` agreeing matches stand out of the ``chance`` count random matches give
+    (and reach ``min_votes``)."""
+    return votes >= max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2)
+
+
 def _points(p) -> np.ndarray:
     return np.asarray(p, np.float64).reshape(-1, 2)
 
@@ -133,7 +139,7 @@ def _window_of(vote: tuple, scale: float, shape_b: tuple, min_votes: int, margin
     """:func:`locate_window`'s result from a :func:`_vote`."""
     u, votes, chance, (shrink, zw, zh, ww, wh, T) = vote
     # random matches spread their offsets over the wide view: the vote must stand out of that
-    if votes < max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2):
+    if not _stands_out(votes, chance, min_votes):
         return None
     half = shrink * np.array([zw, zh]) * (0.5 + margin)
     x0, y0 = np.maximum(0, np.floor(u - half)).astype(int)
@@ -261,7 +267,7 @@ def locate_similarity(
     wide = shape_a if np.linalg.det(M[:2, :2]) >= 1 else shape_b
     r = radius * max(wide[:2])
     chance = (n - 1) * math.pi * r * r / (wide[0] * wide[1])
-    if votes < max(min_votes, 1 + chance + 4 * math.sqrt(chance) + 2):
+    if not _stands_out(votes, chance, min_votes):
         return None
     return M, votes, inliers
 
