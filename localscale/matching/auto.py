@@ -423,15 +423,6 @@ class _Loop:
         turn, window, _ = found
         return Hypothesis(h.scale, turn, "seed located at " + h.source, window=window)
 
-    def seed_similarity(self) -> Optional[Hypothesis]:
-        """:func:`seed_similarity` of the seed's run, or ``None``."""
-        if not (self.config.locate and self.seed_frames):
-            return None
-        found = seed_similarity(
-            *self.seed_matches[0], *self.seed_frames[0], self.a.shape[:2], self.b.shape[:2], self.config
-        )
-        return None if found is None else found[0]
-
     def run_located(self) -> None:
         """When nothing verified: the zoom whose matches agreed most on where the zoomed view lies,
         matched again in that window of the wide view, and its own geometry's if that differs."""
@@ -499,14 +490,8 @@ class _Loop:
                 self.seed_matches,
                 self.seed_frames,
             )
-            similarity = self.seed_similarity()
-            first = [g]
-            # unverified, or a zoom its geometry gives no window for: the similarity its keypoints agree on first
-            if g is None:
-                first = [similarity]
-            elif g.window is None and self.is_zoom(g) and similarity is not None and similarity.window is not None:
-                first = [similarity, g]
-            self.queue[:0] = [h for h in first if h is not None and not _same(h, self.tried, c.geometry_log2)]
+            first = seed_choices(g, 0, self.seed_matches, self.seed_frames, self.a.shape[:2], self.b.shape[:2], c)
+            self.queue[:0] = [h for h, _ in first if not _same(h, self.tried, c.geometry_log2)]
         hyps = more = network_maps = None  # the networks run once the geometry's hypotheses are spent
         turns_added = False
         while sum(not t.hypothesis.source.startswith("seed") for t in self.trials) < c.budget:
@@ -599,6 +584,29 @@ def seed_similarity(
         config.window_share,
     )
     return h, votes
+
+
+def seed_choices(
+    g: Optional[Hypothesis],
+    support: int,
+    matched: list,
+    frames: list,
+    shape_a: tuple,
+    shape_b: tuple,
+    config: AutoConfig,
+) -> list[tuple[Hypothesis, int]]:
+    """The seed's hypotheses in the order they are tried, each with its support: ``g``, its verified
+    geometry's (``support`` inliers), if any; before it, when it did not verify or gives a zoom of
+    ``config.zoom_min_log2`` octaves or more no window, :func:`seed_similarity` of the seed's matched
+    points and frames (as :func:`seed_hypothesis` lists them), if found and, after a verified
+    geometry, if it has a window."""
+    first = [] if g is None else [(g, support)]
+    zoom_without_window = g is not None and g.window is None and abs(math.log2(g.scale)) >= config.zoom_min_log2
+    if config.locate and matched and frames and (g is None or zoom_without_window):
+        found = seed_similarity(*matched[0], *frames[0], shape_a, shape_b, config)
+        if found is not None and (g is None or found[0].window is not None):
+            first.insert(0, found)
+    return first
 
 
 def _run(

@@ -222,9 +222,8 @@ class PairRunner:
         verify, or gives a strong zoom no window, the hypothesis of the similarity its matches'
         keypoints agree on (:func:`~localscale.matching.auto.seed_similarity`), if any."""
         import dataclasses
-        import math
 
-        from ..matching.auto import seed_hypothesis, seed_similarity
+        from ..matching.auto import seed_choices, seed_hypothesis
 
         empty = PairResult(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64))
         if self.seed_matcher is None:
@@ -238,12 +237,9 @@ class PairRunner:
         )
         if g is not None:
             empty.relation = Relation(g.scale, g.turn % 4, trials[-1].num_inliers)
-            empty.hypothesis, empty.support = g, trials[-1].num_inliers
-        zoom_without_window = g is not None and g.window is None and abs(math.log2(g.scale)) >= cfg.auto.zoom_min_log2
-        if cfg.auto.locate and frames and (g is None or zoom_without_window):
-            found = seed_similarity(*matched[0], *frames[0], ia.shape[:2], ib.shape[:2], cfg.auto)
-            if found is not None and (g is None or found[0].window is not None):
-                empty.hypothesis, empty.support = found
+        choices = seed_choices(g, trials[-1].num_inliers, matched, frames, ia.shape[:2], ib.shape[:2], cfg.auto)
+        if choices:
+            empty.hypothesis, empty.support = choices[0]
         return empty
 
     def hypotheses(self, a: str, b: str, hypotheses, networks: bool, per_pair: bool = False) -> "PairResult":
