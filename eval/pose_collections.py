@@ -4,7 +4,10 @@ The SuperGlue/LightGlue protocol the ScaleNet paper uses: for each image pair wi
 relative pose, match, estimate the essential matrix from the matches with the known intrinsics
 (:func:`localscale.two_view.estimate_two_view_geometry`: MAGSAC, cheirality, refinement),
 error = max(rotation error, translation-direction error) in degrees (180 when no pose), and report
-the AUC at 5/10/20 degrees and the share of pairs within 10 degrees.
+the AUC at 5/10/20 degrees and the share of pairs within 10 degrees. Each pair's record (and the
+summary's median) also counts the returned matches that the true pose explains (``correct``:
+symmetric epipolar distance below :data:`EPIPOLAR_THRESHOLD` in normalised coordinates, SuperGlue's
+precision), which tells wrong matches from a pose the right matches do not pin down.
 
 Collections (``--root``, default ``/work/shared/data/collections``), each read with its own parser
 (no pycolmap needed):
@@ -462,6 +465,28 @@ def load_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+#: a match is correct when its symmetric epipolar distance under the true pose is below this, in
+#: normalised coordinates (SuperGlue's matching precision)
+EPIPOLAR_THRESHOLD = 5e-4
+
+
+def epipolar_correct(pa, pb, cam_a: Camera, cam_b: Camera, R, t, threshold: float = EPIPOLAR_THRESHOLD) -> np.ndarray:
+    """Which matches (``N x 2`` pixels in A and B) the true pose ``x_B = R x_A + t`` explains: their
+    symmetric epipolar distance (normalised coordinates) is below ``threshold``."""
+    if len(pa) == 0:
+        return np.zeros(0, bool)
+    xa = np.c_[cam_a.normalize(pa), np.ones(len(pa))]
+    xb = np.c_[cam_b.normalize(pb), np.ones(len(pb))]
+    t = np.asarray(t, np.float64).ravel()
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ np.asarray(R, np.float64)
+    Ex, Etx = xa @ E.T, xb @ E
+    num = np.sum(xb * Ex, axis=1) ** 2
+    d2 = num * (
+        1 / np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2, 1e-30) + 1 / np.maximum(Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-30)
+    )
+    return d2 < threshold**2
+
+
 def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, cfg: TwoViewConfig) -> dict:
     t0 = time.perf_counter()
     try:
@@ -473,8 +498,11 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     g = estimate_two_view_geometry(pa, pb, cam_a, cam_b, cfg)
     rot, trans = relative_pose_error(g.R_E, g.t_E, R_gt, t_gt)
     rot_c, trans_c = relative_pose_error(g.R, g.t, R_gt, t_gt)
+    correct = epipolar_correct(pa, pb, cam_a, cam_b, R_gt, t_gt)
     rec = {
         "matches": int(len(pa)),
+        "correct": int(correct.sum()),
+        "precision": float(correct.mean()) if len(correct) else None,
         "inliers_E": g.num_inliers_E,
         "configuration": g.configuration,
         "err_rot": rot,
@@ -491,6 +519,24 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     return rec
 
 
+#: correct matches (:func:`epipolar_correct`) that make a pair's close-up "found"
+FOUND_CORRECT = 10
+
+
+def _found_summary(records: List[dict], pose: str) -> dict:
+    """Where the pairs fail: the share with at least :data:`FOUND_CORRECT` correct matches (the
+    matcher found the common part), and the share of those within 10 degrees (the pose those
+    matches give); empty for records without ``correct``."""
+    if any("correct" not in r for r in records):
+        return {}
+    found = [r for r in records if r["correct"] >= FOUND_CORRECT]
+    return {
+        "median_correct": float(np.median([r["correct"] for r in records])),
+        "found": 100 * len(found) / len(records),
+        "within10_of_found": 100 * float(np.mean([r[pose] <= 10 for r in found])) if found else None,
+    }
+
+
 def summarise(records: List[dict], pose: str = "err") -> dict:
     errs = [r[pose] for r in records]
     if not errs:
@@ -502,13 +548,21 @@ def summarise(records: List[dict], pose: str = "err") -> dict:
         "within10": 100 * float(np.mean(np.asarray(errs) <= 10)),
         "median_err": float(np.median(errs)),
         "median_matches": float(np.median([r["matches"] for r in records])),
+        **_found_summary(records, pose),
         "seconds_per_pair": float(np.mean([r["seconds_total"] for r in records])),
     }
 
 
+def _cell(value) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
 def markdown(rows: List[dict]) -> str:
-    head = "| collection | pairs | method | n | AUC@5 | AUC@10 | AUC@20 | <=10 deg % | med. matches | s/pair |"
-    out = [head, "|" + "---|" * 10]
+    head = (
+        "| collection | pairs | method | n | AUC@5 | AUC@10 | AUC@20 | <=10 deg % | med. matches | s/pair "
+        "| found % | of found <=10 deg % |"
+    )
+    out = [head, "|" + "---|" * 12]
     for r in rows:
         s = r["summary"]
         if not s.get("pairs"):
@@ -516,7 +570,7 @@ def markdown(rows: List[dict]) -> str:
         out.append(
             f"| {r['collection']} | {r['kind']} | {r['method']} | {s['pairs']} | {s['auc@5']:.1f} | "
             f"{s['auc@10']:.1f} | {s['auc@20']:.1f} | {s['within10']:.1f} | {s['median_matches']:.0f} | "
-            f"{s['seconds_per_pair']:.1f} |"
+            f"{s['seconds_per_pair']:.1f} | {_cell(s.get('found'))} | {_cell(s.get('within10_of_found'))} |"
         )
     return "\n".join(out)
 
