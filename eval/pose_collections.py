@@ -6,7 +6,7 @@ relative pose, match, estimate the essential matrix from the matches with the kn
 error = max(rotation error, translation-direction error) in degrees (180 when no pose), and report
 the AUC at 5/10/20 degrees and the share of pairs within 10 degrees. Each pair's record (and the
 summary's median) also counts the returned matches that the true pose explains (``correct``:
-symmetric epipolar distance below :data:`EPIPOLAR_THRESHOLD` in normalised coordinates, SuperGlue's
+:func:`localscale.two_view.epipolar_errors` below :data:`EPIPOLAR_THRESHOLD` in normalised coordinates, SuperGlue's
 precision), which tells wrong matches from a pose the right matches do not pin down.
 
 Collections (``--root``, default ``/work/shared/data/collections``), each read with its own parser
@@ -69,7 +69,13 @@ from tqdm import tqdm
 from localscale.cameras import Camera, cut_window, read_cameras_txt
 from localscale.errors import LocalScaleError
 from localscale.outputs import atomic_path
-from localscale.two_view import TwoViewConfig, estimate_two_view_geometry, pose_auc, relative_pose_error
+from localscale.two_view import (
+    TwoViewConfig,
+    epipolar_errors,
+    estimate_two_view_geometry,
+    pose_auc,
+    relative_pose_error,
+)
 
 COLLECTIONS = ("skull_alansartlog", "temple_sparse_ring_middlebury", "kermit_bundler")
 THRESHOLDS = (5, 10, 20)
@@ -470,23 +476,6 @@ def load_rgb(path: Path) -> np.ndarray:
 EPIPOLAR_THRESHOLD = 5e-4
 
 
-def epipolar_correct(pa, pb, cam_a: Camera, cam_b: Camera, R, t, threshold: float = EPIPOLAR_THRESHOLD) -> np.ndarray:
-    """Which matches (``N x 2`` pixels in A and B) the true pose ``x_B = R x_A + t`` explains: their
-    symmetric epipolar distance (normalised coordinates) is below ``threshold``."""
-    if len(pa) == 0:
-        return np.zeros(0, bool)
-    xa = np.c_[cam_a.normalize(pa), np.ones(len(pa))]
-    xb = np.c_[cam_b.normalize(pb), np.ones(len(pb))]
-    t = np.asarray(t, np.float64).ravel()
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ np.asarray(R, np.float64)
-    Ex, Etx = xa @ E.T, xb @ E
-    num = np.sum(xb * Ex, axis=1) ** 2
-    d2 = num * (
-        1 / np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2, 1e-30) + 1 / np.maximum(Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-30)
-    )
-    return d2 < threshold**2
-
-
 def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, cfg: TwoViewConfig) -> dict:
     t0 = time.perf_counter()
     try:
@@ -498,7 +487,7 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     g = estimate_two_view_geometry(pa, pb, cam_a, cam_b, cfg)
     rot, trans = relative_pose_error(g.R_E, g.t_E, R_gt, t_gt)
     rot_c, trans_c = relative_pose_error(g.R, g.t, R_gt, t_gt)
-    correct = epipolar_correct(pa, pb, cam_a, cam_b, R_gt, t_gt)
+    correct = epipolar_errors(pa, pb, cam_a, cam_b, R_gt, t_gt) < EPIPOLAR_THRESHOLD
     rec = {
         "matches": int(len(pa)),
         "correct": int(correct.sum()),
@@ -519,7 +508,7 @@ def evaluate_pair(method, key_a, img_a, cam_a, key_b, img_b, cam_b, R_gt, t_gt, 
     return rec
 
 
-#: correct matches (:func:`epipolar_correct`) that make a pair's close-up "found"
+#: correct matches (:data:`EPIPOLAR_THRESHOLD`) that make a pair's close-up "found"
 FOUND_CORRECT = 10
 
 

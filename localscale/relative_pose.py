@@ -214,6 +214,26 @@ def relative_pose_error(R_est, t_est, R_gt, t_gt) -> Tuple[float, float]:
     return rot, min(e, 180.0 - e)
 
 
+def epipolar_errors(points_a, points_b, camera_a, camera_b, R, t) -> np.ndarray:
+    """Symmetric epipolar distances (``N``, normalised coordinates) of matches under a known
+    relative pose ``x_B = R x_A + t`` (SuperGlue/LightGlue's match precision counts those below
+    ``5e-4`` as correct). ``points_a`` / ``points_b``: ``N x 2`` pixels; the cameras undistort them
+    (:meth:`localscale.cameras.Camera.normalize`)."""
+    if len(points_a) != len(points_b):
+        raise ValueError(f"points_a and points_b differ in length: {len(points_a)} and {len(points_b)}")
+    if len(points_a) == 0:
+        return np.zeros(0)
+    xa = np.c_[camera_a.normalize(points_a), np.ones(len(points_a))]
+    xb = np.c_[camera_b.normalize(points_b), np.ones(len(points_b))]
+    E = skew(np.asarray(t, np.float64).ravel()) @ np.asarray(R, np.float64)
+    Ex, Etx = xa @ E.T, xb @ E
+    residual = np.sum(xb * Ex, axis=1) ** 2
+    inverse = 1 / np.maximum(Ex[:, 0] ** 2 + Ex[:, 1] ** 2, 1e-30) + 1 / np.maximum(
+        Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-30
+    )
+    return np.sqrt(residual * inverse)
+
+
 def pose_auc(errors: Sequence[float], thresholds: Sequence[float] = (5, 10, 20)) -> List[float]:
     """Area under the recall-vs-error curve up to each threshold, normalised to [0, 1]
     (SuperGlue/LightGlue ``pose_auc``): errors are ``max(rot, trans)`` degrees per pair,

@@ -42,6 +42,7 @@ import numpy as np
 from .cameras import as_camera
 from .errors import LocalScaleError
 from .relative_pose import (
+    epipolar_errors,  # noqa: F401  (the protocol's match precision)
     median_triangulation_angle,
     pose_auc,  # noqa: F401  (the protocol's AUC, with the geometry)
     pose_from_essential,

@@ -28,6 +28,7 @@ from localscale.two_view import (
     CONFIGURATIONS,
     TwoViewConfig,
     TwoViewError,
+    epipolar_errors,
     estimate_two_view_geometry,
     pose_auc,
     relative_pose_error,
@@ -330,6 +331,24 @@ def test_pose_error_and_auc():
     # one pair at 2.5 deg: recall rises linearly from 0 at 0 to 1 at 2.5 (SuperGlue's curve)
     assert pose_auc([2.5], (5,)) == pytest.approx([0.75])
     assert pose_auc([2.5, 180.0], (5, 10)) == pytest.approx([0.375, 0.4375])
+
+
+def test_epipolar_errors_tell_correct_matches_from_wrong_ones():
+    """Under the true pose the noisy correct matches lie within 5e-4 (SuperGlue's precision) and
+    the uniform outliers beyond it; under another pose the correct ones do not."""
+    rng = np.random.default_rng(3)
+    xa, xb = observe(make_points("volume", rng), R_AB, T_AB, rng, noise=0.05, outliers=0.25)
+    k = int(0.25 * len(xa))
+    err = epipolar_errors(xa, xb, CAM_A, CAM_B, R_AB, T_AB)
+    assert err.shape == (len(xa),)
+    assert np.mean(err[k:] < 5e-4) > 0.95
+    assert np.mean(err[:k] < 5e-4) < 0.1
+    assert np.allclose(epipolar_errors(xa, xb, CAM_A, CAM_B, R_AB, 3 * T_AB), err)  # scale-free in t
+    wrong = epipolar_errors(xa, xb, CAM_A, CAM_B, R_AB @ rotation([0, 1, 0], 5.0), T_AB)
+    assert np.mean(wrong[k:] < 5e-4) < 0.2
+    assert epipolar_errors(np.zeros((0, 2)), np.zeros((0, 2)), CAM_A, CAM_B, R_AB, T_AB).shape == (0,)
+    with pytest.raises(ValueError, match="differ in length"):
+        epipolar_errors(xa, xb[:-1], CAM_A, CAM_B, R_AB, T_AB)
 
 
 # ---------------------------------------------------------------------------- rendered images
