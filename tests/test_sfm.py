@@ -153,6 +153,67 @@ def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path
     assert not (tmp_path / "out").exists()
 
 
+def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
+    """``mapper_options`` set pycolmap's options by dotted name, strings read as the option's type;
+    the mapper is given them, and the summary records them."""
+    from localscale.sfm.mapping import mapping_options, run_mapping
+
+    opts = mapping_options(
+        1,
+        overrides={
+            "ba_refine_extra_params": "false",
+            "mapper.abs_pose_min_num_inliers": "15",
+            "mapper.init_max_error": 2,
+        },
+    )
+    assert opts.ba_refine_extra_params is False
+    assert opts.mapper.abs_pose_min_num_inliers == 15 and opts.mapper.init_max_error == 2.0
+    assert mapping_options(1).ba_refine_extra_params is True  # each call starts from pycolmap's defaults
+    out, _ = run
+    seen = []
+
+    def mapper(database, images, output, options):
+        seen.append((options.ba_refine_extra_params, options.mapper.abs_pose_min_num_inliers))
+        return {0: pycolmap.Reconstruction(out / "sparse" / "0")}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapper)
+    overrides = {"ba_refine_extra_params": False, "mapper.abs_pose_min_num_inliers": 12}
+    run_mapping(out / "database.db", out, tmp_path / "sparse", num_threads=1, overrides=overrides)
+    assert seen == [(False, 12)]
+
+
+def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
+    summary = reconstruct(
+        scene[0],
+        tmp_path / "out",
+        matcher="sift",
+        num_threads=1,
+        show_progress=False,
+        plot=False,
+        mapper_options={"ba_refine_extra_params": "false"},
+    )
+    assert summary["registered"] == 6
+    assert summary["options"]["mapper_options"] == {"ba_refine_extra_params": "false"}
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"ba_refine_extra_param": "false"}, "incremental mapper has no option 'ba_refine_extra_param'"),
+        ({"mapper.no_such_thing": 1}, "no option 'mapper.no_such_thing'"),
+        ({"ba_refine_extra_params": "maybe"}, "takes true or false"),
+        ({"mapper.abs_pose_min_num_inliers": "many"}, "takes an integer"),
+        ({"mapper.abs_pose_min_num_inliers": 1.5}, "takes an integer"),
+    ],
+)
+def test_bad_mapper_options_are_refused_before_anything_is_written(scene, tmp_path, options, message):
+    from localscale.errors import LocalScaleError
+
+    with pytest.raises(LocalScaleError, match=message):
+        reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper_options=options, show_progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_rerun_resumes_and_other_options_are_refused(scene, run):
     folder, _ = scene
     out, first = run

@@ -247,3 +247,17 @@ def test_global_mapper_with_nothing_to_calibrate_says_so(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warning: the view-graph calibration failed" in err and "warning: no model" in err
     assert json.loads((out / "summary.json").read_text())["view_graph_calibrated"] is False
+
+
+@pytest.mark.parametrize(
+    "option, match",
+    [
+        ("ba_refine_extra_params", "--mapper-option takes NAME=VALUE"),
+        ("=1", "--mapper-option takes NAME=VALUE"),
+        ("no_such_option=1", "incremental mapper has no option 'no_such_option'"),
+        ("mapper.abs_pose_min_num_inliers=few", "takes an integer"),
+    ],
+)
+def test_bad_mapper_option(views, tmp_path, capsys, option, match):
+    out = tmp_path / "out"
+    _refused([str(views), "-o", str(out), *FAST, "--mapper-option", option], capsys, out, match)

@@ -103,6 +103,14 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         help="runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out; "
         "the run that registers the most is kept",
     )
+    p.add_argument(
+        "--mapper-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a pycolmap option of the mapper, by name (repeatable), e.g. ba_refine_extra_params=false or "
+        "mapper.abs_pose_min_num_inliers=15",
+    )
     p.add_argument("--max-side", type=positive_int, default=1024, help="working resolution (longer side, pixels)")
     p.add_argument("--num-keypoints", type=positive_int, default=2048, help="keypoints per image at most")
     p.add_argument(
@@ -191,4 +199,18 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         auto_graph=not args.auto_per_pair,
         mapper=args.mapper,
         mapping_trials=args.mapping_trials,
+        mapper_options=_name_values(args.mapper_option),
     )
+
+
+def _name_values(items: list) -> dict:
+    """``["NAME=VALUE", ...]`` as ``{NAME: VALUE}`` (the values stay strings)."""
+    from ..errors import LocalScaleError
+
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise LocalScaleError(f"--mapper-option takes NAME=VALUE, got {item!r}")
+        out[name.strip()] = value.strip()
+    return out

@@ -78,8 +78,11 @@ def model_stats(rec) -> dict:
     }
 
 
-def mapping_options(num_threads: int = -1, min_model_size: int = 3, mapper: str = "incremental"):
-    """pycolmap's options of ``mapper`` (``IncrementalPipelineOptions`` or ``GlobalPipelineOptions``)."""
+def mapping_options(
+    num_threads: int = -1, min_model_size: int = 3, mapper: str = "incremental", overrides: Optional[dict] = None
+):
+    """pycolmap's options of ``mapper`` (``IncrementalPipelineOptions`` or ``GlobalPipelineOptions``),
+    with ``overrides`` (:func:`set_options`, e.g. ``{"ba_refine_extra_params": False}``) set last."""
     import pycolmap
 
     check_mapper(mapper)
@@ -91,7 +94,48 @@ def mapping_options(num_threads: int = -1, min_model_size: int = 3, mapper: str 
         # its solvers ask for the GPU by default and warn on a CPU build of COLMAP
         opts.mapper.bundle_adjustment.ceres.use_gpu = False
         opts.mapper.global_positioning.use_gpu = False
+    return set_options(opts, overrides or {}, f"{mapper} mapper")
+
+
+def set_options(opts, overrides: dict, what: str = "mapper"):
+    """Set pycolmap options by name (``{"mapper.abs_pose_min_num_inliers": 15}``: a dotted path
+    into ``opts``); a string value is read as the option's type (``"false"``, ``"15"``, ``"0.5"``).
+    Returns ``opts``; raises :class:`LocalScaleError` on an unknown name or a value of another type."""
+    for key, value in overrides.items():
+        *path, name = str(key).split(".")
+        target = opts
+        for part in path:
+            target = getattr(target, part, None)
+            if target is None:
+                break
+        current = getattr(target, name, None) if target is not None and name else None
+        if current is None or name.startswith("_") or callable(current):
+            raise LocalScaleError(f"{what} has no option {key!r}")
+        setattr(target, name, _option_value(key, current, value))
     return opts
+
+
+def _option_value(key: str, current, value):
+    """``value`` as the type of the option's ``current`` value (bool, int, float or str)."""
+    kind = type(current)
+    wanted = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, kind.__name__)
+    if isinstance(value, str) and kind is not str:
+        text = value.strip().lower()
+        if kind is bool:
+            if text not in ("true", "false", "1", "0"):
+                raise LocalScaleError(f"option {key!r} takes {wanted}, got {value!r}")
+            return text in ("true", "1")
+        try:
+            return kind(text)
+        except ValueError:
+            raise LocalScaleError(f"option {key!r} takes {wanted}, got {value!r}") from None
+    if (
+        kind in (int, float, bool, str)
+        and not isinstance(value, kind)
+        and not (kind is float and isinstance(value, int))
+    ):
+        raise LocalScaleError(f"option {key!r} takes {wanted}, got {value!r}")
+    return value
 
 
 def check_mapper(mapper: str) -> None:
@@ -151,10 +195,12 @@ def run_mapping(
     verbose: bool = False,
     mapper: str = "incremental",
     trials: int = MAPPING_TRIALS,
+    overrides: Optional[dict] = None,
 ) -> MappingResult:
     """Mapping of ``database_path`` with ``mapper`` (:data:`MAPPERS`); writes ``sparse_dir/<i>``
     (largest model first). ``image_dir`` gives the points their colours (COLMAP reads the images);
-    ``options``: pycolmap's options of that mapper (default :func:`mapping_options`).
+    ``options``: pycolmap's options of that mapper (default :func:`mapping_options` with
+    ``overrides``).
 
     ``trials``: while the largest model leaves images of the database out, the mapper runs again
     with the next random seed (0, 1, ...), at most ``trials`` times in all; the run whose largest
@@ -175,7 +221,7 @@ def run_mapping(
         shutil.rmtree(d, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        opts = options or mapping_options(num_threads, mapper=mapper)
+        opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
         run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
         with colmap_log(verbose):
             if mapper == "global" and needs_calibration(database_path):

@@ -158,6 +158,7 @@ def reconstruct(
     auto_graph: bool = True,
     mapper: str = "incremental",
     mapping_trials: int = 3,
+    mapper_options: Optional[dict] = None,
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -185,6 +186,8 @@ def reconstruct(
             GLOMAP): :func:`~.mapping.run_mapping`.
         mapping_trials: runs of the mapper (random seeds 0, 1, ...) while its largest model leaves
             images out; the run that registers the most is kept.
+        mapper_options: pycolmap options of the mapper set by name
+            (:func:`~.mapping.set_options`, e.g. ``{"ba_refine_extra_params": False}``).
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
@@ -211,6 +214,7 @@ def reconstruct(
         auto_graph=auto_graph,
         mapper=mapper,
         mapping_trials=mapping_trials,
+        mapper_options=dict(mapper_options or {}),
     )
     return run.run(t_total)
 
@@ -245,6 +249,7 @@ class _Reconstruction:
     auto_graph: bool = True
     mapper: str = "incremental"
     mapping_trials: int = 3
+    mapper_options: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
 
     def run(self, t_total: float) -> dict:
@@ -291,6 +296,10 @@ class _Reconstruction:
 
         check_mapper(self.mapper)
         check_trials(self.mapping_trials)
+        if self.mapper_options:
+            from .mapping import mapping_options
+
+            mapping_options(mapper=self.mapper, overrides=self.mapper_options)
         if self.out.resolve() == self.images_dir.resolve():
             raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
         check_writable_dir(self.out)
@@ -308,6 +317,7 @@ class _Reconstruction:
             "auto_graph": self.auto_graph if self.correction == "auto" else None,
             "mapper": self.mapper,
             "mapping_trials": self.mapping_trials,
+            "mapper_options": {str(k): v for k, v in sorted(self.mapper_options.items())},
         }
 
     def read_inputs(self) -> None:
@@ -464,6 +474,7 @@ class _Reconstruction:
                 verbose=self.verbose,
                 mapper=self.mapper,
                 trials=self.mapping_trials,
+                overrides=self.mapper_options,
             )
 
     def summarize(self) -> dict:
