@@ -183,17 +183,25 @@ def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
 
 
 def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
+    """A camera per image keeps the distortion out of the incremental mapper's refinement unless
+    the user's options say otherwise; a shared camera keeps pycolmap's defaults."""
+    from localscale.sfm.mapping import PER_IMAGE_CAMERA_OPTIONS, default_overrides
+
+    assert default_overrides("incremental", "per_image") == PER_IMAGE_CAMERA_OPTIONS
+    assert default_overrides("incremental", "single") == {} and default_overrides("global", "per_image") == {}
+    common = dict(matcher="sift", num_threads=1, show_progress=False, plot=False)
+    summary = reconstruct(scene[0], tmp_path / "single", camera_mode="single", **common)
+    assert summary["registered"] == 6 and summary["mapper_options"] == {}
     summary = reconstruct(
         scene[0],
-        tmp_path / "out",
-        matcher="sift",
-        num_threads=1,
-        show_progress=False,
-        plot=False,
-        mapper_options={"ba_refine_extra_params": "false"},
+        tmp_path / "per_image",
+        camera_mode="per_image",
+        mapper_options={"ba_refine_extra_params": "true"},
+        **common,
     )
     assert summary["registered"] == 6
-    assert summary["options"]["mapper_options"] == {"ba_refine_extra_params": "false"}
+    assert summary["options"]["mapper_options"] == {"ba_refine_extra_params": "true"}
+    assert summary["mapper_options"] == {"ba_refine_extra_params": "true", "mapper.abs_pose_refine_extra_params": False}
 
 
 @pytest.mark.parametrize(

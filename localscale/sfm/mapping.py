@@ -48,6 +48,21 @@ class MappingResult:
     calibrated: Optional[bool] = None
     #: each run of the mapper: ``{"seed", "registered"}`` (:func:`run_mapping`'s ``trials``)
     trials: list = field(default_factory=list)
+    #: the options set by name on pycolmap's defaults (:func:`set_options`)
+    overrides: dict = field(default_factory=dict)
+
+
+#: options of the incremental mapper when every image has its own camera: the radial distortion
+#: stays as given (zero for a guessed camera). One image's observations hardly constrain it, and a
+#: close-up's narrow view lets it trade with the focal length (``docs/DECISIONS.md``)
+PER_IMAGE_CAMERA_OPTIONS = {"ba_refine_extra_params": False, "mapper.abs_pose_refine_extra_params": False}
+
+
+def default_overrides(mapper: str, camera_mode: str) -> dict:
+    """The options :func:`run_mapping` sets by default for ``mapper`` and a database whose cameras
+    are ``camera_mode`` (``single`` or ``per_image``): :data:`PER_IMAGE_CAMERA_OPTIONS` for the
+    incremental mapper with a camera per image, else none (pycolmap's defaults)."""
+    return dict(PER_IMAGE_CAMERA_OPTIONS) if mapper == "incremental" and camera_mode == "per_image" else {}
 
 
 #: COLMAP's bounds of plausible intrinsics (its mapper's ``min/max_focal_length_ratio``,
@@ -239,7 +254,7 @@ def run_mapping(
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(final_tmp, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
-    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs)
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, dict(overrides or {}))
 
 
 def _best_of_trials(run, database_path, image_dir, tmp: Path, opts, trials: int) -> tuple:

@@ -462,8 +462,9 @@ class _Reconstruction:
             )
 
     def map_model(self) -> None:
-        """``sparse/``: pycolmap's mapping (:attr:`mapper`)."""
-        from .mapping import run_mapping
+        """``sparse/``: pycolmap's mapping (:attr:`mapper`), with the options of the cameras'
+        mode (:func:`~.mapping.default_overrides`) and :attr:`mapper_options` over them."""
+        from .mapping import default_overrides, run_mapping
 
         with self._timed("mapping"):
             self.mapping = run_mapping(
@@ -474,7 +475,7 @@ class _Reconstruction:
                 verbose=self.verbose,
                 mapper=self.mapper,
                 trials=self.mapping_trials,
-                overrides=self.mapper_options,
+                overrides={**default_overrides(self.mapper, self.cameras.mode), **self.mapper_options},
             )
 
     def summarize(self) -> dict:
@@ -537,6 +538,7 @@ def _summary(images, pair_list, mstats, gstats, mapping, cameras, options, secon
             {k: v for k, v in s.items() if k not in ("registered_images", "bogus_cameras")} for s in mapping.stats
         ],
         "mapper": options.get("mapper", "incremental"),
+        "mapper_options": mapping.overrides,
         "view_graph_calibrated": mapping.calibrated,
         "mapping_runs": mapping.trials,
         "pairs": len(pair_list),
