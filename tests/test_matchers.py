@@ -43,6 +43,26 @@ def test_learned_matcher_matches_the_bundled_pair(name):
     assert small.keypoints_a[:, 0].max() > 400  # keypoints in pixels of the 640-px image
 
 
+@pytest.mark.parametrize("name", ["aliked-lightglue", "disk-lightglue"])
+def test_describing_given_keypoints_gives_the_extracted_descriptors(name):
+    """``describe`` at the keypoints ``extract`` found (at the same factor) gives the same
+    descriptors; elsewhere they differ; extractors without a dense descriptor map refuse."""
+    _needs(name)
+    image = load_image(A)
+    extractor = Matcher(match_config(name, num_features=256)).extractor
+    for factor in (1.0, 0.7, 1.5):
+        f = extractor.extract(image, factor)
+        d = extractor.describe(image, f.keypoints, factor)
+        assert np.allclose(d.keypoints, f.keypoints) and d.descriptors.shape == f.descriptors.shape
+        assert float((d.descriptors * f.descriptors).sum(1).min()) > 0.999
+    moved = extractor.describe(image, f.keypoints + 6.0, 1.5)
+    assert float((moved.descriptors * f.descriptors).sum(1).median()) < 0.9
+    sift = Matcher(match_config("sift")).extractor
+    assert extractor.describes and not sift.describes
+    with pytest.raises(LocalScaleError, match="cannot describe"):
+        sift.describe(image, f.keypoints)
+
+
 def test_channels_last_aliked_gives_the_same_features():
     _needs("aliked-lightglue")
     img = load_image(A)[:240, :320]

@@ -106,3 +106,53 @@ def test_auto_relates_a_closeup_to_every_view_that_plain_matching_loses(scene_wi
         p = pairs[("close.png", f"view_{i}.png")]
         assert p["verified"] and p["relation"]["turn"] == 1 and 0.25 < p["relation"]["scale"] < 0.45
     assert all(p["chosen"] == "as they are" for (a, _), p in pairs.items() if a != "close.png")
+
+
+@needs_aliked
+@pytest.mark.parametrize("closeup_first", [True, False])
+def test_window_matches_land_on_the_wide_views_stored_keypoints(tmp_path, monkeypatch, closeup_first):
+    """A 4x close-up of a photo, turned: matched in the photo's window, the photo's stored keypoints
+    inside the window are described there too, so that matches land on them (the keypoints the
+    photo's other pairs use) and are right (the true similarity within 3 px)."""
+    import cv2
+
+    from localscale.features.extractors import Extractor
+    from localscale.matching.hypotheses import Hypothesis
+    from localscale.matching.turns import unturn_points
+    from localscale.sfm import extract_features, find_images
+    from localscale.sfm.extract import FeatureConf, features_for_matcher
+    from localscale.sfm.pair_runner import PairRunner
+
+    asset = os.path.join(os.path.dirname(__file__), "..", "localscale", "assets", "kodim01_a.jpg")
+    wide = cv2.imread(asset)
+    x0, y0, x1, y1 = 300, 180, 492, 308
+    enlarged = cv2.resize(wide[y0:y1, x0:x1], (4 * (x1 - x0), 4 * (y1 - y0)), interpolation=cv2.INTER_CUBIC)
+    close = np.ascontiguousarray(np.rot90(enlarged, 1))
+    cv2.imwrite(str(tmp_path / "close.png"), close)
+    cv2.imwrite(str(tmp_path / "wide.png"), wide)
+    images = find_images(tmp_path)
+    conf = FeatureConf("aliked-lightglue", 1024, 1024)
+    extract_features(images, tmp_path / "features.h5", conf, show_progress=False)
+    if closeup_first:  # S_{A->B} = 1/4, B (the photo) turned as the close-up
+        a, b, h = "close.png", "wide.png", Hypothesis(0.25, 1, "test", window=(1, x0, y0, x1, y1))
+    else:  # S_{A->B} = 4, B (the close-up) turned back
+        a, b, h = "wide.png", "close.png", Hypothesis(4.0, 3, "test", window=(0, x0, y0, x1, y1))
+    stored = features_for_matcher(tmp_path / "features.h5", "wide.png")[0].keypoints
+
+    def on_stored(describes: bool):
+        monkeypatch.setattr(Extractor, "describes", property(lambda self: describes))
+        runner = PairRunner({im.name: im for im in images}, tmp_path / "features.h5", conf, "auto", "cpu", None,
+                            None, None, 2)  # fmt: skip
+        r = runner.hypotheses(a, b, [h], networks=False)
+        assert r.verified and ("window anchored" in r.chosen) == describes
+        kw, kc = (r.kp_b, r.kp_a) if closeup_first else (r.kp_a, r.kp_b)
+        m = r.matches if not closeup_first else r.matches[:, ::-1]  # (wide, close-up)
+        pw, pc = kw[m[:, 0]], kc[m[:, 1]]
+        exact = np.min(np.linalg.norm(pw[:, None] - stored[None], axis=2), axis=1) < 1e-3
+        truth = (unturn_points(pc, 1, enlarged.shape[:2]) + 0.5) / 4 - 0.5 + np.array([x0, y0])
+        right = np.linalg.norm(truth - pw, axis=1) < 3
+        return exact.sum(), (exact & right).sum()
+
+    before, _ = on_stored(False)
+    after, right = on_stored(True)
+    assert after >= before + 20 and right >= 0.9 * after, (before, after, right)

@@ -16,6 +16,7 @@ Example::
     f = aliked.extract(image)                  # H x W x 3 uint8 RGB
     f.keypoints, f.descriptors                 # N x 2 float32, N x 128
     f = aliked.extract(image, factor=0.5)      # extracted at half size, keypoints in the given pixels
+    d = aliked.describe(image, f.keypoints, factor=2.0)  # the same keypoints described at twice the size
 """
 
 from __future__ import annotations
@@ -134,7 +135,32 @@ class Extractor:
             seconds=time.perf_counter() - t0,
         )
 
+    def describe(self, image: np.ndarray, keypoints: np.ndarray, factor: float = 1.0) -> Features:
+        """Descriptors of given ``keypoints`` (``N x 2``, pixels of ``image``) on ``image`` resized by
+        ``factor`` (what :meth:`extract` would have described there, had it detected them). ALIKED
+        and DISK describe (:attr:`describes`); the others raise a :class:`LocalScaleError`."""
+        if not self.describes:
+            raise LocalScaleError(f"{type(self).__name__} cannot describe given keypoints")
+        t0 = time.perf_counter()
+        img, fx, fy = resize_image(np.asarray(image), float(factor))
+        kp = np.asarray(keypoints, np.float32).reshape(-1, 2)
+        xy = (kp + 0.5) * np.array([fx, fy], np.float32) - 0.5
+        desc = self._describe(img, np.clip(xy, 0, [img.shape[1] - 1, img.shape[0] - 1]).astype(np.float32))
+        return Features(
+            kp, desc, np.zeros(len(kp), np.float32), tuple(image.shape[:2]),
+            factor=float(np.sqrt(fx * fy)), seconds=time.perf_counter() - t0,
+        )  # fmt: skip
+
+    @property
+    def describes(self) -> bool:
+        """Whether :meth:`describe` works (the extractor implements ``_describe``)."""
+        return type(self)._describe is not Extractor._describe
+
     def _extract(self, image: np.ndarray):
+        raise NotImplementedError
+
+    def _describe(self, image: np.ndarray, xy: np.ndarray) -> torch.Tensor:
+        """``N x D`` descriptors at ``xy`` (``N x 2``, pixels of ``image``)."""
         raise NotImplementedError
 
     def _tensor(self, image: np.ndarray) -> torch.Tensor:
@@ -201,6 +227,18 @@ class ALIKED(Extractor):
             f = self.net(t)[0]
         return _outputs(f.keypoints, f.descriptors, f.keypoint_scores)
 
+    def _describe(self, image: np.ndarray, xy: np.ndarray) -> torch.Tensor:
+        t = self._tensor(image)
+        if self.channels_last:
+            t = t.contiguous(memory_format=torch.channels_last)
+        h, w = image.shape[:2]
+        with torch.inference_mode():
+            feature_map, _ = self.net.extract_dense_map(t)
+            wh = torch.tensor([max(1, w - 1), max(1, h - 1)], dtype=torch.float32, device=self.device)
+            normalised = torch.from_numpy(xy).to(self.device) / wh * 2 - 1  # kornia's [-1, 1] keypoints
+            desc, _ = self.net.desc_head(feature_map, [normalised])
+        return desc[0].float().cpu()
+
 
 class DISK(Extractor):
     """kornia's DISK (the ``depth`` weights)."""
@@ -225,6 +263,19 @@ class DISK(Extractor):
                 pad_if_not_divisible=True,
             )[0]
         return _outputs(f.keypoints, f.descriptors, f.detection_scores)
+
+    def _describe(self, image: np.ndarray, xy: np.ndarray) -> torch.Tensor:
+        import torch.nn.functional as F
+
+        t = self._tensor(image)
+        h, w = image.shape[:2]
+        t = F.pad(t, (0, -w % 16, 0, -h % 16))
+        with torch.inference_mode():
+            _, dense = self.net.heatmap_and_dense_descriptors(t)
+            wh = torch.tensor([t.shape[3] - 1, t.shape[2] - 1], dtype=torch.float32, device=self.device)
+            grid = (torch.from_numpy(xy).to(self.device) / wh * 2 - 1).view(1, -1, 1, 2)
+            desc = F.grid_sample(dense, grid, mode="bilinear", align_corners=True)[0, :, :, 0].T
+        return F.normalize(desc, dim=1).float().cpu()
 
 
 class XFeat(Extractor):

@@ -279,6 +279,11 @@ class PairRunner:
                 (kp_a, kp_b, matches, scores), self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn)
             )
             chosen += "; anchored"
+        if m.extractor.rectified and verified and h.window is not None and m.extractor.describes:
+            kp_a, kp_b, matches, scores = _union(
+                (kp_a, kp_b, matches, scores), self._window_anchored(a, b, ia, ib, fa, fb, h, found.factors)
+            )
+            chosen += "; window anchored"
         return PairResult(to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, verified, chosen, rel)
 
     def levels(self, a: str, b: str, hypotheses) -> "PairResult":
@@ -327,6 +332,41 @@ class PairRunner:
         close = min(1.0, 1.0 / scale if scale >= 1.0 else scale)
         factors = (1.0, close) if scale >= 1.0 else (close, 1.0)
         return self._turned_close_up(a, b, ia, ib, fa, fb, scale, turn, *factors)
+
+    def _window_anchored(self, a, b, ia, ib, fa, fb, h, factors: tuple):
+        """``(kp A, kp B (working pixels), K x 2, scores)``: the wide view's stored keypoints inside
+        the hypothesis's window (those the other pairs use), described on the window at the level
+        its match ran (``factors``, A's and B's), matched with the close-up's features of that run;
+        B turned by the hypothesis's turn as the run turned it."""
+        from ..geometry import turn_matrix
+        from ..matching.turns import unturn_points
+
+        m = self.matcher
+        i, x0, y0, x1, y1 = (int(v) for v in h.window)
+        k = int(h.turn) % 4
+        images, stored, names = (ia, ib), (fa, fb), (a, b)
+        kp = stored[i].keypoints
+        inside = np.flatnonzero((kp[:, 0] >= x0) & (kp[:, 0] <= x1 - 1) & (kp[:, 1] >= y0) & (kp[:, 1] <= y1 - 1))
+        if len(inside) == 0:
+            return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64), np.zeros(0)
+        window = np.ascontiguousarray(images[i][y0:y1, x0:x1])
+        points = kp[inside] - np.array([x0, y0], np.float32)
+        close = images[1 - i]
+        if k and i == 1:  # B is the window: turned with its keypoints
+            T = turn_matrix(k, window.shape[:2])
+            points = (points.astype(np.float64) @ T[:2, :2].T + T[:2, 2]).astype(np.float32)
+            window = np.ascontiguousarray(np.rot90(window, k))
+        key = names[1 - i]
+        if k and i == 0:  # B is the close-up: turned as the run turned it (and cached under that key)
+            close, key = np.ascontiguousarray(np.rot90(close, k)), (key, "turn", k)
+        fw = m.extractor.describe(window, points, factors[i])
+        fc = m.extract(close, factors[1 - i], key)
+        kc = unturn_points(fc.keypoints, k, images[1 - i].shape) if k and i == 0 else fc.keypoints
+        if i == 1:
+            matches, costs = m.match_features(fc, fw)
+            return kc, kp[inside], matches, costs_to_scores(costs, self.lightglue)
+        matches, costs = m.match_features(fw, fc)
+        return kp[inside], kc, matches, costs_to_scores(costs, self.lightglue)
 
     def _turned_close_up(self, a, b, ia, ib, fa, fb, scale: float, turn: int, f_a: float, f_b: float):
         """``(kp A, kp B (working pixels), K x 2, scores)`` of the pair at ``S_{A->B} = scale`` with B
