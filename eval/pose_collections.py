@@ -68,6 +68,7 @@ from tqdm import tqdm
 
 from localscale.cameras import Camera, cut_window, read_cameras_txt
 from localscale.errors import LocalScaleError
+from localscale.matching.auto import auto_options
 from localscale.outputs import atomic_path
 from localscale.two_view import (
     TwoViewConfig,
@@ -356,10 +357,12 @@ class LibraryMatcher:
     passed: two-view geometry with the essential matrix) or ``"two_view"`` (no cameras, COLMAP's
     choice of homography or fundamental matrix)."""
 
-    def __init__(self, name: str, correction: str, max_side: int, models, given: str = ""):
-        from localscale.matching import get_matcher
+    def __init__(self, name: str, correction: str, max_side: int, models, given: str = "", auto=None, features=None):
+        from localscale.matching import AutoConfig, get_matcher
 
-        options = {}
+        options = {"auto": AutoConfig(**auto)} if auto else {}
+        if features:
+            options["num_features"] = features
         if given == "two_view":
             from localscale.matching import VerificationConfig
 
@@ -394,10 +397,10 @@ class TruthMatcher:
     """The matcher given the true relation of the pair as its only hypothesis
     (:func:`localscale.matching.auto_match` without the images as they are, the seed or the networks)."""
 
-    def __init__(self, name: str, max_side: int, window: bool):
+    def __init__(self, name: str, max_side: int, window: bool, features=None):
         from localscale.matching import get_matcher
 
-        self.matcher = get_matcher(name, max_side=max_side)
+        self.matcher = get_matcher(name, max_side=max_side, **({"num_features": features} if features else {}))
         self.window = window
         self.truth = None
         self.trials = None
@@ -446,21 +449,21 @@ def true_relation(col: Collection, a: View, b: View, window, turns: int, z: floa
     return scale, (4 - turns) % 4, box
 
 
-def make_method(spec: str, max_side: int, models_cache: dict):
+def make_method(spec: str, max_side: int, models_cache: dict, auto=None, features=None):
     if spec == "opencv-sift":
         return SiftMatcher()
     if ":" not in spec:
         raise LocalScaleError(f"method {spec!r}: use opencv-sift or MATCHER:CORRECTION (e.g. aliked-lightglue:auto)")
     name, correction, *given = spec.split(":")
     if correction in ("truth", "truth-window") and not given:
-        return TruthMatcher(name, max_side, correction == "truth-window")
+        return TruthMatcher(name, max_side, correction == "truth-window", features)
     if len(given) > 1 or (given and given[0] not in ("cameras", "two_view")):
         raise LocalScaleError(f"method {spec!r}: the third part must be cameras or two_view")
     if "models" not in models_cache:
         from localscale import LocalScaleNet, ScaleNet
 
         models_cache["models"] = (LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained())
-    return LibraryMatcher(name, correction, max_side, models_cache["models"], *given)
+    return LibraryMatcher(name, correction, max_side, models_cache["models"], *given, auto=auto, features=features)
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -588,6 +591,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-error", type=float, default=TwoViewConfig.max_error, help="MAGSAC threshold, pixels")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="results/pose_collections.json")
+    p.add_argument("--num-features", type=int, default=None, help="keypoints of the library's matchers (their default)")
+    p.add_argument("--auto", nargs="+", default=[], metavar="FIELD=VALUE", help="AutoConfig fields of the auto methods")
     p.add_argument("--cache", default=None, help="per-pair results (JSON lines; default: OUT with .pairs.jsonl)")
     a = p.parse_args(argv)
     if a.pairs < 1 or not 1 <= a.zoom[0] <= a.zoom[1]:
@@ -598,6 +603,7 @@ def main(argv=None) -> int:
     unknown = [c for c in a.collections if c not in COLLECTIONS and c not in gt_models]
     if unknown:
         p.error(f"no reader for {', '.join(unknown)}: give its --gt-model NAME=DIR (known: {', '.join(COLLECTIONS)})")
+    auto = auto_options(a.auto)
     try:
         import torch
 
@@ -609,6 +615,10 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     cache_path = Path(a.cache) if a.cache else out.with_suffix(".pairs.jsonl")
     options = {"max_side": a.max_side, "max_error": a.max_error, "zoom": list(a.zoom), "seed": a.seed}
+    if auto:
+        options["auto"] = auto
+    if a.num_features:
+        options["num_features"] = a.num_features
     if gt_models:
         options["gt_models"] = gt_models
     done = {}
@@ -643,7 +653,7 @@ def main(argv=None) -> int:
             todo = [j for j in jobs if f"{j[0].name}|{j[1].name}|{j[2].name}|{j[3]}|{spec}" not in done]
             if not todo:
                 continue
-            method = make_method(spec, a.max_side, models_cache)
+            method = make_method(spec, a.max_side, models_cache, auto, a.num_features)
             for col, va, vb, kind, window, turns, z in tqdm(todo, desc=spec):
                 key = f"{col.name}|{va.name}|{vb.name}|{kind}|{spec}"
                 for v in (va, vb):

@@ -20,7 +20,6 @@ error and the seconds per pair, overall and by zoom band and turn.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import math
@@ -34,6 +33,7 @@ from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
+from localscale.errors import LocalScaleError
 from localscale.geometry import (
     HomographyConfig,
     covisible_mask,
@@ -44,7 +44,7 @@ from localscale.geometry import (
     warp_image,
 )
 from localscale.io import load_image
-from localscale.matching.auto import AutoConfig
+from localscale.matching.auto import AutoConfig, auto_options
 from localscale.matching.matcher import get_matcher
 from localscale.matching.metrics import reprojection_errors
 from localscale.matching.pipeline import match_pair
@@ -195,19 +195,11 @@ def main(argv=None) -> int:
         return 2
     torch.set_num_threads(args.threads)
     _, held = split_images(list_images(args.photos), args.holdout_every)
-    auto = {}
-    for item in args.auto:
-        key, _, value = item.partition("=")
-        if key not in {f.name for f in dataclasses.fields(AutoConfig)}:
-            print(f"error: --auto {item}: no such AutoConfig field", file=sys.stderr)
-            return 2
-        default = getattr(AutoConfig(), key)
-        if value.lower() == "none":
-            auto[key] = None
-        elif isinstance(default, bool):
-            auto[key] = value.lower() in ("1", "true", "yes")
-        else:
-            auto[key] = type(default if default is not None else "")(value)
+    try:
+        auto = auto_options(args.auto)
+    except LocalScaleError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     runs = []
     for spec in args.run:
         name, _, method = spec.partition(":")

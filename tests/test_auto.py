@@ -261,3 +261,57 @@ def test_with_cameras_strong_zooms_are_verified_by_the_homography_and_the_choice
     assert res.meta["auto"]["turn"] == 3 and models[-1] == "two_view" and len(models) == len(trials) + 1
     assert res.verification.verified and res.verification.two_view is not None
     assert res.accuracy(5.0) > 0.7
+
+
+@needs_aliked
+def test_a_strong_zoom_without_a_window_enlarges_the_wide_view_up_to_zoom_max_side(photo):
+    """B = the photo, A = another view with the photo shrunk 4x in its middle (B has 4x the
+    detail): the hypothesis S = 4 without a window shrinks B and enlarges A up to
+    ``zoom_max_side`` when the matcher's ``max_side`` is smaller, so B keeps its detail and more
+    matches are right."""
+    from localscale.matching import Hypothesis, auto_match, get_matcher
+    from localscale.matching.metrics import reprojection_errors
+
+    h, w = photo.shape[:2]
+    a = cv2.resize(load_image(ASSETS / "kodim01_b.jpg"), (w, h))
+    sw, sh, x0, y0 = w // 4, h // 4, (w - w // 4) // 2, (h - h // 4) // 2
+    a[y0 : y0 + sh, x0 : x0 + sw] = cv2.resize(photo, (sw, sh), interpolation=cv2.INTER_AREA)
+    sx, sy = w / sw, h / sh  # A -> B (pixel centres)
+    H = np.array([[sx, 0, -(x0 + 0.5) * sx + 0.5], [0, sy, -(y0 + 0.5) * sy + 0.5], [0, 0, 1]])
+    found = {}
+    for side in (None, 2560):
+        config = AutoConfig(zoom_max_side=side, window_share=0, locate=False)  # no window: this run alone
+        m = get_matcher("aliked-lightglue", max_side=1024, auto=config)
+        f = auto_match(m, a, photo, hypotheses=[Hypothesis(4.0, 0, "test")], networks=False).matches
+        errors = reprojection_errors(f.keypoints_a, f.keypoints_b, f.matches, H)
+        found[side] = (f.factors, int((errors < 8).sum()))  # 2 pixels of A
+    (fa0, fb0), right0 = found[None]
+    (fa1, fb1), right1 = found[2560]
+    assert fa0 == pytest.approx(1024 / w, rel=0.01) and fb0 == pytest.approx(fa0 / 4, rel=0.01)
+    assert fa1 == pytest.approx(4.0, rel=0.01) and fb1 == pytest.approx(1.0, rel=0.01)
+    assert right1 > 1.5 * right0 > 0, found
+
+
+@pytest.mark.parametrize(
+    "items, words",
+    [
+        (["budget"], "NAME=VALUE"),
+        (["no_such=1"], "NAME=VALUE"),
+        (["budget=two"], "integer"),
+        (["turns=maybe"], "true or false"),
+        (["zoom_max_side=0"], "zoom_max_side"),
+    ],
+)
+def test_auto_options_read_each_field_as_its_type_and_refuse_bad_ones(items, words):
+    from localscale.errors import LocalScaleError
+    from localscale.matching.auto import auto_options
+
+    assert auto_options(["budget=3", "turns=false", "zoom_max_side=none", "window_max_side=2048", "seed=none"]) == {
+        "budget": 3, "turns": False, "zoom_max_side": None, "window_max_side": 2048, "seed": None,
+    }  # fmt: skip
+    assert auto_options(["accept_ratio=0.5", "zoom_model=homography"]) == {
+        "accept_ratio": 0.5,
+        "zoom_model": "homography",
+    }
+    with pytest.raises(LocalScaleError, match=words):
+        auto_options(items)

@@ -158,7 +158,7 @@ def test_a_window_is_enlarged_up_to_window_max_side(rng, window_max_side, side):
     b = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
     window = (1, 200, 150, 300, 225)  # 100 x 75 px of B
     h = auto.Hypothesis(0.125, 0, "test", window=window)
-    auto._run(matcher, a, b, h, (None, None), VerificationConfig(), window_max_side=window_max_side)
+    auto._run(matcher, a, b, h, (None, None), VerificationConfig(), max_side=window_max_side)
     f_window, f_close = factors[(75, 100)], factors[(480, 640)]
     assert f_window * 100 == pytest.approx(side)
     assert f_close == pytest.approx(0.125 * f_window)  # the pair still brought to one scale

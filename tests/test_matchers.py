@@ -127,8 +127,8 @@ def test_config_checks_and_names():
     from localscale.matching.config import MATCHER_NAMES
 
     assert tuple(MATCHERS) == MATCHER_NAMES
-    cfg = match_config("aliked-lightglue", num_features=2048)
-    assert cfg.num_features == 2048 and MATCHERS["aliked-lightglue"].num_features == 512  # the named conf is kept
+    cfg = match_config("aliked-lightglue", num_features=512)
+    assert cfg.num_features == 512 and MATCHERS["aliked-lightglue"].num_features == 2048  # the named conf is kept
     for bad in (
         {"num_features": 0},
         {"max_side": 3},

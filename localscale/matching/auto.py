@@ -96,8 +96,12 @@ class AutoConfig:
             similarity their keypoints' sizes and orientations agree on (SIFT), tried first when
             the seed's geometry does not verify (or gives a strong zoom no window); and at the
             networks' first scale, for a quarter turn and its window, tried first when clear.
-        window_max_side: the longest side a window of the wide view is enlarged to (``None``: the
-            matcher's ``max_side``); the close-up is shrunk for the rest of the zoom.
+        window_max_side: the longest side a window of the wide view is enlarged to (``None``: as
+            the wide view, ``zoom_max_side``'s rule); the close-up is shrunk for the rest of the zoom.
+        zoom_max_side: the longest side the wide view (or its window) of a zoom of
+            ``zoom_min_log2`` octaves or more is enlarged to, when the matcher's ``max_side`` is
+            smaller (``None``: the matcher's); the close-up is shrunk for the rest, so it keeps
+            more of its detail.
         zoom_min_coverage: the inliers' coverage (``VerificationConfig.min_coverage``) that a zoom
             of ``zoom_min_log2`` octaves or more needs (``None``: the pair's): its inliers lie in
             the small, nearly planar part of the wide view that the close-up shows.
@@ -121,6 +125,7 @@ class AutoConfig:
     locate_votes: int = 6
     zoom_min_coverage: Optional[float] = 0.025
     window_max_side: Optional[int] = None
+    zoom_max_side: Optional[int] = None
     similarity_margin: float = 0.25
 
     def check(self) -> "AutoConfig":
@@ -151,13 +156,48 @@ class AutoConfig:
             raise LocalScaleError(f"auto locate_votes must be an integer >= 3, got {self.locate_votes!r}")
         if self.zoom_min_coverage is not None and not (0 <= self.zoom_min_coverage <= 1):
             raise LocalScaleError(f"auto zoom_min_coverage must be None or in [0, 1], got {self.zoom_min_coverage!r}")
-        if self.window_max_side is not None and not _is_int_at_least(self.window_max_side, 1):
-            raise LocalScaleError(f"auto window_max_side must be None or an integer >= 1, got {self.window_max_side!r}")
+        for name in ("window_max_side", "zoom_max_side"):
+            value = getattr(self, name)
+            if value is not None and not _is_int_at_least(value, 1):
+                raise LocalScaleError(f"auto {name} must be None or an integer >= 1, got {value!r}")
         if not (isinstance(self.similarity_margin, (int, float)) and 0 <= self.similarity_margin <= 1):
             raise LocalScaleError(f"auto similarity_margin must be in [0, 1], got {self.similarity_margin!r}")
         if not self.zoom_min_log2 >= 0:
             raise LocalScaleError(f"auto zoom_min_log2 must be >= 0, got {self.zoom_min_log2!r}")
         return self
+
+
+def auto_options(items) -> dict:
+    """``NAME=VALUE`` strings as :class:`AutoConfig` fields (a command line's ``--auto``): each value
+    read as its field's type (``none``: None; a field whose default is None: an integer, a number or
+    a string). An unknown name or a value of the wrong type is a :class:`LocalScaleError`."""
+    defaults = AutoConfig()
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or name not in {f.name for f in dataclasses.fields(AutoConfig)}:
+            raise LocalScaleError(f"--auto {item}: give NAME=VALUE with NAME an AutoConfig field")
+        default, text = getattr(defaults, name), value.strip()
+        if text.lower() == "none":
+            out[name] = None
+        elif isinstance(default, bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise LocalScaleError(f"--auto {item}: {name} takes true or false")
+            out[name] = text.lower() in ("true", "1")
+        elif default is None or isinstance(default, (int, float)):
+            kinds = (int, float, str) if default is None else (type(default),)
+            for kind in kinds:
+                try:
+                    out[name] = kind(text)
+                    break
+                except ValueError:
+                    continue
+            else:
+                raise LocalScaleError(f"--auto {item}: {name} takes {'an integer' if kinds[0] is int else 'a number'}")
+        else:
+            out[name] = text
+    AutoConfig(**out).check()
+    return out
 
 
 @dataclass
@@ -436,9 +476,14 @@ class _Loop:
     def attempt(self, h: Hypothesis):
         self.tried.append(h)
         t0 = time.perf_counter()
-        found, v = _run(
-            self.matcher, self.a, self.b, h, self.keys, self.vconf_for(h), self.cameras, self.config.window_max_side
-        )
+        c = self.config
+        max_side = None
+        if self.is_zoom(h) and c.zoom_max_side is not None:
+            own = self.matcher.config.max_side
+            max_side = c.zoom_max_side if own is None else max(own, c.zoom_max_side)
+        if h.window is not None and c.window_max_side is not None:
+            max_side = c.window_max_side
+        found, v = _run(self.matcher, self.a, self.b, h, self.keys, self.vconf_for(h), self.cameras, max_side)
         self.trials.append(
             Trial(h, len(found.matches), v.num_inliers, v.inlier_ratio, bool(v.verified), time.perf_counter() - t0)
         )
@@ -609,19 +654,15 @@ def seed_choices(
     return first
 
 
-def _run(
-    matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras=(None, None), window_max_side=None
-):
-    """One hypothesis: crop its window (enlarged up to ``window_max_side``, None: the matcher's
-    ``max_side``), turn B, match with the hypothesis's maps or scale, map the keypoints back to the
-    given images' pixels, verify."""
+def _run(matcher, a: np.ndarray, b: np.ndarray, h: Hypothesis, keys: tuple, vconf, cameras=(None, None), max_side=None):
+    """One hypothesis: crop its window, turn B, match with the hypothesis's maps or scale (the
+    image whose content is smaller enlarged up to ``max_side``, None: the matcher's), map the
+    keypoints back to the given images' pixels, verify."""
     keys = list(keys)
     offsets = [np.zeros(2, np.float32), np.zeros(2, np.float32)]
     images = [a, b]
-    max_side = None
     if h.window is not None:
         i, x0, y0, x1, y1 = h.window
-        max_side = window_max_side
         images[i] = np.ascontiguousarray(images[i][y0:y1, x0:x1])
         offsets[i] = np.array([x0, y0], np.float32)
         keys[i] = None if keys[i] is None else (keys[i], "window", tuple(h.window))

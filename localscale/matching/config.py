@@ -210,7 +210,7 @@ MATCHERS = {
         extractor="aliked",
         matching="lightglue",
         model="aliked-n16",
-        num_features=512,
+        num_features=2048,
         max_side=1024,
     ),
     "aliked-n16rot-lightglue": MatchConfig(

@@ -261,7 +261,7 @@ class PairRunner:
         else:  # a window no larger than the photos: the anchors' cost stays that of a photo
             c = m.config
             photos = None if c.max_side is None else min(c.max_side, max(ia.shape[:2] + ib.shape[:2]))
-            config = dataclasses.replace(c.auto, accept_consistent=True, window_max_side=photos)
+            config = dataclasses.replace(c.auto, accept_consistent=True, window_max_side=photos, zoom_max_side=photos)
             out = auto_match(
                 m, ia, ib, self.local_model, self.global_model, config, (a, b), None,
                 hypotheses=list(hypotheses or []), networks=networks,
