@@ -79,6 +79,11 @@ def test_unrelated_images_return_unverified_without_geometry(photo, photos):
     assert res.verification.H is None and res.verification.F is None
     assert len(auto["trials"]) == AutoConfig().budget  # every run of the budget was tried
     assert any(t["scale"] == 1.0 and t["turn"] == 0 for t in auto["trials"])
+    # returned, flagged: the matcher run (not the seed's) with the most inliers, the first of equals
+    runs = [t for t in auto["trials"] if not t["source"].startswith("seed")]
+    best = max(runs, key=lambda t: t["num_inliers"])
+    assert (auto["scale"], auto["turn"]) == (round(best["scale"], 5), best["turn"])
+    assert auto["chosen"].startswith(best["source"] + ":")
 
 
 def test_the_budget_is_honoured(photo, photos):

@@ -24,8 +24,8 @@
    zoomed view lies in the wide one (:func:`~.localization.locate_window`) is matched again in
    that window of the wide view, enlarged rather than the zoomed view shrunk (then at its own
    geometry's scale and turn if that differs).
-5. **The choice**: the verified result with the most inliers; if none verifies, the identity's
-   result, flagged unverified. At most ``budget`` matcher runs per pair, and two for a located zoom.
+5. **The choice**: the verified result with the most inliers; if none verifies, the result with
+   the most inliers, flagged unverified. At most ``budget`` matcher runs per pair, and two for a located zoom.
 
 Quarter turns are counter-clockwise, as :func:`numpy.rot90`.
 """
@@ -343,7 +343,7 @@ def auto_match(
         verification: how each run is verified (default: the matcher config's ``verification``).
         hypotheses: tried instead of the images as they are and the seed (the caller tried those),
             possibly none; the networks follow unless ``networks`` is False. If nothing verifies, the
-            first run's result is returned, flagged (the images as they are when nothing else ran).
+            run with the most inliers is returned, flagged (the images as they are when nothing else ran).
     Returns:
         :class:`AutoResult`; its ``matches`` are a :class:`~localscale.matching.Matches`
         with keypoints in the pixels of the images given.
@@ -362,7 +362,8 @@ def auto_match(
     loop.run_located()
     if not loop.runs:  # every hypothesis given was the images as they are
         loop.attempt(loop.identity)
-    found, v, h = loop.best if loop.best is not None else loop.runs[0]  # nothing verified: the identity's, flagged
+    # nothing verified: the run with the most inliers (the first of equals), flagged
+    found, v, h = loop.best if loop.best is not None else max(loop.runs, key=lambda r: r[1].num_inliers)
     if v.verified and loop.vconf_for(h).model != loop.vconf.model:
         v = loop.verify_again(found, v)
     return AutoResult(found, v, h, loop.trials, time.perf_counter() - t_start, network_maps)
