@@ -258,10 +258,10 @@ class PairRunner:
             out = auto_match(
                 m, ia, ib, self.local_model, self.global_model, keys=(a, b), seed_matcher=self.seed_matcher
             )
-        else:  # a window no larger than the photos: the anchors' cost stays that of a photo
+        else:  # a window no larger than the photos, a photo no larger than the working size: the cost of a photo
             c = m.config
             photos = None if c.max_side is None else min(c.max_side, max(ia.shape[:2] + ib.shape[:2]))
-            config = dataclasses.replace(c.auto, accept_consistent=True, window_max_side=photos, zoom_max_side=photos)
+            config = dataclasses.replace(c.auto, accept_consistent=True, window_max_side=photos, zoom_max_side=None)
             out = auto_match(
                 m, ia, ib, self.local_model, self.global_model, config, (a, b), None,
                 hypotheses=list(hypotheses or []), networks=networks,
@@ -338,7 +338,7 @@ class PairRunner:
         the hypothesis's window (those the other pairs use), described on the window at the level
         its match ran (``factors``, A's and B's), matched with the close-up's features of that run;
         B turned by the hypothesis's turn as the run turned it."""
-        from ..geometry import turn_matrix
+        from ..geometry import project, turn_matrix
         from ..matching.turns import unturn_points
 
         m = self.matcher
@@ -353,8 +353,7 @@ class PairRunner:
         points = kp[inside] - np.array([x0, y0], np.float32)
         close = images[1 - i]
         if k and i == 1:  # B is the window: turned with its keypoints
-            T = turn_matrix(k, window.shape[:2])
-            points = (points.astype(np.float64) @ T[:2, :2].T + T[:2, 2]).astype(np.float32)
+            points = project(turn_matrix(k, window.shape[:2]), points).astype(np.float32)
             window = np.ascontiguousarray(np.rot90(window, k))
         key = names[1 - i]
         if k and i == 0:  # B is the close-up: turned as the run turned it (and cached under that key)
