@@ -38,7 +38,9 @@ and with ``truth-window`` also the part of A that B' shows (the co-visible 3D po
 into B's window, their box in A grown by a quarter on each side), enlarged instead; temple has no
 points, so no window. ``MATCHER:CORRECTION:cameras`` also passes the known cameras (two-view verification with the
 essential matrix), ``MATCHER:CORRECTION:two_view`` verifies by COLMAP's homography / fundamental
-matrix choice without cameras.
+matrix choice without cameras. ``points:SIGMA`` is no matcher (:class:`PointsOracle`): the shared 3D
+points' true projections with ``SIGMA`` pixels of noise, the bound the views' geometry sets
+(collections with 3D points only).
 
 Per-pair results go to ``<out>.pairs.jsonl`` (or ``--cache``) as they are computed; a rerun skips the pairs found
 there (same collection, pair, kind, method and options). The table (markdown) is printed and the
@@ -424,6 +426,54 @@ class TruthMatcher:
         )[m[:, 1]]
 
 
+class PointsOracle:
+    """No matcher: the 3D points A and B share that fall in both images (B: the close-up, turned),
+    projected with the true cameras, with Gaussian noise of ``sigma`` pixels at ``max_side``
+    (each image's pixels scaled as the matchers scale them). What the pose protocol gives for
+    correct matches of detector precision, as many as the model's tracks: the bound the views'
+    geometry sets (a close-up shows a narrow, shallow part of the scene)."""
+
+    def __init__(self, sigma: float, max_side: int):
+        if not (math.isfinite(sigma) and sigma >= 0):
+            raise LocalScaleError(f"points:SIGMA takes a noise >= 0 in pixels, got {sigma!r}")
+        self.sigma, self.max_side = sigma, max_side
+        self.points = None
+
+    def tell_points(self, pa: np.ndarray, pb: np.ndarray, key: str):
+        self.points = (pa, pb, key)
+
+    def match(self, key_a, a, key_b, b, cameras=(None, None)):
+        pa, pb, key = self.points
+        rng = np.random.default_rng(abs(hash_text(key)) % 2**32)
+        out = []
+        for p, img in ((pa, a), (pb, b)):
+            pixel = max(1.0, max(img.shape[:2]) / self.max_side)
+            out.append(p + rng.normal(0.0, self.sigma * pixel, p.shape))
+        return out[0], out[1]
+
+
+def hash_text(text: str) -> int:
+    """A hash of ``text`` that does not change between runs (Python's ``hash`` of a str does)."""
+    import zlib
+
+    return zlib.crc32(text.encode())
+
+
+def shared_points_in_view(col: Collection, a: View, b: View, cam_b: Camera, R_turn: np.ndarray):
+    """``(p_a, p_b)``: pixels in A and in B's view ``cam_b`` (B's camera cut to a window and turned
+    by ``R_turn``) of the 3D points A and B share that lie in front of both and inside both images."""
+    projected = covisible_projections(col, a, b)
+    if projected is None:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    in_a, in_b, pa, _ = projected
+    in_b = in_b @ R_turn.T
+    pb = cam_b.project(in_b)
+    ok = (in_a[:, 2] > 0) & (in_b[:, 2] > 0)
+    ok &= (pa >= 0).all(1) & (pa < [a.camera.width, a.camera.height]).all(1)
+    ok &= (pb >= 0).all(1) & (pb < [cam_b.width, cam_b.height]).all(1)
+    return pa[ok], pb[ok]
+
+
 def true_relation(col: Collection, a: View, b: View, window, turns: int, z: float, margin: float = 0.25):
     """``(S_{A->B'}, the quarter turn that undoes B''s, window of A or None)`` of a pair
     (``window`` None: the plain pair, ``turns`` 0, ``z`` 1). The scale is the median over the
@@ -452,6 +502,12 @@ def true_relation(col: Collection, a: View, b: View, window, turns: int, z: floa
 def make_method(spec: str, max_side: int, models_cache: dict, auto=None, features=None):
     if spec == "opencv-sift":
         return SiftMatcher()
+    if spec.startswith("points:"):
+        try:
+            sigma = float(spec.split(":", 1)[1])
+        except ValueError:
+            raise LocalScaleError(f"method {spec!r}: points:SIGMA takes a number of pixels") from None
+        return PointsOracle(sigma, max_side)
     if ":" not in spec:
         raise LocalScaleError(f"method {spec!r}: use opencv-sift or MATCHER:CORRECTION (e.g. aliked-lightglue:auto)")
     name, correction, *given = spec.split(":")
@@ -661,13 +717,17 @@ def main(argv=None) -> int:
                         images[str(v.path)] = load_rgb(v.path)
                 img_a, img_b = images[str(va.path)], images[str(vb.path)]
                 R, t = relative_pose(va, vb)
-                cam_b, key_b = vb.camera, str(vb.path)
+                cam_b, key_b, R_turn = vb.camera, str(vb.path), np.eye(3)
                 if kind == "zoom":
                     img_b, cam_b, R_turn = cut_window(
                         img_b, vb.camera, window, (vb.camera.width, vb.camera.height), turns
                     )
                     R, t = R_turn @ R, R_turn @ t
                     key_b = f"{vb.path}|{window}|{turns}"
+                if hasattr(method, "tell_points"):
+                    if not col.points:
+                        continue  # no 3D points: no oracle
+                    method.tell_points(*shared_points_in_view(col, va, vb, cam_b, R_turn), key)
                 if hasattr(method, "tell"):
                     if kind == "zoom":
                         method.tell(*true_relation(col, va, vb, window, turns, z))

@@ -156,3 +156,35 @@ def test_window_matches_land_on_the_wide_views_stored_keypoints(tmp_path, monkey
     before, _ = on_stored(False)
     after, right = on_stored(True)
     assert after >= before + 20 and right >= 0.9 * after, (before, after, right)
+
+
+@needs_aliked
+def test_graph_levels_keep_the_photos_stored_features(tmp_path):
+    """The graph step's level of a pair: the photo (768 px, under the 1024-px working size) is not
+    enlarged; its stored keypoints are matched, and the only features computed are the close-up's
+    (shrunk by the zoom, turned back)."""
+    import cv2
+
+    from localscale.matching.hypotheses import Hypothesis
+    from localscale.sfm import extract_features, find_images
+    from localscale.sfm.extract import FeatureConf, features_for_matcher
+    from localscale.sfm.pair_runner import PairRunner
+
+    asset = os.path.join(os.path.dirname(__file__), "..", "localscale", "assets", "kodim01_a.jpg")
+    wide = cv2.imread(asset)
+    h, w = wide.shape[:2]
+    x0, y0 = w // 4, h // 4
+    enlarged = cv2.resize(wide[y0 : y0 + h // 2, x0 : x0 + w // 2], (w, h), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(tmp_path / "close.png"), np.ascontiguousarray(np.rot90(enlarged, 1)))
+    cv2.imwrite(str(tmp_path / "wide.png"), wide)
+    images = find_images(tmp_path)
+    conf = FeatureConf("aliked-lightglue", 1024, 1024)
+    extract_features(images, tmp_path / "features.h5", conf, show_progress=False)
+    stored = features_for_matcher(tmp_path / "features.h5", "wide.png")[0].keypoints
+    runner = PairRunner({im.name: im for im in images}, tmp_path / "features.h5", conf, "auto", "cpu", None,
+                        None, None, 2)  # fmt: skip
+    r = runner.levels("wide.png", "close.png", [Hypothesis(2.0, 3, "test")])
+    assert max(wide.shape[:2]) < 1024 and r.verified and len(r.matches) > 50
+    matched = r.kp_a[r.matches[:, 0]]
+    assert np.min(np.linalg.norm(matched[:, None] - stored[None], axis=2), axis=1).max() < 1e-3
+    assert runner.feature_sets == 1

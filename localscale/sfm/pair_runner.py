@@ -287,11 +287,11 @@ class PairRunner:
         return PairResult(to_full(kp_a, Sa), to_full(kp_b, Sb), matches, scores, verified, chosen, rel)
 
     def levels(self, a: str, b: str, hypotheses) -> "PairResult":
-        """Each hypothesis in turn until one verifies: the pair brought to one scale as the matcher
-        rectifies it (the close-up shrunk, the wide view enlarged up to the working size) with the
-        close-up turned, so that each image is extracted once per level (and turn, the close-up
-        only) whatever its pairs; verified as the hypothesis loop verifies, in the pixels of the
-        wide view. Unverified: the last run's matches."""
+        """Each hypothesis in turn until one verifies: the pair brought to one scale with the wide
+        view at its stored level (its features.h5 keypoints, never enlarged) and the close-up turned
+        and shrunk by the hypothesis's scale (:meth:`_anchored`), so that a close-up is extracted
+        once per level and turn whatever its pairs and a photo not at all; verified as the
+        hypothesis loop verifies, in the pixels of the wide view. Unverified: the last run's matches."""
         import dataclasses
 
         from ..matching import verify_matches
@@ -301,7 +301,7 @@ class PairRunner:
         vconf = dataclasses.replace(m.config.verification, coverage_of="either")
         out = None
         for h in hypotheses:
-            kp_a, kp_b, matches, scores = self._leveled(a, b, ia, ib, fa, fb, h.scale, h.turn)
+            kp_a, kp_b, matches, scores = self._anchored(a, b, ia, ib, fa, fb, h.scale, h.turn)
             matches = np.asarray(matches, np.int64).reshape(-1, 2)
             pa, pb = kp_a[matches[:, 0]], kp_b[matches[:, 1]]
             if h.scale >= 1:  # B is the close-up: verified from B to A
@@ -315,16 +315,6 @@ class PairRunner:
             if v.verified:
                 break
         return out
-
-    def _leveled(self, a, b, ia, ib, fa, fb, scale: float, turn: int):
-        """:meth:`_turned_close_up` at the resize factors of the matcher's rectification
-        (:func:`~localscale.matching.rectify_factors`: the close-up shrunk, the wide view enlarged up
-        to the working size)."""
-        from ..matching.rectification import rectify_factors
-
-        c = self.matcher.config
-        f_a, f_b = rectify_factors(scale, shapes=(ia.shape, ib.shape), min_side=c.rectify_min_side, max_side=c.max_side)
-        return self._turned_close_up(a, b, ia, ib, fa, fb, scale, turn, f_a, f_b)
 
     def _anchored(self, a, b, ia, ib, fa, fb, scale: float, turn: int):
         """:meth:`_turned_close_up` with the wide view at its stored level 1 (its keypoints are
