@@ -21,6 +21,8 @@ Pipelines (``--pipelines``), each mapped with ``--mapper`` (COLMAP's ``increment
 
 * ``colmap-sift``: ``pycolmap.extract_features`` / ``match_exhaustive`` (COLMAP's SIFT, its own
   verification) / the mapper of ``--mapper``, one run (:func:`localscale.sfm.mapping.run_mapping`, ``trials=1``);
+  with ``--intrinsics NAME=FILE`` the listed photos of NAME get those PINHOLE cameras, kept fixed
+  (cyprus's ``derived/intrinsics_resized.txt``: a pseudo ground truth for ``eval/pose_collections.py``);
 * ``aliked-lg``: :func:`localscale.sfm.reconstruct` with ALIKED + LightGlue, 2048 keypoints at 1024 px,
   exhaustive pairs, no correction (what an hloc user runs);
 * ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
@@ -121,7 +123,34 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
 # ---------------------------------------------------------------- pipelines
 
 
-def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: int, mapper: str) -> dict:
+def read_intrinsics(path: Path) -> dict:
+    """``{image name: "fx,fy,cx,cy"}`` from lines ``name w h fx fy cx cy`` (PINHOLE; ``#`` comments),
+    the layout of a collection's ``derived/intrinsics_resized.txt``."""
+    out = {}
+    for line in Path(path).read_text().splitlines():
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        if len(parts) != 7:
+            raise ValueError(f"{path}: expected 'name w h fx fy cx cy', got {line!r}")
+        out[parts[0]] = ",".join(str(float(v)) for v in parts[3:])
+    return out
+
+
+#: the mapper keeps known intrinsics as they are
+FIXED_INTRINSICS = {
+    "ba_refine_focal_length": False,
+    "ba_refine_principal_point": False,
+    "ba_refine_extra_params": False,
+}
+
+
+def run_colmap_sift(
+    images_dir: Path, run_dir: Path, camera_mode: str, threads: int, mapper: str, intrinsics: dict = None
+) -> dict:
+    """COLMAP's SIFT pipeline; ``intrinsics`` (:func:`read_intrinsics`): each listed image gets its
+    own PINHOLE camera with those parameters, which the mapper does not refine (the others as
+    ``camera_mode`` says)."""
     import pycolmap
 
     from localscale.sfm.mapping import colmap_log, run_mapping
@@ -136,9 +165,19 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         t = time.perf_counter()
         ext = pycolmap.FeatureExtractionOptions()
         ext.num_threads = threads
-        pycolmap.extract_features(
-            db, images_dir, image_names=names, camera_mode=mode, extraction_options=ext, device=pycolmap.Device.cpu
-        )
+        known = [n for n in names if n in (intrinsics or {})]
+        for name in known:
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model, reader.camera_params = "PINHOLE", intrinsics[name]
+            pycolmap.extract_features(
+                db, images_dir, image_names=[name], camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu,
+            )  # fmt: skip
+        rest = [n for n in names if n not in known]
+        if rest:
+            pycolmap.extract_features(
+                db, images_dir, image_names=rest, camera_mode=mode, extraction_options=ext, device=pycolmap.Device.cpu
+            )
         seconds["extract"] = time.perf_counter() - t
         t = time.perf_counter()
         mopt = pycolmap.FeatureMatchingOptions()
@@ -146,7 +185,10 @@ def run_colmap_sift(images_dir: Path, run_dir: Path, camera_mode: str, threads: 
         pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
         seconds["match"] = time.perf_counter() - t
     # the mapping step of localscale's pipeline, one run as COLMAP makes it
-    mapped = run_mapping(db, images_dir, run_dir / "sparse", num_threads=threads, mapper=mapper, trials=1)
+    overrides = FIXED_INTRINSICS if intrinsics else None
+    mapped = run_mapping(
+        db, images_dir, run_dir / "sparse", num_threads=threads, mapper=mapper, trials=1, overrides=overrides
+    )
     seconds["map"] = mapped.seconds
     return {
         "stats": mapped.stats[0] if mapped.stats else None,
@@ -264,11 +306,25 @@ def main(argv=None) -> int:
         choices=("incremental", "global"),
         help="COLMAP's mapper for every pipeline (rows of the global one are named PIPELINE+global)",
     )
+    p.add_argument(
+        "--intrinsics",
+        nargs="+",
+        default=[],
+        metavar="NAME=FILE",
+        help="known PINHOLE intrinsics of collection NAME (lines 'name w h fx fy cx cy'), kept fixed by "
+        "colmap-sift's mapper (a pseudo ground truth of a collection that has intrinsics only)",
+    )
     p.add_argument("-o", "--output", default="results/reconstruct_collections")
     p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
     a = p.parse_args(argv)
     if not 1 <= a.zoom[0] <= a.zoom[1]:
         p.error("--zoom: 1 <= MIN <= MAX")
+    if any("=" not in item for item in a.intrinsics):
+        p.error("--intrinsics takes NAME=FILE")
+    try:
+        intrinsics = {k: read_intrinsics(Path(v)) for k, v in (item.split("=", 1) for item in a.intrinsics)}
+    except (OSError, ValueError) as e:
+        p.error(f"--intrinsics: {e}")
     root, out = Path(a.root), Path(a.output)
     for c in a.collections:
         if not (root / c / "images").is_dir():
@@ -299,7 +355,8 @@ def main(argv=None) -> int:
                 t0 = time.perf_counter()
                 run_dir = out / label / pipe
                 if method == "colmap-sift":
-                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads, a.mapper)
+                    known = intrinsics.get(c) if version == "plain" else None
+                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads, a.mapper, known)
                 else:
                     correction = "auto" if "-auto" in method else "none"
                     res = run_ours(
