@@ -60,6 +60,7 @@ import random
 import struct
 import sys
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Tuple
@@ -444,19 +445,12 @@ class PointsOracle:
 
     def match(self, key_a, a, key_b, b, cameras=(None, None)):
         pa, pb, key = self.points
-        rng = np.random.default_rng(abs(hash_text(key)) % 2**32)
+        rng = np.random.default_rng(zlib.crc32(key.encode()))  # per pair, the same in every run
         out = []
         for p, img in ((pa, a), (pb, b)):
             pixel = max(1.0, max(img.shape[:2]) / self.max_side)
             out.append(p + rng.normal(0.0, self.sigma * pixel, p.shape))
         return out[0], out[1]
-
-
-def hash_text(text: str) -> int:
-    """A hash of ``text`` that does not change between runs (Python's ``hash`` of a str does)."""
-    import zlib
-
-    return zlib.crc32(text.encode())
 
 
 def shared_points_in_view(col: Collection, a: View, b: View, cam_b: Camera, R_turn: np.ndarray):
