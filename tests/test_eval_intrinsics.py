@@ -1,0 +1,47 @@
+"""``eval/reconstruct_collections.py --intrinsics``: known PINHOLE cameras read from a collection's
+``name w h fx fy cx cy`` table."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def _load():
+    path = Path(__file__).resolve().parents[1] / "eval" / "reconstruct_collections.py"
+    spec = importlib.util.spec_from_file_location("reconstruct_collections", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_intrinsics_table_is_read_per_image(tmp_path):
+    rc = _load()
+    table = tmp_path / "intrinsics.txt"
+    lines = [
+        "# name w h fx fy cx cy",
+        "a.jpg 1024 683 819.2 819.6 512 341.5",
+        "",
+        "b.jpg 683 1024 819.6 819.2 341.5 512",
+    ]
+    table.write_text("\n".join(lines) + "\n")
+    cams = rc.read_intrinsics(table)
+    assert cams == {"a.jpg": "819.2,819.6,512.0,341.5", "b.jpg": "819.6,819.2,341.5,512.0"}
+    # the mapper keeps them: no focal length, principal point or distortion refinement
+    assert set(rc.FIXED_INTRINSICS.values()) == {False} and len(rc.FIXED_INTRINSICS) == 3
+
+
+def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys):
+    rc = _load()
+    bad = tmp_path / "bad.txt"
+    bad.write_text("a.jpg 1024 683 819.2\n")
+    with pytest.raises(ValueError, match="name w h fx fy cx cy"):
+        rc.read_intrinsics(bad)
+    out = tmp_path / "out"
+    for arg in ("cyprus_dim", f"cyprus_dim={bad}", f"cyprus_dim={tmp_path / 'missing.txt'}"):
+        with pytest.raises(SystemExit) as e:
+            rc.main(["--root", str(tmp_path), "--intrinsics", arg, "-o", str(out)])
+        assert e.value.code == 2 and "--intrinsics" in capsys.readouterr().err
+    assert not out.exists()
