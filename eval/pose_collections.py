@@ -291,6 +291,14 @@ def covisible_projections(col: Collection, a: View, b: View):
     return in_a, in_b, a.camera.project(in_a), b.camera.project(in_b)
 
 
+def seen_by_both(in_a: np.ndarray, pa: np.ndarray, size_a, in_b: np.ndarray, pb: np.ndarray, size_b) -> np.ndarray:
+    """``N`` bool: the points in front of both cameras (camera coordinates ``in_a``, ``in_b``) whose
+    pixels ``pa``, ``pb`` lie inside images of ``size_a``, ``size_b`` (``(W, H)``)."""
+    ok = (in_a[:, 2] > 0) & (in_b[:, 2] > 0)
+    ok &= (pa >= 0).all(1) & (pa < list(size_a)).all(1)
+    return ok & (pb >= 0).all(1) & (pb < list(size_b)).all(1)
+
+
 def zoom_window(col: Collection, a: View, b: View, rng: random.Random, zoom_range) -> Tuple[tuple, int, float]:
     """A window ``(x0, y0, w, h)`` of B (integer pixels) showing 1/z of it around co-visible content,
     a quarter turn (1-3) and ``z``."""
@@ -301,14 +309,7 @@ def zoom_window(col: Collection, a: View, b: View, rng: random.Random, zoom_rang
     centres = []
     if projected is not None:
         in_a, in_b, pa, pb = projected
-        ok = (
-            (in_b[:, 2] > 0)
-            & (in_a[:, 2] > 0)
-            & (pb >= 0).all(1)
-            & (pb < [W, H]).all(1)
-            & (pa >= 0).all(1)
-            & (pa < [a.camera.width, a.camera.height]).all(1)
-        )
+        ok = seen_by_both(in_a, pa, (a.camera.width, a.camera.height), in_b, pb, (W, H))
         centres = pb[ok].tolist()
     if not centres:
         Xc = _axes_meeting_point(col)
@@ -462,9 +463,7 @@ def shared_points_in_view(col: Collection, a: View, b: View, cam_b: Camera, R_tu
     in_a, in_b, pa, _ = projected
     in_b = in_b @ R_turn.T
     pb = cam_b.project(in_b)
-    ok = (in_a[:, 2] > 0) & (in_b[:, 2] > 0)
-    ok &= (pa >= 0).all(1) & (pa < [a.camera.width, a.camera.height]).all(1)
-    ok &= (pb >= 0).all(1) & (pb < [cam_b.width, cam_b.height]).all(1)
+    ok = seen_by_both(in_a, pa, (a.camera.width, a.camera.height), in_b, pb, (cam_b.width, cam_b.height))
     return pa[ok], pb[ok]
 
 

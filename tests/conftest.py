@@ -38,6 +38,26 @@ def image_dir(tmp_path_factory, photos):
     return d
 
 
+@pytest.fixture(scope="session")
+def repo_script():
+    """``load(path)``: a script of the repository (``eval/...``, ``train/...``) imported as a module
+    (registered in ``sys.modules``, where its dataclasses look their module up)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+
+    def load(path: str):
+        spec = importlib.util.spec_from_file_location(Path(path).stem, root / path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module
+        spec.loader.exec_module(module)
+        return module
+
+    return load
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)

@@ -159,13 +159,8 @@ def test_match_with_another_detector(tiny_root, tmp_path):
     assert (tmp_path / "m" / "matches.npz").is_file()
 
 
-def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, capsys):
-    import importlib.util
-
-    path = Path(__file__).resolve().parent.parent / "eval" / "detector_table.py"
-    spec = importlib.util.spec_from_file_location("detector_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def test_detector_table_script_runs_resumes_and_rebuilds(tiny_root, tmp_path, capsys, repo_script):
+    mod = repo_script("eval/detector_table.py")
     out = tmp_path / "t"
     args = [
         str(tiny_root),

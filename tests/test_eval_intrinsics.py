@@ -1,24 +1,11 @@
 """``eval/reconstruct_collections.py --intrinsics``: known PINHOLE cameras read from a collection's
 ``name w h fx fy cx cy`` table."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
 
-def _load():
-    path = Path(__file__).resolve().parents[1] / "eval" / "reconstruct_collections.py"
-    spec = importlib.util.spec_from_file_location("reconstruct_collections", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_intrinsics_table_is_read_per_image(tmp_path):
-    rc = _load()
+def test_intrinsics_table_is_read_per_image(tmp_path, repo_script):
+    rc = repo_script("eval/reconstruct_collections.py")
     table = tmp_path / "intrinsics.txt"
     lines = [
         "# name w h fx fy cx cy",
@@ -33,8 +20,8 @@ def test_intrinsics_table_is_read_per_image(tmp_path):
     assert set(rc.FIXED_INTRINSICS.values()) == {False} and len(rc.FIXED_INTRINSICS) == 3
 
 
-def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys):
-    rc = _load()
+def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys, repo_script):
+    rc = repo_script("eval/reconstruct_collections.py")
     bad = tmp_path / "bad.txt"
     bad.write_text("a.jpg 1024 683 819.2\n")
     with pytest.raises(ValueError, match="name w h fx fy cx cy"):

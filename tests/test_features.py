@@ -401,17 +401,10 @@ def test_bad_match_options_and_models(photos, tmp_path):
 
 
 @pytest.mark.parametrize("descriptor, widths", [("hardnet", (16, 32, 64)), ("hardnet-full", (32, 64, 128))])
-def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos, descriptor, widths):
+def test_shipped_hardnet_beats_sift_on_unseen_patch_pairs(photos, descriptor, widths, repo_script):
     """Patch pairs cut as in training (scale error, photometric change, re-detection jitter) from
     scikit-image photos the descriptor never saw: lower FPR95 and higher NN accuracy than RootSIFT."""
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location(
-        "train_descriptor", Path(__file__).resolve().parent.parent / "train" / "train_descriptor.py"
-    )
-    td = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(td)
+    td = repo_script("train/train_descriptor.py")
     rng = np.random.default_rng(5)
     pa, pb = [], []
     for name in ("astronaut", "coffee", "chelsea", "rocket"):

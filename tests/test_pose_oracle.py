@@ -1,9 +1,7 @@
 """The pose evaluation's geometric bound (``eval/pose_collections.py``, method ``points:SIGMA``):
 the true projections of the shared 3D points, into a close-up cut from B and turned."""
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,23 +12,14 @@ from localscale.errors import LocalScaleError
 from localscale.two_view import TwoViewConfig, estimate_two_view_geometry, relative_pose_error
 
 
-def _load():
-    path = Path(__file__).resolve().parents[1] / "eval" / "pose_collections.py"
-    spec = importlib.util.spec_from_file_location("pose_collections", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
 def _rot_y(deg):
     a = math.radians(deg)
     return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
 
 
 @pytest.fixture(scope="module")
-def scene():
-    pc = _load()
+def scene(repo_script):
+    pc = repo_script("eval/pose_collections.py")
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-2, 2, 400), rng.uniform(-1.5, 1.5, 400), rng.uniform(6, 10, 400)]
     cam = Camera.parse("PINHOLE 640 480 500 500 320 240")

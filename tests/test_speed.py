@@ -180,16 +180,10 @@ def test_lazy_package_names():
         _ = features.no_such_name
 
 
-def test_benchmark_throughput_code_path_runs_on_cpu():
+def test_benchmark_throughput_code_path_runs_on_cpu(repo_script):
     """``eval/benchmark.py --pairs-per-second`` (the CUDA throughput section) on the CPU: both rates
     positive and finite; the CUDA-only calls are skipped there."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "benchmark", Path(__file__).resolve().parent.parent / "eval" / "benchmark.py"
-    )
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = repo_script("eval/benchmark.py")
     from localscale.matching.matcher import Matcher
     from localscale.models import LocalScaleNet
 
