@@ -16,8 +16,11 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import shutil
+import socket
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -40,8 +43,37 @@ def _atomic_copy(src: Path, dst: Path) -> None:
     tmp.replace(dst)
 
 
+def _trainer_cpu_seconds() -> dict[str, float]:
+    """CPU seconds (user + system) of each running campaign trainer, by pid (Linux ``/proc``)."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            cmd = stat.read_bytes().split(b"\0")
+            if b"runs/campaign_local" not in cmd or not any(b"localscale-train" in c for c in cmd):
+                continue
+            fields = (stat.parent / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        found[stat.parent.name] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return found
+
+
+def _record_session(step: int) -> None:
+    """One line per trainer process in ``sessions.jsonl``: its CPU time and the step it reached."""
+    ledger = PACKED / "sessions.jsonl"
+    rows = [json.loads(ln) for ln in ledger.read_text().splitlines()] if ledger.exists() else []
+    for pid, cpu in _trainer_cpu_seconds().items():
+        key = f"{socket.gethostname()}:{pid}"
+        rows = [r for r in rows if r["process"] != key]
+        rows.append(
+            {"process": key, "date": time.strftime("%Y-%m-%d"), "cpu_hours": round(cpu / 3600, 3), "step": step}
+        )
+    ledger.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
 def pack() -> None:
-    """Write the committed copy of ``runs/campaign_local``: weights fp32, Adam moments bf16, the logs."""
+    """Write the committed copy of ``runs/campaign_local``: weights fp32, Adam moments bf16, the logs,
+    and the CPU time of the running trainer (``sessions.jsonl``)."""
     ckpt = torch.load(RUN / "last.pt", map_location="cpu", weights_only=True)
     for state in ckpt["train_state"]["optimizer"]["state"].values():
         for key in ("exp_avg", "exp_avg_sq"):
@@ -53,6 +85,7 @@ def pack() -> None:
     for name in LOGS:
         if (RUN / name).exists():
             _atomic_copy(RUN / name, PACKED / name)
+    _record_session(int(ckpt["train_state"]["step"]))
     print(f"packed step {ckpt['train_state']['step']} -> {PACKED} ({(PACKED / 'last.pt').stat().st_size / 1e6:.1f} MB)")
 
 
@@ -84,13 +117,30 @@ def status(out: Path | None) -> dict:
     log = RUN if (RUN / "train_log.csv").exists() else PACKED
     with open(log / "train_log.csv") as f:
         rows = list(csv.DictReader(f))
-    val = [json.loads(ln) for ln in (log / "val_log.jsonl").read_text().splitlines()] if (log / LOGS[1]).exists() else []
+    val = (
+        [json.loads(ln) for ln in (log / "val_log.jsonl").read_text().splitlines()] if (log / LOGS[1]).exists() else []
+    )
     buckets: dict[int, list[float]] = {}
     for r in rows:
         buckets.setdefault((int(r["step"]) - 1) // 1000, []).append(float(r["loss"]))
-    curve = [{"steps": f"{k * 1000 + 1}-{k * 1000 + len(v)}", "mean_loss": sum(v) / len(v)} for k, v in sorted(buckets.items())]
-    res = {"steps": int(rows[-1]["step"]) if rows else 0, "hours": _hours(rows), "loss": curve, "validation": val}
-    print(f"steps {res['steps']}, {res['hours']:.2f} h of training (one CPU thread unless noted)")
+    curve = [
+        {"steps": f"{k * 1000 + 1}-{k * 1000 + len(v)}", "mean_loss": sum(v) / len(v)}
+        for k, v in sorted(buckets.items())
+    ]
+    ledger = PACKED / "sessions.jsonl"
+    sessions = [json.loads(ln) for ln in ledger.read_text().splitlines()] if ledger.exists() else []
+    res = {
+        "steps": int(rows[-1]["step"]) if rows else 0,
+        "wall_hours": _hours(rows),
+        "cpu_hours": sum(r["cpu_hours"] for r in sessions),
+        "sessions": sessions,
+        "loss": curve,
+        "validation": val,
+    }
+    print(
+        f"steps {res['steps']}, {res['wall_hours']:.2f} h of training wall time, "
+        f"{res['cpu_hours']:.2f} CPU-hours recorded at the packs ({len(sessions)} trainer processes)"
+    )
     print("| steps | mean training loss |\n|---|---|")
     for c in curve:
         print(f"| {c['steps']} | {c['mean_loss']:.4f} |")
