@@ -64,6 +64,7 @@ import torch
 
 import localscale
 from localscale.errors import LocalScaleError
+from localscale.evaluation.report import git_commit
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
 from localscale.features.descriptors import PRECISIONS
 from localscale.features.detector import HessianDetector
@@ -344,6 +345,7 @@ def main(argv=None) -> int:
         "descriptor_precision_auto": hardnet.resolved_precision(a.device),
         "local_weights": a.local_weights or "bundled",
         "global_weights": a.global_weights or "bundled",
+        "commit": git_commit(),
     }
     st = {}  # stage -> timing dict
 
