@@ -53,7 +53,7 @@ class ALIKED(Extractor):
         c = self.conf
         th = 0.2 if c["detection_threshold"] is None else c["detection_threshold"]
         net = KF.ALIKED(c["model"], max_num_keypoints=c["num_features"], detection_threshold=th)
-        self.net = load_weights(net, find_weights(*self.weight_files(c), self.weights_dir)).to(self.device)
+        self.net = load_weights(net, find_weights(self.weight_files(c)[0], self.weights_dir)).to(self.device)
         self.channels_last = c["channels_last"] and torch.device(self.device).type == "cpu"
         if self.channels_last:
             self.net.to(memory_format=torch.channels_last)
