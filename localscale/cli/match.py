@@ -10,7 +10,7 @@ from ..outputs import ensure_not_input
 from .common import check_output_dir
 from .options import executor_from_args
 
-#: options of ``match`` that only the patch matcher (``--matcher hardnet``) reads
+#: options of ``match`` that only a patch-based matcher (``--matcher hardnet``) reads
 PATCH_OPTIONS = ("descriptor", "descriptor_precision", "detector", "orientation", "ratio")
 
 
@@ -75,19 +75,33 @@ def _cameras(args) -> tuple:
     return as_camera(a), as_camera(b)
 
 
+def extractor_of(matcher: str) -> type:
+    """The extractor class of a named matcher (what the options ask, not the matcher's name)."""
+    from ..matching import MATCHERS
+
+    return MATCHERS[matcher].extractor_class
+
+
+def patch_matchers() -> str:
+    """``only the hardnet matcher takes``: the named matchers whose extractor is patch-based."""
+    from ..matching import MATCHERS
+
+    names = [n for n, c in MATCHERS.items() if c.extractor_class.patch_based]
+    return f"only the {' / '.join(names)} matcher{'s take' if len(names) > 1 else ' takes'}"
+
+
 def _matcher_options(args) -> dict:
     """The MatchConfig fields of ``match``'s options, with the options that do not fit the matcher refused."""
     opts = match_options(args)
-    if args.matcher != "hardnet":
+    extractor = extractor_of(args.matcher)
+    if not extractor.patch_based:
         used = [f"--{n.replace('_', '-')}" for n in PATCH_OPTIONS if getattr(args, n, None) is not None]
         if used:
-            raise LocalScaleError(
-                f"{', '.join(used)}: only the hardnet matcher takes patch options, not --matcher {args.matcher}"
-            )
-    if args.matcher == "hardnet" and getattr(args, "matcher_weights", None) is not None:
+            raise LocalScaleError(f"{', '.join(used)}: {patch_matchers()} patch options, not --matcher {args.matcher}")
+    if not extractor.weights and getattr(args, "matcher_weights", None) is not None:
+        hint = " (--descriptor PATH for other descriptor weights)" if "descriptor" in extractor.default_conf else ""
         raise LocalScaleError(
-            "--matcher-weights: the hardnet matcher uses our bundled weights "
-            "(--descriptor PATH for other HardNet weights)"
+            f"--matcher-weights: the {args.matcher} matcher loads no weight files (bundled weights or none){hint}"
         )
     opts.update(
         refine=getattr(args, "refine", False), max_passes=args.refine_passes, sift_seed=args.refine_seed == "sift"
@@ -110,13 +124,20 @@ def cmd_eval_hpatches(args) -> int:
     if getattr(args, "base_radius", None) is not None:
         opts["base_radius"] = args.base_radius
     patch_opts = {k: opts.pop(k) for k in list(opts) if k in PATCH_OPTIONS + ("base_radius",)}
-    if patch_opts and "hardnet" not in args.matcher:
+    weights = {"weights": opts.pop("weights")} if "weights" in opts else {}
+    if patch_opts and not any(extractor_of(n).patch_based for n in args.matcher):
         raise LocalScaleError(
-            f"--{', --'.join(k.replace('_', '-') for k in patch_opts)}: only the hardnet matcher takes patch options"
+            f"--{', --'.join(k.replace('_', '-') for k in patch_opts)}: {patch_matchers()} patch options"
         )
     gate = gate_from_args(args)
     configs = [
-        match_config(n, gate=gate, **opts, **(patch_opts if n == "hardnet" else {}))
+        match_config(
+            n,
+            gate=gate,
+            **opts,
+            **(patch_opts if extractor_of(n).patch_based else {}),
+            **(weights if extractor_of(n).weights else {}),
+        )
         for n in dict.fromkeys(args.matcher)
     ]
     tags = [result_tag(c) for c in configs]

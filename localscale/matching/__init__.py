@@ -17,7 +17,7 @@ Example::
 from ..lazy import lazy_exports
 
 _EXPORTS = {
-    ".config": ("MATCHERS", "MATCHER_NEEDS", "MatchConfig", "match_config"),
+    ".config": ("MATCHERS", "MatchConfig", "match_config"),
     ".matcher": ("Matcher", "Matches", "get_matcher"),
     ".nearest_neighbour": ("match_descriptors", "ratio_mutual_matches"),
     ".rectification": ("pair_scale", "rectify_factors"),

@@ -6,10 +6,9 @@ from typing import Optional
 
 import torch
 
+from ..errors import LocalScaleError
 from ..features.pretrained import find_weights, load_weights
-
-#: the weight file of LightGlue for each extractor's descriptors
-LIGHTGLUE_WEIGHTS = {"aliked": "aliked_lightglue.pth", "disk": "disk_lightglue.pth", "xfeat": "xfeat-lighterglue.pt"}
+from ..features.registry import get_extractor
 
 
 def load_lightglue(
@@ -19,11 +18,15 @@ def load_lightglue(
     width_confidence: Optional[float] = None,
     weights=None,
 ) -> torch.nn.Module:
-    """LightGlue for ``features`` (``aliked``, ``disk``: LightGlue; ``xfeat``: LighterGlue) in
-    kornia's configuration for them; ``None`` confidences keep kornia's values."""
+    """LightGlue for the descriptors of the extractor ``features`` (``aliked``, ``disk``: LightGlue;
+    ``xfeat``: LighterGlue) in kornia's configuration for them (its ``lightglue``), with its
+    ``lightglue_weights``; ``None`` confidences keep kornia's values."""
     import kornia.feature as KF
 
-    conf = {**KF.LightGlue.features[features], "weights": None, "filter_threshold": filter_threshold}
+    extractor = get_extractor(features)
+    if extractor.lightglue is None or extractor.lightglue_weights is None:
+        raise LocalScaleError(f"the {features} extractor has no LightGlue weights")
+    conf = {**KF.LightGlue.features[extractor.lightglue], "weights": None, "filter_threshold": filter_threshold}
     for name, value in (("depth_confidence", depth_confidence), ("width_confidence", width_confidence)):
         if value is not None:
             conf[name] = value
@@ -42,4 +45,4 @@ def load_lightglue(
             out[k] = v
         return out
 
-    return load_weights(net, find_weights(LIGHTGLUE_WEIGHTS[features], weights), rename)
+    return load_weights(net, find_weights(extractor.lightglue_weights, weights), rename)

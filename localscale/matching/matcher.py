@@ -28,7 +28,7 @@ import torch
 
 from ..devices import resolve_device
 from ..errors import LocalScaleError
-from ..features.extractors import EXTRACTORS, Features
+from ..features.extractors import Features
 from .config import MatchConfig, match_config
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches
 from .rectification import pair_scale, rectify_factors
@@ -82,13 +82,13 @@ class Matcher:
         self.cache_size = cache_size
         self._cache: OrderedDict = OrderedDict()
         c = self.config
-        self.extractor = EXTRACTORS[c.extractor](self.device, **c.extractor_conf())
+        self.extractor = c.extractor_class(self.device, weights=c.weights, **c.extractor_conf)
         self._lightglue = None
         if c.matching == "lightglue":
             from .lightglue import load_lightglue
 
             self._lightglue = load_lightglue(
-                self.extractor.lightglue, c.filter_threshold, c.depth_confidence, c.width_confidence, c.weights
+                c.extractor, c.filter_threshold, c.depth_confidence, c.width_confidence, c.weights
             ).to(self.device)
 
     @property
@@ -156,7 +156,7 @@ class Matcher:
                 np.zeros((0, 2), np.float32), torch.zeros(0, 1), np.zeros(0, np.float32), (h, w), seconds=seconds
             )
         kp, d, r = np.concatenate(kps), torch.cat(descs), np.concatenate(resps)
-        order = np.argsort(-r, kind="stable")[: c.num_features]
+        order = np.argsort(-r, kind="stable")[: c.extractor_conf.get("num_features")]
         return Features(kp[order], d[torch.from_numpy(order)], r[order], (h, w), factor=1.0, seconds=seconds)
 
     # ---- matching

@@ -173,11 +173,12 @@ def match_result(m: Matcher, found: Matches, H, correction: Correction) -> Match
         "num_features_b": len(found.keypoints_b),
         "factors": [float(f) for f in found.factors],
     }
-    if not m.extractor.rectified:
-        desc = m.config.descriptor
-        res.meta.update(
-            descriptor=desc if isinstance(desc, str) else getattr(desc, "name", "custom"), detector=m.config.detector
-        )
+    conf = m.config.extractor_conf
+    if m.extractor.patch_based and "descriptor" in conf:
+        desc = conf["descriptor"]
+        res.meta["descriptor"] = desc if isinstance(desc, str) else getattr(desc, "name", "custom")
+    if m.extractor.patch_based and "detector" in conf:
+        res.meta["detector"] = conf["detector"]
     return res
 
 
@@ -292,7 +293,8 @@ def match_refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, corre
 
     pa = _as_map(first_a if prior_a is None else prior_a, a.shape[:2])
     pb = _as_map(first_b if prior_b is None else prior_b, b.shape[:2])
-    seed = (lambda: sift_seed_points(a, b, max(cfg.num_features, 1000))) if cfg.sift_seed else None
+    n = cfg.extractor_conf.get("num_features", 1000)
+    seed = (lambda: sift_seed_points(a, b, max(n, 1000))) if cfg.sift_seed else None
     out = refine_matching(
         run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification, cfg.max_passes, seed
     )

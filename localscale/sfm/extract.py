@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -56,15 +57,30 @@ class FeatureConf:
         return match_config(self.matcher, **self.options())
 
 
+class _FeatureConfs(Mapping):
+    """A :class:`FeatureConf` per name of :data:`~localscale.matching.MATCHERS`: its own keypoint
+    count at the working resolution of ``reconstruct`` (1024)."""
+
+    def __getitem__(self, name: str) -> FeatureConf:
+        if name not in self._names():
+            raise KeyError(name)
+        return FeatureConf(name, None, 1024)
+
+    def __iter__(self):
+        return iter(self._names())
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    @staticmethod
+    def _names():
+        from ..matching import MATCHERS
+
+        return MATCHERS
+
+
 #: named feature configurations (hloc style); ``--matcher NAME`` with the CLI's ``--num-keypoints`` / ``--max-side``
-CONFS = {
-    "aliked-lightglue": FeatureConf("aliked-lightglue", 2048, 1024),
-    "aliked-n16rot-lightglue": FeatureConf("aliked-n16rot-lightglue", 2048, 1024),
-    "disk-lightglue": FeatureConf("disk-lightglue", 2048, 1024),
-    "sift": FeatureConf("sift", 4096, 1024),
-    "hardnet": FeatureConf("hardnet", 2048, 1024),
-    "xfeat-lighterglue": FeatureConf("xfeat-lighterglue", 4096, 1024),
-}
+CONFS = _FeatureConfs()
 
 
 def load_working(image, max_side: Optional[int]):
