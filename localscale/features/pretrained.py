@@ -73,18 +73,6 @@ def package_folder(package: str) -> Optional[Path]:
     return Path(list(spec.submodule_search_locations)[0])
 
 
-def weight_files() -> dict:
-    """Every weight file of the registered extractors and their LightGlue: file name -> :class:`WeightFile`."""
-    from .registry import EXTRACTORS
-
-    out = {}
-    for cls in EXTRACTORS.values():
-        for f in (*cls.weights, cls.lightglue_weights):
-            if f is not None:
-                out.setdefault(f.filename, f)
-    return out
-
-
 def find_weights(file: Union[str, WeightFile], weights: Union[str, Path, None] = None) -> Path:
     """Path of a weight file: a :class:`WeightFile` or the name of one of :func:`weight_files`.
 
@@ -107,6 +95,8 @@ def find_weights(file: Union[str, WeightFile], weights: Union[str, Path, None] =
             )
         return p
     if not isinstance(file, WeightFile):
+        from .registry import weight_files
+
         known = weight_files()
         if filename not in known:
             raise CheckpointError(f"unknown weight file {filename!r}; known: {', '.join(known)}")

@@ -4,7 +4,8 @@ Each extractor class declares its name, options, weight files, LightGlue weights
 what it needs installed and its named matchers (:class:`~.extractors.Extractor`); registering it
 makes it, and its matchers, known to :class:`~localscale.matching.MatchConfig`,
 :data:`~localscale.matching.MATCHERS`, ``localscale match --matcher`` and ``reconstruct``.
-The extractors of localscale are the modules of :mod:`.extractors`, registered when it is imported.
+The extractors of localscale are the modules of :mod:`.extractors`, registered when that package is
+imported (:mod:`localscale.matching` imports it); this module imports none of them.
 
 Example::
 
@@ -39,9 +40,7 @@ def named_matchers() -> dict:
 def register(cls: type) -> type:
     """Add an :class:`~.extractors.Extractor` subclass under its ``name`` (a class decorator);
     returns it. A name or matcher name that another class holds is refused."""
-    from .extractors.base import Extractor
-
-    if not (isinstance(cls, type) and issubclass(cls, Extractor)):
+    if not (isinstance(cls, type) and any(c.__name__ == "Extractor" for c in cls.__mro__[1:])):
         raise LocalScaleError(f"register takes an Extractor subclass, got {cls!r}")
     if not isinstance(cls.name, str) or not cls.name:
         raise LocalScaleError(f"{cls.__name__}.name must be a non-empty string, got {cls.name!r}")
@@ -64,4 +63,11 @@ def get_extractor(name: str) -> type:
     return EXTRACTORS[name]
 
 
-from . import extractors as _shipped  # noqa: E402, F401  (registers the extractors of localscale)
+def weight_files() -> dict:
+    """Every weight file of the registered extractors and their LightGlue: file name -> ``WeightFile``."""
+    out = {}
+    for cls in EXTRACTORS.values():
+        for f in (*cls.weights, cls.lightglue_weights):
+            if f is not None:
+                out.setdefault(f.filename, f)
+    return out

@@ -33,7 +33,7 @@ from typing import Optional
 
 from ..checks import check_int, check_number
 from ..errors import LocalScaleError
-from ..features.registry import get_extractor, named_matchers
+from ..features.extractors import get_extractor, named_matchers
 from .auto import AutoConfig
 from .correction import CorrectionGate
 from .verification import VerificationConfig

@@ -7,8 +7,8 @@ from typing import Optional
 import torch
 
 from ..errors import LocalScaleError
+from ..features.extractors import get_extractor
 from ..features.pretrained import find_weights, load_weights
-from ..features.registry import get_extractor
 
 
 def load_lightglue(

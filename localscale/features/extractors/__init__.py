@@ -18,11 +18,13 @@ from .sift import SIFT
 from .aliked import ALIKED, ALIKED_MODELS
 from .disk import DISK
 from .xfeat import XFeat
-from ..registry import EXTRACTORS, register
+from ..registry import EXTRACTORS, get_extractor, named_matchers, register
 # isort: on
 
 __all__ = [
     "EXTRACTORS",
+    "get_extractor",
+    "named_matchers",
     "register",
     "Extractor",
     "Features",
