@@ -8,7 +8,7 @@ half of the cameras have a known one, COLMAP's view-graph calibration runs first
 (``colmap view_graph_calibrator``: focal lengths from the fundamental matrices; it updates the
 database's cameras and two-view geometries). The models are numbered by size (``0``: the most
 registered images). The mapper writes into a temporary folder; ``sparse/`` is replaced only when
-it has finished.
+it has finished. A database of two images gets a two-view model (:mod:`.two_views`).
 
 Example::
 
@@ -29,6 +29,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import LocalScaleError
+from .two_views import GLOBAL_TWO_VIEW_OPTIONS, database_images, two_view_mapping
 
 #: the mappers of :func:`run_mapping`
 MAPPERS = ("incremental", "global")
@@ -235,9 +236,14 @@ def run_mapping(
     for d in (tmp, final_tmp):
         shutil.rmtree(d, ignore_errors=True)
     tmp.mkdir(parents=True)
+    two_views = database_images(database_path) == 2
+    if two_views and mapper == "global":  # tracks and models of two views let through
+        overrides = {**GLOBAL_TWO_VIEW_OPTIONS, **(overrides or {})}
     try:
         opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
         run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
+        if two_views and mapper == "incremental":
+            run = two_view_mapping
         with colmap_log(verbose):
             if mapper == "global" and needs_calibration(database_path):
                 calibrated = calibrate_view_graph(database_path)
@@ -259,13 +265,7 @@ def run_mapping(
 
 def _best_of_trials(run, database_path, image_dir, tmp: Path, opts, trials: int) -> tuple:
     """``(models of the best run, largest first; [{"seed", "registered"}] of each run)``."""
-    import pycolmap
-
-    db = pycolmap.Database.open(str(database_path))
-    try:
-        num_images = db.num_images()
-    finally:
-        db.close()
+    num_images = database_images(database_path)
     rank = lambda ms: (ms[0].num_reg_images(), ms[0].compute_num_observations()) if ms else (0, 0)  # noqa: E731
     best, runs = [], []
     for seed in range(trials):

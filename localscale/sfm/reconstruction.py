@@ -557,7 +557,9 @@ def _flag(summary: dict) -> None:
     """``warning:`` lines for a result that should not be trusted as it is."""
     n, r = summary["images"], summary["registered"]
     if r == 0:
-        warn("no model: the mapper registered no images (too few verified pairs?)")
+        v, p = summary["pairs_verified"], summary["pairs"]
+        why = f"{v} of {p} pairs verified, none with enough inliers at a wide enough angle" if v else "no pair verified"
+        warn(f"no model: the mapper registered no images ({why})")
     elif r < n:
         shown = ", ".join(summary["unregistered_images"][:6])
         warn(
