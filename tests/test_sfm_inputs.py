@@ -71,3 +71,57 @@ def test_a_pair_without_an_initial_geometry_says_why(views, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1
     assert "warning: no model: the mapper registered no images (no pair verified)" in err
+
+
+def _other_scalenet(path):
+    """A ScaleNet checkpoint with other weights (the bundled one, one bias nudged)."""
+    import torch
+
+    from localscale.models import ScaleNet
+    from localscale.models.base import WEIGHTS_DIR
+
+    ckpt = torch.load(WEIGHTS_DIR / ScaleNet.default_weights, map_location="cpu", weights_only=False)
+    name = next(k for k, v in ckpt["state_dict"].items() if k.endswith("bias") and v.is_floating_point())
+    ckpt["state_dict"][name] = ckpt["state_dict"][name] + 1e-3
+    torch.save(ckpt, path)
+    return path
+
+
+def test_a_rerun_with_other_weights_is_refused_and_the_weights_are_recorded(views, tmp_path, capsys):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png", "view_2.png"])
+    out = tmp_path / "out"
+    base = ["reconstruct", str(folder), "-o", str(out), "--matcher", "sift", "--correction", "global", "--no-progress"]
+    assert main(base) == 0
+    run = json.loads((out / "run.json").read_text())["options"]
+    summary = json.loads((out / "summary.json").read_text())["options"]
+    assert len(run["global_weights_sha256"]) == 64 and run["local_weights_sha256"] is None  # global: ScaleNet only
+    assert summary["global_weights_sha256"] == run["global_weights_sha256"]
+    capsys.readouterr()
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+
+    other = _other_scalenet(tmp_path / "other.pt")
+    assert main(base + ["--global-weights", str(other)]) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "global_weights_sha256" in lines[0]
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing written
+
+    assert main(base + ["--global-weights", str(other), "--overwrite"]) == 0
+    again = json.loads((out / "run.json").read_text())["options"]
+    from localscale.sfm.weights import file_sha256
+
+    assert again["global_weights_sha256"] == file_sha256(other) != run["global_weights_sha256"]
+
+
+def test_the_matcher_weight_files_are_recorded():
+    from localscale.sfm.weights import matcher_weight_files, weight_options
+
+    try:
+        files = [p.name for p in matcher_weight_files("aliked-lightglue")]
+    except Exception:
+        pytest.skip("the ALIKED/LightGlue weight package is not installed")
+    assert files == ["aliked-n16.pth", "aliked_lightglue.pth"]
+    options = weight_options("none", "aliked-lightglue")
+    assert sorted(options["matcher_weights_sha256"]) == sorted(files)
+    assert options["local_weights_sha256"] is None and options["global_weights_sha256"] is None
+    assert weight_options("none", "sift")["matcher_weights_sha256"] == {}
