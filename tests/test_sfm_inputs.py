@@ -125,3 +125,92 @@ def test_the_matcher_weight_files_are_recorded():
     assert sorted(options["matcher_weights_sha256"]) == sorted(files)
     assert options["local_weights_sha256"] is None and options["global_weights_sha256"] is None
     assert weight_options("none", "sift")["matcher_weights_sha256"] == {}
+
+
+def _reconstruct_cli(folder, out, capsys, *extra):
+    code = main(["reconstruct", str(folder), "-o", str(out), "--matcher", "sift", "--no-progress", *extra])
+    return code, capsys.readouterr().err
+
+
+def test_duplicate_photos_are_kept_once(views, tmp_path, capsys):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png", "view_2.png"])
+    shutil.copy(views / "view_1.png", folder / "view_1_copy.png")
+    shutil.copy(views / "view_2.png", folder / "again.png")
+    code, err = _reconstruct_cli(folder, tmp_path / "out", capsys)
+    assert code == 0 and "Traceback" not in err
+    line = next(line for line in err.splitlines() if "duplicate" in line)
+    assert line.startswith("warning: skipped 2 duplicate image(s)")
+    assert "view_1_copy.png (= view_1.png)" in line and "view_2.png (= again.png)" in line
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["images"] == 3 and summary["registered"] == 3
+    assert any("duplicate" in w for w in summary["warnings"])
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert sorted(run["images"]) == ["again.png", "view_0.png", "view_1.png"]
+
+
+def test_a_long_thin_strip_is_skipped_with_a_warning(views, tmp_path, capsys):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png", "view_2.png"])
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(folder / "strip.png"), rng.integers(0, 255, (20, 20000, 3), dtype=np.uint8))
+    code, err = _reconstruct_cli(folder, tmp_path / "out", capsys)
+    assert code == 0
+    line = next(line for line in err.splitlines() if "strip.png" in line)
+    assert line.startswith("warning: skipped strip.png:") and "1024x1" in line and "too thin" in line
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["images"] == 3 and any("strip.png" in w and "too thin" in w for w in summary["warnings"])
+
+
+def test_a_16_bit_png_is_a_warning_line_and_in_the_summary(views, tmp_path, capfd):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png", "view_2.png"])
+    rgb = cv2.imread(str(views / "view_3.png"))
+    cv2.imwrite(str(folder / "deep.png"), rgb.astype(np.uint16) * 257)
+    code = main(["reconstruct", str(folder), "-o", str(tmp_path / "out"), "--matcher", "sift", "--no-progress"])
+    err = capfd.readouterr().err
+    assert code == 0
+    assert "UserWarning" not in err and "io.py" not in err
+    lines = [line for line in err.splitlines() if "16-bit" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: deep.png") and "rescaled to 8 bit" in lines[0]
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["registered"] == 4 and any("deep.png" in w and "16-bit" in w for w in summary["warnings"])
+
+
+BAD_CAMERAS = {
+    "principal point": "SIMPLE_RADIAL 320 240 300 1e308 120 0",
+    "radial distortion": "SIMPLE_RADIAL 320 240 300 160 120 1e9",
+    "focal length": "SIMPLE_PINHOLE 320 240 1e9 160 120",
+    "tangential distortion": "OPENCV 320 240 300 300 160 120 0 0 5 0",
+}
+
+
+@pytest.mark.parametrize("what", sorted(BAD_CAMERAS))
+def test_implausible_cameras_are_refused(views, tmp_path, capsys, what):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png"])
+    camera = tmp_path / "camera.txt"
+    camera.write_text(BAD_CAMERAS[what] + "\n")
+    out = tmp_path / "out"
+    code, err = _reconstruct_cli(folder, out, capsys, "--camera", str(camera))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert lines[0].startswith(f"error: camera file {camera}: {what}")
+    assert not out.exists()
+    code = main(
+        ["match", str(folder / "view_0.png"), str(folder / "view_1.png"), "-o", str(out), "--camera", str(camera)]
+    )
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error:") and what in lines[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        "SIMPLE_RADIAL 320 240 100 160 120 -0.2",  # wide angle
+        "PINHOLE 320 240 9000 9000 160 120",  # long telephoto
+        "PINHOLE 320 240 300 300 -100 250",  # a crop off the centre
+        "FULL_OPENCV 320 240 300 300 160 120 20 5 0 0 1 20 5 1",  # rational model, large terms that cancel
+    ],
+)
+def test_plausible_cameras_are_accepted(line):
+    from localscale.cameras import as_camera
+
+    assert as_camera(line).to_line().split()[0] == line.split()[0]

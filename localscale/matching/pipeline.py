@@ -118,6 +118,7 @@ def match_pair(
 
 def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     """The cameras of the full images (``None`` stays ``None``) in the pixels of the working images."""
+    from ..camera_checks import check_plausible
     from ..cameras import as_camera
     from ..errors import LocalScaleError
     from ..io import image_shape
@@ -126,6 +127,7 @@ def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     for name, cam, image, S in zip("AB", cameras, images, to_work):
         cam = as_camera(cam)
         if cam is not None:
+            check_plausible(cam, f"camera of image {name}")
             h, w = image_shape(image, f"image {name}")
             if abs(cam.width / w - cam.height / h) > 0.01 * max(cam.width / w, cam.height / h):
                 raise LocalScaleError(
