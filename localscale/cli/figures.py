@@ -79,12 +79,14 @@ def cmd_scale(args) -> int:
         all(math.isfinite(v) for v in (p.scale, p.scale_ab, p.scale_ba, p.hard_scale)) and np.isfinite(p.probs_ab).all()
     ):
         raise LocalScaleError("ScaleNet predicted a non-finite scale (NaN or inf): the model is broken")
-    if not p.reliable:
+    if not p.consistent:
         print(
             f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
             f"disagree by x{2**p.inconsistency_log2:.2f}",
             file=sys.stderr,
         )
+    if p.limits:
+        print(f"warning: the global scale is unreliable: {'; '.join(p.limits)}", file=sys.stderr)
     if any(p.turns):
         which = "A" if p.turns[0] else "B"
         print(
@@ -102,6 +104,7 @@ def cmd_scale(args) -> int:
                     "scale_ba": p.scale_ba,
                     "hard_scale": p.hard_scale,
                     "reliable": p.reliable,
+                    "limits": p.limits,
                     "turns": list(p.turns),
                     "inconsistency_log2": p.inconsistency_log2,
                     "probs_ab": p.probs_ab.round(4).tolist(),
