@@ -229,7 +229,11 @@ def _warning_lines():
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        print("interrupted; no partial output file was left", file=sys.stderr)
+        return 130
     with warnings.catch_warnings():
         warnings.showwarning = _warning_lines()
         return _run(args)
