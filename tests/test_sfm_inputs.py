@@ -214,3 +214,14 @@ def test_plausible_cameras_are_accepted(line):
     from localscale.cameras import as_camera
 
     assert as_camera(line).to_line().split()[0] == line.split()[0]
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_two_views_among_unrelated_images_make_a_model(views, tmp_path, mapper):
+    folder = _folder_of(views, tmp_path, ["view_0.png", "view_1.png"])
+    noise = np.random.default_rng(1).integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    cv2.imwrite(str(folder / "noise.png"), noise)
+    summary = reconstruct(folder, tmp_path / "out", matcher="sift", mapper=mapper, num_threads=1, show_progress=False)
+    assert summary["pairs_verified"] == 1
+    assert summary["registered"] == 2 and summary["unregistered_images"] == ["noise.png"]
+    assert summary["mapping_runs"][-1]["two_views"] is True

@@ -1,9 +1,10 @@
-"""The model of a database that holds two images.
+"""The model of a database that holds two images, or whose images are joined by single pairs only.
 
 Both of COLMAP's mappers keep only points seen in three images or more by default, and a pair has
 none: the incremental mapper triangulates its initial pair without the tracks of two views (an
 option of its own that its pipeline does not expose), and the global mapper drops the tracks and
-the models shorter than three, so a pair alone gives no model with their defaults. Here:
+the models shorter than three, so a pair alone gives no model with their defaults. For a
+database of two images, and for one where the mapper made no model (:func:`~.mapping.run_mapping`):
 
 * ``incremental``: :func:`two_view_mapping` does what the incremental mapper does for its initial
   pair (pycolmap's ``IncrementalMapper``: the initial pair's relative pose, triangulation, global
