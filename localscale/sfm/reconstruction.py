@@ -35,7 +35,7 @@ from typing import Any, Optional
 
 from ..errors import LocalScaleError
 from ..outputs import check_writable_dir
-from .report import collecting_warnings, markdown_table, read_json, warn, write_json
+from .report import collecting_warnings, markdown_table, no_model_reason, read_json, warn, write_json
 from .weights import WEIGHT_OPTIONS, weight_options
 
 #: the files and folders a run writes into its output folder
@@ -559,9 +559,7 @@ def _flag(summary: dict) -> None:
     """``warning:`` lines for a result that should not be trusted as it is."""
     n, r = summary["images"], summary["registered"]
     if r == 0:
-        v, p = summary["pairs_verified"], summary["pairs"]
-        why = f"{v} of {p} pairs verified, none with enough inliers at a wide enough angle" if v else "no pair verified"
-        warn(f"no model: the mapper registered no images ({why})")
+        warn(f"no model: the mapper registered no images ({no_model_reason(summary)})")
     elif r < n:
         shown = ", ".join(summary["unregistered_images"][:6])
         warn(

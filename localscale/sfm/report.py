@@ -57,6 +57,12 @@ def collecting_warnings() -> Iterator[list]:
             _COLLECTED.reset(token)
 
 
+def no_model_reason(summary: dict) -> str:
+    """Why a run made no model, from its summary's verified pairs."""
+    v, p = summary["pairs_verified"], summary["pairs"]
+    return f"{v} of {p} pairs verified, none with enough inliers at a wide enough angle" if v else "no pair verified"
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
