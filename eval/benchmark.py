@@ -52,10 +52,10 @@ import json
 import os
 import platform
 import resource
-import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -64,6 +64,8 @@ import torch
 
 import localscale
 from localscale.errors import LocalScaleError
+from localscale.evaluation.report import git_commit
+from localscale.evaluation.timing import interleaved, subprocess_ms, timeit
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor
 from localscale.features.descriptors import PRECISIONS
 from localscale.features.detector import HessianDetector
@@ -75,56 +77,6 @@ from localscale.matching.matcher import Matcher
 from localscale.models import LocalScaleNet, ScaleNet
 
 ASSETS = Path(localscale.__file__).resolve().parent / "assets"
-
-
-def timeit(fn, repeat: int, warmup: int = 1, setup=None) -> dict:
-    """Median / p90 wall ms and median CPU ms (this process, all threads) of ``fn()``, or of
-    ``fn(setup())`` with ``setup`` run untimed before each call."""
-    for _ in range(warmup):
-        fn() if setup is None else fn(setup())
-    wall, cpu = [], []
-    for _ in range(repeat):
-        arg = None if setup is None else setup()
-        t, c = time.perf_counter(), time.process_time()
-        fn() if setup is None else fn(arg)
-        wall.append(time.perf_counter() - t)
-        cpu.append(time.process_time() - c)
-    wall, cpu = np.array(wall) * 1000, np.array(cpu) * 1000
-    return {"ms": float(np.median(wall)), "ms_p90": float(np.percentile(wall, 90)), "cpu_ms": float(np.median(cpu))}
-
-
-def interleaved(fns: dict, repeat: int) -> dict:
-    """Median wall and CPU ms of each of ``fns`` (name -> callable), timed in turn within each of
-    ``repeat`` rounds (after one warm-up round), so that a machine whose speed drifts (a shared
-    VM) slows all of them alike and their ratios hold."""
-    for fn in fns.values():
-        fn()
-    wall = {k: [] for k in fns}
-    cpu = {k: [] for k in fns}
-    for _ in range(repeat):
-        for k, fn in fns.items():
-            t, c = time.perf_counter(), time.process_time()
-            fn()
-            wall[k].append((time.perf_counter() - t) * 1000)
-            cpu[k].append((time.process_time() - c) * 1000)
-    return {k: {"ms": float(np.median(wall[k])), "cpu_ms": float(np.median(cpu[k]))} for k in fns}
-
-
-def subprocess_ms(cmd: list, repeat: int, cwd: str, env=None) -> dict:
-    """Median wall ms and median child CPU ms of running ``cmd`` ``repeat`` times."""
-    wall, cpu = [], []
-    for _ in range(repeat):
-        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t = time.perf_counter()
-        subprocess.run(cmd, cwd=cwd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        wall.append(time.perf_counter() - t)
-        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu.append(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime)
-    return {
-        "ms": float(np.median(wall) * 1000),
-        "ms_p90": float(np.percentile(wall, 90) * 1000),
-        "cpu_ms": float(np.median(cpu) * 1000),
-    }
 
 
 def test_pair(size=(640, 480)):
@@ -255,7 +207,7 @@ def throughput_sections(model, rng) -> dict:
     return res
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__
     )
@@ -300,36 +252,58 @@ def main(argv=None) -> int:
     p.add_argument("--local-weights", default=None, help="Local-ScaleNet checkpoint (default: bundled)")
     p.add_argument("--global-weights", default=None, help="ScaleNet checkpoint (default: bundled)")
     p.add_argument("--out", default=None, help="JSON file")
-    a = p.parse_args(argv)
-    if a.repeat < 1 or a.num_features < 1 or a.pairs_per_second < 0:
-        p.error("--repeat and --num-features must be >= 1, --pairs-per-second >= 0")
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    rng = np.random.default_rng(0)
-    n, rep = a.num_features, a.repeat
-    names = list(dict.fromkeys(a.matcher))
-    try:  # every matcher's weights load before anything is timed
-        hardnet = HardNetDescriptor.from_pretrained(a.descriptor, device=a.device)
-        configs = {name: matcher_config(name, n, hardnet) for name in names}
-        matchers = {name: Matcher(cfg, a.device) for name, cfg in configs.items()}
-        kornia_defaults = (
-            Matcher(
-                match_config(
-                    "aliked-lightglue",
-                    name="aliked-lightglue (kornia defaults)",
-                    num_features=2048,
-                    channels_last=False,
-                ),
-                a.device,
-            )
-            if "aliked-lightglue" in names
-            else None
+    return p
+
+
+KORNIA_DEFAULTS = "aliked-lightglue (kornia defaults: 2048 keypoints, contiguous)"
+
+
+@dataclass
+class Bench:
+    """What the stages share: the options, the pair, the loaded models and matchers, and the
+    timings (``st``: stage -> timing) and other results (``res``) gathered so far."""
+
+    a: argparse.Namespace
+    img_a: np.ndarray
+    img_b: np.ndarray
+    H: np.ndarray
+    hardnet: object
+    configs: dict
+    matchers: dict
+    kornia_defaults: object
+    tmp: str = ""
+    local: object = None
+    glob: object = None
+    st: dict = field(default_factory=dict)
+    res: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.a.num_features
+
+    @property
+    def rep(self) -> int:
+        return self.a.repeat
+
+
+def load_matchers(a, names: list):
+    """``(hardnet, configs, matchers, kornia_defaults)``: every matcher's weights, loaded before
+    anything is timed (``kornia_defaults``: ``aliked-lightglue`` with kornia's settings, or None)."""
+    hardnet = HardNetDescriptor.from_pretrained(a.descriptor, device=a.device)
+    configs = {name: matcher_config(name, a.num_features, hardnet) for name in names}
+    matchers = {name: Matcher(cfg, a.device) for name, cfg in configs.items()}
+    kornia_defaults = None
+    if "aliked-lightglue" in names:
+        cfg = match_config(
+            "aliked-lightglue", name="aliked-lightglue (kornia defaults)", num_features=2048, channels_last=False
         )
-    except LocalScaleError as e:
-        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 2
-    img_a, img_b, H = test_pair()
-    res = {
+        kornia_defaults = Matcher(cfg, a.device)
+    return hardnet, configs, matchers, kornia_defaults
+
+
+def run_info(b: Bench, names: list) -> dict:
+    a = b.a
+    return {
         "device": a.device,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
@@ -337,186 +311,186 @@ def main(argv=None) -> int:
         "cpu_count": os.cpu_count(),
         "load_average_start": os.getloadavg(),
         "localscale": str(Path(localscale.__file__).parent),
-        "input": f"640x480 pair (bundled kodim01_a/b resized), {n} keypoints",
-        "repeat": rep,
+        "input": f"640x480 pair (bundled kodim01_a/b resized), {b.n} keypoints",
+        "repeat": b.rep,
         "matchers": names,
         "descriptor": a.descriptor or "bundled",
-        "descriptor_precision_auto": hardnet.resolved_precision(a.device),
+        "descriptor_precision_auto": b.hardnet.resolved_precision(a.device),
         "local_weights": a.local_weights or "bundled",
         "global_weights": a.global_weights or "bundled",
+        "commit": git_commit(),
     }
-    st = {}  # stage -> timing dict
 
-    with tempfile.TemporaryDirectory() as tmp:
-        if not a.no_cli:
-            env = dict(os.environ, OMP_NUM_THREADS=str(a.threads)) if a.threads else None
-            st["cli: localscale --help"] = subprocess_ms([sys.executable, "-m", "localscale", "--help"], rep, tmp, env)
-            pa, pb, ph = Path(tmp) / "a.png", Path(tmp) / "b.png", Path(tmp) / "H.txt"
-            cv2.imwrite(str(pa), img_a[..., ::-1])
-            cv2.imwrite(str(pb), img_b[..., ::-1])
-            np.savetxt(ph, H)
-            cmd = [
-                sys.executable,
-                "-m",
-                "localscale",
-                "match",
-                str(pa),
-                str(pb),
-                "-o",
-                str(Path(tmp) / "m"),
-                "--correction",
-                "local",
-                "--H",
-                str(ph),
-                "--num-features",
-                str(n),
-            ]
-            st["cli: localscale match (local)"] = subprocess_ms(cmd, max(1, min(rep, 3)), tmp, env)
 
-        st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(a.local_weights, a.device), rep)
-        st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(a.global_weights, a.device), rep)
-        st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(a.descriptor, device=a.device), rep)
-        local = LocalScaleNet.from_pretrained(a.local_weights, a.device)
-        glob = ScaleNet.from_pretrained(a.global_weights, a.device)
-        sift = SIFTPatchDescriptor().to(a.device).eval()
+def cli_stages(b: Bench) -> None:
+    """``localscale --help`` and one ``localscale match`` in subprocesses."""
+    a, tmp = b.a, b.tmp
+    env = dict(os.environ, OMP_NUM_THREADS=str(a.threads)) if a.threads else None
+    b.st["cli: localscale --help"] = subprocess_ms([sys.executable, "-m", "localscale", "--help"], b.rep, tmp, env)
+    pa, pb, ph = Path(tmp) / "a.png", Path(tmp) / "b.png", Path(tmp) / "H.txt"
+    cv2.imwrite(str(pa), b.img_a[..., ::-1])
+    cv2.imwrite(str(pb), b.img_b[..., ::-1])
+    np.savetxt(ph, b.H)
+    cmd = [sys.executable, "-m", "localscale", "match", str(pa), str(pb), "-o", str(Path(tmp) / "m")]
+    cmd += ["--correction", "local", "--H", str(ph), "--num-features", str(b.n)]
+    b.st["cli: localscale match (local)"] = subprocess_ms(cmd, max(1, min(b.rep, 3)), tmp, env)
 
-        fast = max(rep, 15)  # short stages: more runs, a steadier median
-        st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), fast)
-        ea, eb = local.encode_image(img_a), local.encode_image(img_b)
-        st["scale map: local, cached encodings, A's self terms kept (head)"] = timeit(
-            lambda: local.predict_from_features(ea, eb), fast
+
+def model_stages(b: Bench) -> None:
+    """Model loads and scale maps (uncached, from cached encodings, ScaleNet)."""
+    a, st, rep, img_a, img_b = b.a, b.st, b.rep, b.img_a, b.img_b
+    st["load: Local-ScaleNet"] = timeit(lambda: LocalScaleNet.from_pretrained(a.local_weights, a.device), rep)
+    st["load: ScaleNet"] = timeit(lambda: ScaleNet.from_pretrained(a.global_weights, a.device), rep)
+    st["load: HardNet"] = timeit(lambda: HardNetDescriptor.from_pretrained(a.descriptor, device=a.device), rep)
+    local = b.local = LocalScaleNet.from_pretrained(a.local_weights, a.device)
+    glob = b.glob = ScaleNet.from_pretrained(a.global_weights, a.device)
+    fast = max(rep, 15)  # short stages: more runs, a steadier median
+    st["scale map: local, uncached (2 encodes + head)"] = timeit(lambda: local.predict(img_a, img_b), fast)
+    ea, eb = local.encode_image(img_a), local.encode_image(img_b)
+    st["scale map: local, cached encodings, A's self terms kept (head)"] = timeit(
+        lambda: local.predict_from_features(ea, eb), fast
+    )
+    st["scale map: local, cached encodings, A's self terms recomputed (head)"] = timeit(
+        lambda _: local.predict_from_features(ea, eb), fast, setup=ea.terms.clear
+    )
+    st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), fast)
+
+
+def patch_stages(b: Bench) -> None:
+    """Detection, patches (local correction), description at each precision, mutual-NN matching."""
+    a, st, rep, hardnet = b.a, b.st, b.rep, b.hardnet
+    sift = SIFTPatchDescriptor().to(a.device).eval()
+    ga, gb = image_to_gray_tensor(b.img_a), image_to_gray_tensor(b.img_b)
+    det = HessianDetector(b.n)
+    st["detect: 2 images"] = timeit(lambda: (det(ga), det(gb)), rep)
+    ka, kb = det(ga)[0], det(gb)[0]
+    sa, sb = scale_maps_for_pair(b.img_a, b.img_b, "local", None, b.local, b.glob)
+    cutter = ScaleCorrectedPatches()
+    st["patches: 2 images (local correction)"] = timeit(lambda: (cutter(ga, ka, sa), cutter(gb, kb, sb)), rep)
+    pa_, pb_ = cutter(ga, ka, sa)[0], cutter(gb, kb, sb)[0]
+    patches = torch.cat([pa_, pb_])
+    default = hardnet.resolved_precision(a.device)
+    for prec in PRECISIONS[1:]:
+        if prec == "int8" and (not hardnet.int8_ranges or torch.device(a.device).type != "cpu"):
+            continue
+        hardnet.set_precision(prec)
+        tag = " (default)" if prec == default else ""
+        st[f"describe: HardNet {prec}{tag}, {len(patches)} patches, one call"] = timeit(
+            lambda: hardnet.describe(patches), rep
         )
-        st["scale map: local, cached encodings, A's self terms recomputed (head)"] = timeit(
-            lambda _: local.predict_from_features(ea, eb), fast, setup=ea.terms.clear
+    hardnet.set_precision("auto")
+    st[f"describe: HardNet {default}, {len(patches)} patches, two calls (A, B)"] = timeit(
+        lambda: (hardnet.describe(pa_), hardnet.describe(pb_)), rep
+    )
+    st[f"describe: RootSIFT, {len(patches)} patches"] = timeit(lambda: sift.describe(patches), rep)
+    da, db = hardnet.describe(pa_), hardnet.describe(pb_)
+    st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
+
+
+def matcher_stages(b: Bench, name: str) -> None:
+    """One matcher: build, extract, match without maps, ``match_pair`` per correction, one
+    eval-hpatches pair."""
+    a, st, rep, img_a, img_b, H = b.a, b.st, b.rep, b.img_a, b.img_b, b.H
+    m, cfg = b.matchers[name], b.configs[name]
+    what = (
+        "HardNet loaded above"
+        if cfg.extractor == "patches" and not isinstance(cfg.descriptor, str)
+        else "OpenCV"
+        if cfg.extractor == "sift"
+        else "loads its weights"
+    )
+    st[f"matcher {name}: build ({what})"] = timeit(lambda: Matcher(cfg, a.device), rep)
+    st[f"matcher {name}: extract 2 images"] = timeit(lambda: (m.extract(img_a), m.extract(img_b)), rep)
+    st[f"matcher {name}: match (extract + match, no maps)"] = timeit(lambda: m.match(img_a, img_b), rep)
+    b.res["matches"][name] = {}
+    for corr in a.corrections:
+        needs = get_correction(corr).models
+        lm = b.local if "local" in needs else None
+        gm = b.glob if "global" in needs else None
+        run = lambda corr=corr, lm=lm, gm=gm: match_pair(img_a, img_b, corr, H, lm, gm, m)  # noqa: E731
+        st[f"match_pair {name}: {corr}"] = timeit(run, rep)
+        r = run()
+        b.res["matches"][name][corr] = {"matches": int(len(r.matches)), "mma5": r.accuracy(5.0)}
+    ev = eval_pair_times(img_a, img_b, H, list(a.methods), cfg, a.device, b.local, b.glob, rep, b.tmp)
+    st[f"eval pair {name}: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
+    for meth, t in ev["alone"].items():
+        st[f"eval pair {name}: {meth} alone"] = t
+    b.res["eval_pair"][name] = {
+        "mma5": ev["mma5"],
+        "record_seconds": ev["record_seconds"],
+        "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]},
+    }
+
+
+def kornia_default_stages(b: Bench) -> None:
+    """``aliked-lightglue`` with kornia's defaults, and the default's speed-up over it."""
+    km, st = b.kornia_defaults, b.st
+    st[f"matcher {KORNIA_DEFAULTS}: extract 2 images"] = timeit(
+        lambda: (km.extract(b.img_a), km.extract(b.img_b)), b.rep
+    )
+    st[f"matcher {KORNIA_DEFAULTS}: match (extract + match, no maps)"] = timeit(
+        lambda: km.match(b.img_a, b.img_b), b.rep
+    )
+    ours = st["matcher aliked-lightglue: match (extract + match, no maps)"]
+    kd = st[f"matcher {KORNIA_DEFAULTS}: match (extract + match, no maps)"]
+    b.res["aliked_lightglue_speedup_over_kornia_defaults"] = {
+        "wall": kd["ms"] / ours["ms"],
+        "cpu": kd["cpu_ms"] / ours["cpu_ms"],
+    }
+
+
+def interleaved_stages(b: Bench) -> None:
+    """The targets' comparisons, timed in turn (ratios robust to a drifting machine)."""
+    img_a, img_b, rep = b.img_a, b.img_b, b.rep
+    sift_ref = lambda: opencv_sift(img_a, img_b, b.n)  # noqa: E731
+    pairs = {}
+    if "hardnet" in b.matchers:
+        hm = b.matchers["hardnet"]
+        pairs["match_pair hardnet local / OpenCV SIFT pipeline"] = interleaved(
+            {"ours": lambda: match_pair(img_a, img_b, "local", b.H, b.local, None, hm), "reference": sift_ref},
+            max(rep, 5),
         )
-        st["scale map: global ScaleNet"] = timeit(lambda: glob.predict(img_a, img_b), fast)
-
-        ga, gb = image_to_gray_tensor(img_a), image_to_gray_tensor(img_b)
-        det = HessianDetector(n)
-        st["detect: 2 images"] = timeit(lambda: (det(ga), det(gb)), rep)
-        ka, kb = det(ga)[0], det(gb)[0]
-        sa, sb = scale_maps_for_pair(img_a, img_b, "local", None, local, glob)
-        cutter = ScaleCorrectedPatches()
-        st["patches: 2 images (local correction)"] = timeit(lambda: (cutter(ga, ka, sa), cutter(gb, kb, sb)), rep)
-        pa_, pb_ = cutter(ga, ka, sa)[0], cutter(gb, kb, sb)[0]
-        patches = torch.cat([pa_, pb_])
-        default = hardnet.resolved_precision(a.device)
-        for prec in PRECISIONS[1:]:
-            if prec == "int8" and (not hardnet.int8_ranges or torch.device(a.device).type != "cpu"):
-                continue
-            hardnet.set_precision(prec)
-            tag = " (default)" if prec == default else ""
-            st[f"describe: HardNet {prec}{tag}, {len(patches)} patches, one call"] = timeit(
-                lambda: hardnet.describe(patches), rep
-            )
-        hardnet.set_precision("auto")
-        st[f"describe: HardNet {default}, {len(patches)} patches, two calls (A, B)"] = timeit(
-            lambda: (hardnet.describe(pa_), hardnet.describe(pb_)), rep
+    pairs["scale map uncached / OpenCV SIFT pipeline"] = interleaved(
+        {"ours": lambda: b.local.predict(img_a, img_b), "reference": sift_ref}, max(rep, 15)
+    )
+    if b.kornia_defaults is not None:
+        am, km = b.matchers["aliked-lightglue"], b.kornia_defaults
+        pairs["aliked-lightglue default / kornia's defaults (match, no maps)"] = interleaved(
+            {"ours": lambda: am.match(img_a, img_b), "reference": lambda: km.match(img_a, img_b)}, max(rep, 5)
         )
-        st[f"describe: RootSIFT, {len(patches)} patches"] = timeit(lambda: sift.describe(patches), rep)
-        da, db = hardnet.describe(pa_), hardnet.describe(pb_)
-        st["match: mutual NN"] = timeit(lambda: match_descriptors(da, db), rep)
+    for v in pairs.values():
+        v["ratio"] = v["ours"]["ms"] / v["reference"]["ms"]
+        v["ratio_cpu"] = v["ours"]["cpu_ms"] / v["reference"]["cpu_ms"]
+    b.res["interleaved"] = pairs
 
-        res["matches"], res["eval_pair"] = {}, {}
-        for name, m in matchers.items():
-            cfg = configs[name]
-            what = (
-                "HardNet loaded above"
-                if cfg.extractor == "patches" and not isinstance(cfg.descriptor, str)
-                else "OpenCV"
-                if cfg.extractor == "sift"
-                else "loads its weights"
-            )
-            st[f"matcher {name}: build ({what})"] = timeit(lambda cfg=cfg: Matcher(cfg, a.device), rep)
-            st[f"matcher {name}: extract 2 images"] = timeit(lambda m=m: (m.extract(img_a), m.extract(img_b)), rep)
-            st[f"matcher {name}: match (extract + match, no maps)"] = timeit(lambda m=m: m.match(img_a, img_b), rep)
-            res["matches"][name] = {}
-            for corr in a.corrections:
-                needs = get_correction(corr).models
-                lm = local if "local" in needs else None
-                gm = glob if "global" in needs else None
-                run = lambda corr=corr, lm=lm, gm=gm, m=m: match_pair(img_a, img_b, corr, H, lm, gm, m)  # noqa: E731
-                st[f"match_pair {name}: {corr}"] = timeit(run, rep)
-                r = run()
-                res["matches"][name][corr] = {"matches": int(len(r.matches)), "mma5": r.accuracy(5.0)}
 
-            ev = eval_pair_times(img_a, img_b, H, list(a.methods), cfg, a.device, local, glob, rep, tmp)
-            st[f"eval pair {name}: {'+'.join(a.methods)} (shared work)"] = ev["all_methods"]
-            for meth, t in ev["alone"].items():
-                st[f"eval pair {name}: {meth} alone"] = t
-            res["eval_pair"][name] = {
-                "mma5": ev["mma5"],
-                "record_seconds": ev["record_seconds"],
-                "alone_sum": {"ms": ev["alone_sum_ms"], "cpu_ms": ev["alone_sum_cpu_ms"]},
-            }
-
-        if kornia_defaults is not None:
-            km = kornia_defaults
-            st["matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): extract 2 images"] = timeit(
-                lambda: (km.extract(img_a), km.extract(img_b)), rep
-            )
-            st[
-                "matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"
-            ] = timeit(lambda: km.match(img_a, img_b), rep)
-            ours = st["matcher aliked-lightglue: match (extract + match, no maps)"]
-            kd = st[
-                "matcher aliked-lightglue (kornia defaults: 2048 keypoints, contiguous): match (extract + match, no maps)"
-            ]
-            res["aliked_lightglue_speedup_over_kornia_defaults"] = {
-                "wall": kd["ms"] / ours["ms"],
-                "cpu": kd["cpu_ms"] / ours["cpu_ms"],
-            }
-        # the targets' comparisons, interleaved (ratios robust to a drifting machine)
-        sift_ref = lambda: opencv_sift(img_a, img_b, n)  # noqa: E731
-        pairs = {}
-        if "hardnet" in matchers:
-            hm = matchers["hardnet"]
-            pairs["match_pair hardnet local / OpenCV SIFT pipeline"] = interleaved(
-                {"ours": lambda: match_pair(img_a, img_b, "local", H, local, None, hm), "reference": sift_ref},
-                max(rep, 5),
-            )
-        pairs["scale map uncached / OpenCV SIFT pipeline"] = interleaved(
-            {"ours": lambda: local.predict(img_a, img_b), "reference": sift_ref}, max(rep, 15)
+def run_stages(b: Bench) -> None:
+    """Every stage, in the order of the table."""
+    a = b.a
+    if not a.no_cli:
+        cli_stages(b)
+    model_stages(b)
+    patch_stages(b)
+    b.res["matches"], b.res["eval_pair"] = {}, {}
+    for name in b.matchers:
+        matcher_stages(b, name)
+    if b.kornia_defaults is not None:
+        kornia_default_stages(b)
+    interleaved_stages(b)
+    if a.pairs_per_second:
+        matcher = b.matchers.get("hardnet") or Matcher(matcher_config("hardnet", b.n, b.hardnet), a.device)
+        b.res["pairs_per_second"] = pairs_per_second(
+            b.img_a, b.img_b, b.H, b.local, matcher, a.device, a.pairs_per_second
         )
-        if kornia_defaults is not None:
-            am = matchers["aliked-lightglue"]
-            pairs["aliked-lightglue default / kornia's defaults (match, no maps)"] = interleaved(
-                {"ours": lambda: am.match(img_a, img_b), "reference": lambda: kornia_defaults.match(img_a, img_b)},
-                max(rep, 5),
-            )
-        for v in pairs.values():
-            v["ratio"], v["ratio_cpu"] = (
-                v["ours"]["ms"] / v["reference"]["ms"],
-                v["ours"]["cpu_ms"] / v["reference"]["cpu_ms"],
-            )
-        res["interleaved"] = pairs
-        if a.pairs_per_second:
-            res["pairs_per_second"] = pairs_per_second(
-                img_a,
-                img_b,
-                H,
-                local,
-                matchers.get("hardnet") or Matcher(matcher_config("hardnet", n, hardnet), a.device),
-                a.device,
-                a.pairs_per_second,
-            )
-        st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(
-            lambda: opencv_sift(img_a, img_b, n), rep
-        )
-        res["opencv_sift_matches"] = len(opencv_sift(img_a, img_b, n))
+    b.st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"] = timeit(
+        lambda: opencv_sift(b.img_a, b.img_b, b.n), b.rep
+    )
+    b.res["opencv_sift_matches"] = len(opencv_sift(b.img_a, b.img_b, b.n))
 
-    if a.throughput:
-        res["throughput_local"] = throughput_sections(local, rng)
-    ref = st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"]
-    for t in st.values():
-        t["x_opencv_sift"] = t["ms"] / ref["ms"]
-        t["x_opencv_sift_cpu"] = t["cpu_ms"] / max(ref["cpu_ms"], 1e-9)
-    res["stages"] = st
-    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    res["load_average_end"] = os.getloadavg()
 
+def print_stages(res: dict, st: dict, device: str) -> None:
     print(
-        f"\n### localscale user path ({a.device}, {res['threads']} threads, torch {torch.__version__}, "
+        f"\n### localscale user path ({device}, {res['threads']} threads, torch {torch.__version__}, "
         f"{res['input']}; load average {res['load_average_start'][0]:.1f} -> {res['load_average_end'][0]:.1f})\n"
     )
     print("| stage | ms (median) | ms p90 | CPU ms | x OpenCV SIFT (wall) | x OpenCV SIFT (CPU) |")
@@ -536,6 +510,9 @@ def main(argv=None) -> int:
     for name, ms in res["matches"].items():
         print(f"matches {name}: " + ", ".join(f"{k} {v['matches']} (MMA@5 {v['mma5']:.3f})" for k, v in ms.items()))
     print(f"matches OpenCV SIFT: {res['opencv_sift_matches']}")
+
+
+def print_comparisons(res: dict) -> None:
     print("\ninterleaved comparisons (ours and the reference timed in turn):\n")
     print("| comparison | ours ms | reference ms | ratio (wall) | ratio (CPU) |")
     print("|---|---|---|---|---|")
@@ -557,6 +534,38 @@ def main(argv=None) -> int:
         for k, v in res["throughput_local"].items():
             print(f"local model {k}: " + ", ".join(f"{kk} {vv:.1f}" for kk, vv in v.items()))
     print(f"peak RSS: {res['peak_rss_mb']:.0f} MB")
+
+
+def main(argv=None) -> int:
+    p = parser()
+    a = p.parse_args(argv)
+    if a.repeat < 1 or a.num_features < 1 or a.pairs_per_second < 0:
+        p.error("--repeat and --num-features must be >= 1, --pairs-per-second >= 0")
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    names = list(dict.fromkeys(a.matcher))
+    try:
+        loaded = load_matchers(a, names)
+    except LocalScaleError as e:
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
+    b = Bench(a, *test_pair(), *loaded)
+    b.res = run_info(b, names)
+    with tempfile.TemporaryDirectory() as tmp:
+        b.tmp = tmp
+        run_stages(b)
+    res, st = b.res, b.st
+    if a.throughput:
+        res["throughput_local"] = throughput_sections(b.local, np.random.default_rng(0))
+    ref = st["OpenCV SIFT: detect+compute 2 images + BFMatcher crossCheck"]
+    for t in st.values():
+        t["x_opencv_sift"] = t["ms"] / ref["ms"]
+        t["x_opencv_sift_cpu"] = t["cpu_ms"] / max(ref["cpu_ms"], 1e-9)
+    res["stages"] = st
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    res["load_average_end"] = os.getloadavg()
+    print_stages(res, st, a.device)
+    print_comparisons(res)
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(res, indent=1))

@@ -26,6 +26,7 @@ import torch
 
 from localscale.errors import LocalScaleError
 from localscale.evaluation.hpatches import evaluate, load_hpatches, load_scale_models, make_pairs
+from localscale.evaluation.report import git_commit
 from localscale.features.detector import DETECTORS, get_detector
 
 DEFAULT_DETECTORS = ("hessian", "sift", "orb", "akaze", "harris", "gftt", "dog")
@@ -148,7 +149,7 @@ def main(argv=None) -> int:
                     if f.is_file() and not args.force:
                         print(f"{f} exists, kept (--force re-runs it)", flush=True)
                         continue
-                    doc = run_one(pairs, det, desc, methods, models, args)
+                    doc = {**run_one(pairs, det, desc, methods, models, args), "commit": git_commit()}
                     f.write_text(json.dumps(doc, indent=1))
                     a = doc["summary"]["all"]
                     print(
@@ -163,7 +164,9 @@ def main(argv=None) -> int:
         methods = docs[0]["methods"]
         md, rows = table(docs, methods)
         (out / "table.md").write_text(md)
-        (out / "table.json").write_text(json.dumps({"methods": methods, "rows": rows}, indent=1))
+        (out / "table.json").write_text(
+            json.dumps({"methods": methods, "rows": rows, "commit": git_commit()}, indent=1)
+        )
     except LocalScaleError as e:
         print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2

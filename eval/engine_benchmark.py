@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from localscale.evaluation.report import git_commit
+
 
 def real_pairs(root: Path) -> list[tuple[Path, Path]]:
     seqs = sorted(d for d in root.iterdir() if (d / "1.png").is_file())
@@ -152,6 +154,7 @@ def main(argv=None) -> int:
             "python": platform.python_version(),
             "data": str(args.data),
             "results": results,
+            "commit": git_commit(),
         }
         write_text(args.json, json.dumps(doc, indent=1) + "\n")
         print(f"wrote {args.json}", file=sys.stderr)

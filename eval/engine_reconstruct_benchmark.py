@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from localscale.evaluation.report import git_commit
+
 
 def run(images_dir: Path, out: Path, engine: str, workers: int, threads: int, n_pairs: int, correction: str) -> dict:
     import torch
@@ -133,6 +135,7 @@ def main(argv=None) -> int:
             "ratio": ratio,
             "correction": args.correction,
             "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
+            "commit": git_commit(),
         }
         args.json.write_text(json.dumps(doc, indent=1))
     return 0

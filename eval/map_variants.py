@@ -42,14 +42,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
-
-from localscale import LocalScaleNet, ScaleNet  # noqa: E402
-from localscale.data import list_images, split_images  # noqa: E402
-from localscale.geometry import HomographyConfig  # noqa: E402
-from localscale.matching.correction import weighted_quantile  # noqa: E402
-from localscale.search import WindowSearchConfig, search_scale_map  # noqa: E402
+from localscale import LocalScaleNet, ScaleNet
+from localscale.data import list_images, split_images
+from localscale.evaluation.report import git_commit
+from localscale.evaluation.scale_maps import pixel_errors, synthetic_pairs
+from localscale.geometry import HomographyConfig
+from localscale.matching.correction import weighted_quantile
+from localscale.search import WindowSearchConfig, search_scale_map
 
 VARIANTS = (
     "local",
@@ -162,7 +161,7 @@ def main(argv=None) -> int:
         print(f"| {name} ({row['pairs']}) | " + " | ".join(f"{row[v]:.3f}" for v in variants) + " |")
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"seed": args.seed, "table": table}, indent=1))
+        Path(args.out).write_text(json.dumps({"seed": args.seed, "table": table, "commit": git_commit()}, indent=1))
     return 0
 
 

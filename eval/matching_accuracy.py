@@ -27,6 +27,7 @@ from localscale.evaluation.hpatches import (
     make_pairs,
     markdown_table,
 )
+from localscale.evaluation.report import git_commit
 from localscale.evaluation.synthetic import make_sequences
 from localscale.matching.correction import CORRECTIONS, GATE_WEIGHTINGS
 
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
                             [s[m]["num_matches"] if m in s else float("nan") for m in methods],
                         )
                     )
-    (out / "matching_accuracy.json").write_text(json.dumps(doc, indent=1))
+    (out / "matching_accuracy.json").write_text(json.dumps({**doc, "commit": git_commit()}, indent=1))
     hdr = f"{'dataset / split':<26}{'pairs':>6} {'descriptor':<10}" + "".join(f"{m:>10}" for m in methods)
     print("\nMMA@5px (mutual NN; mean #matches in brackets)\n" + hdr)
     for dname, n, d, mma, nm in rows:

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import cv2
 
+from localscale.evaluation.report import git_commit
+
 ASSETS = Path(__file__).resolve().parent.parent / "localscale" / "assets"
 COMMANDS = {
     "predict": ["predict", "{a}", "{b}", "-o", "{out}/predict"],
@@ -89,7 +91,7 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     print("\n".join(lines))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"rows": rows, "table": lines}, indent=1) + "\n")
+    Path(args.out).write_text(json.dumps({"rows": rows, "table": lines, "commit": git_commit()}, indent=1) + "\n")
     return 0
 
 

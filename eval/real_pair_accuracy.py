@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from localscale import LocalScaleNet, ScaleNet, scales
+from localscale.evaluation.report import git_commit
 from localscale.training.loop import real_validation_batches
 
 DIRECTION_MIN_LOG2 = 0.5
@@ -123,7 +124,7 @@ def main(argv=None) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
+        tmp.write_text(json.dumps({**results, "commit": git_commit()}, indent=1))
         tmp.replace(args.out)
     return 0
 

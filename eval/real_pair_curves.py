@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from localscale.evaluation.report import git_commit
 from localscale.outputs import write_text
 
 
@@ -73,7 +74,10 @@ def main(argv=None) -> int:
             f"{fmt(r['val_synthetic_mean_r'])} | {fmt(r['val_real_mean_r'])} ({fmt(r['val_real_constant_mean_r'])}) |"
         )
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    write_text(a.out.with_suffix(".json"), json.dumps({"window": a.window, "runs": out}, indent=1) + "\n")
+    write_text(
+        a.out.with_suffix(".json"),
+        json.dumps({"window": a.window, "runs": out, "commit": git_commit()}, indent=1) + "\n",
+    )
     import matplotlib
 
     matplotlib.use("Agg")

@@ -4,289 +4,24 @@ and with ``auto``, on each collection as it is and with close-ups added.
     OMP_NUM_THREADS=1 python eval/reconstruct_collections.py --collections kermit_bundler cyprus_dim \\
         -o results/reconstruct_collections
 
-Collections: folders of ``--root`` (default ``/work/shared/data/collections``, see its README), each
-``<name>/images``. The close-up version (``<name>+closeups``) adds, for every third photo (at least
-two), a window showing ``1/z`` of its width and height (``z`` log-uniform in ``--zoom``, default
-2.5-5), centred at a random point of the photo's central half, resized to the photo's size (the
-window's camera is the photo's with a larger focal length and a shifted principal point,
-:func:`localscale.cameras.cut_window`) and turned by a random quarter turn (1-3). They are written
-to ``OUT/_closeup_images/<name>`` (the photos linked beside them), described in
-``OUT/_closeup_images/<name>.json`` (source, window, zoom, turn). A close-up has the camera
-centre of its source photo, so the distance between the two centres in the model (over the median
-distance of the cameras to their centroid) says whether a registered close-up sits where it
-should (column ``close-up centre err``).
-
-Pipelines (``--pipelines``), each mapped with ``--mapper`` (COLMAP's ``incremental`` mapper, or its
-``global`` one, GLOMAP: rows named ``PIPELINE+global``):
-
-* ``colmap-sift``: ``pycolmap.extract_features`` / ``match_exhaustive`` (COLMAP's SIFT, its own
-  verification) / the mapper of ``--mapper``, one run (:func:`localscale.sfm.mapping.run_mapping`, ``trials=1``);
-  with ``--intrinsics NAME=FILE`` the listed photos of NAME get those PINHOLE cameras, kept fixed
-  (cyprus's ``derived/intrinsics_resized.txt``: a pseudo ground truth for ``eval/pose_collections.py``);
-* ``aliked-lg``: :func:`localscale.sfm.reconstruct` with ALIKED + LightGlue, 2048 keypoints at 1024 px,
-  exhaustive pairs, no correction (what an hloc user runs);
-* ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
-* ``aliked-lg-auto-per-pair``: ``auto`` with the whole hypothesis loop on every pair that does not
-  verify clearly as it is (``auto_graph=False``).
-
-Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_image`` on the
-close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
-would be wrong, and a real zoomed photo's EXIF would say so).
-
-Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/results.json``
-(written atomically after each run); a rerun skips the rows already there (``--overwrite`` redoes
-them). The markdown table is printed and written to ``OUT/results.md``.
+The close-ups, the pipelines, the cameras and the outputs: :mod:`localscale.evaluation.reconstruction`.
+Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/results.json`` (with the
+commit, written atomically after each run); a rerun skips the rows already there (``--overwrite``
+redoes them). The markdown table is printed and written to ``OUT/results.md``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
-import random
-import shutil
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from localscale.outputs import write_text
-
-PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
-COLUMNS = [
-    ("collection", "collection"),
-    ("pipeline", "pipeline"),
-    ("registered", "registered"),
-    ("closeups_registered", "close-ups reg."),
-    ("closeup_centre_error", "close-up centre err"),
-    ("points", "points"),
-    ("observations", "observations"),
-    ("mean_track_length", "mean track"),
-    ("mean_reprojection_error", "reproj. err (px)"),
-    ("extract_s", "extract s"),
-    ("match_s", "match s"),
-    ("verify_s", "verify s"),
-    ("map_s", "db + map s"),
-    ("total_s", "total s"),
-]
+from localscale.evaluation.reconstruction import PIPELINES, ReconstructionRun, read_intrinsics, run
 
 
-# ---------------------------------------------------------------- close-ups
-
-
-def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> dict:
-    """``out_dir`` with links to the photos of ``images_dir`` and the close-ups (module docstring);
-    returns ``{close-up name: {"source", "window", "zoom", "turn"}}`` (also ``<out_dir>.json``)."""
-    import cv2
-
-    from localscale.cameras import Camera, cut_window
-
-    meta_path = out_dir.with_name(out_dir.name + ".json")
-    inside = out_dir / "closeups.json"  # where an earlier version kept it (then read as a non-image)
-    if inside.is_file() and not meta_path.is_file():
-        write_text(meta_path, inside.read_text())
-        inside.unlink()
-    if meta_path.is_file() and out_dir.is_dir():
-        return json.loads(meta_path.read_text())
-    tmp = out_dir.with_name(out_dir.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    photos = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    for p in photos:
-        os.symlink(p.resolve(), tmp / p.name)
-    rng = random.Random(seed)
-    count = max(2, round(len(photos) / 3))
-    sources = [photos[int(round(i * (len(photos) - 1) / max(1, count - 1)))] for i in range(count)]
-    meta = {}
-    for p in dict.fromkeys(sources):
-        bgr = cv2.imread(str(p))
-        H, W = bgr.shape[:2]
-        z = math.exp(rng.uniform(math.log(zoom[0]), math.log(zoom[1])))
-        w, h = int(round(W / z)), int(round(H / z))
-        cx = rng.uniform(W / 4, 3 * W / 4)
-        cy = rng.uniform(H / 4, 3 * H / 4)
-        x0 = int(np.clip(round(cx - w / 2), 0, W - w))
-        y0 = int(np.clip(round(cy - h / 2), 0, H - h))
-        turn = rng.randint(1, 3)
-        img, cam, _ = cut_window(bgr, Camera.from_prior(W, H), (x0, y0, w, h), (W, H), turn)
-        name = f"closeup_{p.stem}_z{z:.2f}_t{turn}.jpg"
-        cv2.imwrite(str(tmp / name), img, [cv2.IMWRITE_JPEG_QUALITY, 92])
-        meta[name] = {"source": p.name, "window": [x0, y0, w, h], "zoom": round(z, 3), "turn": turn}
-    shutil.rmtree(out_dir, ignore_errors=True)
-    tmp.rename(out_dir)
-    write_text(meta_path, json.dumps(meta, indent=2) + "\n")
-    return meta
-
-
-# ---------------------------------------------------------------- pipelines
-
-
-def read_intrinsics(path: Path) -> dict:
-    """``{image name: "fx,fy,cx,cy"}`` from lines ``name w h fx fy cx cy`` (PINHOLE; ``#`` comments),
-    the layout of a collection's ``derived/intrinsics_resized.txt``."""
-    out = {}
-    for line in Path(path).read_text().splitlines():
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        if len(parts) != 7:
-            raise ValueError(f"{path}: expected 'name w h fx fy cx cy', got {line!r}")
-        out[parts[0]] = ",".join(str(float(v)) for v in parts[3:])
-    return out
-
-
-#: the mapper keeps known intrinsics as they are
-FIXED_INTRINSICS = {
-    "ba_refine_focal_length": False,
-    "ba_refine_principal_point": False,
-    "ba_refine_extra_params": False,
-}
-
-
-def run_colmap_sift(
-    images_dir: Path, run_dir: Path, camera_mode: str, threads: int, mapper: str, intrinsics: dict = None
-) -> dict:
-    """COLMAP's SIFT pipeline; ``intrinsics`` (:func:`read_intrinsics`): each listed image gets its
-    own PINHOLE camera with those parameters, which the mapper does not refine (the others as
-    ``camera_mode`` says)."""
-    import pycolmap
-
-    from localscale.sfm.mapping import colmap_log, run_mapping
-
-    shutil.rmtree(run_dir, ignore_errors=True)
-    run_dir.mkdir(parents=True)
-    db = run_dir / "database.db"
-    mode = {"auto": pycolmap.CameraMode.AUTO, "per_image": pycolmap.CameraMode.PER_IMAGE}[camera_mode]
-    names = sorted(p.name for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    seconds = {}
-    with colmap_log(False):
-        t = time.perf_counter()
-        ext = pycolmap.FeatureExtractionOptions()
-        ext.num_threads = threads
-        known = [n for n in names if n in (intrinsics or {})]
-        for name in known:
-            reader = pycolmap.ImageReaderOptions()
-            reader.camera_model, reader.camera_params = "PINHOLE", intrinsics[name]
-            pycolmap.extract_features(
-                db, images_dir, image_names=[name], camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu,
-            )  # fmt: skip
-        rest = [n for n in names if n not in known]
-        if rest:
-            pycolmap.extract_features(
-                db, images_dir, image_names=rest, camera_mode=mode, extraction_options=ext, device=pycolmap.Device.cpu
-            )
-        seconds["extract"] = time.perf_counter() - t
-        t = time.perf_counter()
-        mopt = pycolmap.FeatureMatchingOptions()
-        mopt.num_threads = threads
-        pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
-        seconds["match"] = time.perf_counter() - t
-    # the mapping step of localscale's pipeline, one run as COLMAP makes it
-    overrides = FIXED_INTRINSICS if intrinsics else None
-    mapped = run_mapping(
-        db, images_dir, run_dir / "sparse", num_threads=threads, mapper=mapper, trials=1, overrides=overrides
-    )
-    seconds["map"] = mapped.seconds
-    return {
-        "stats": mapped.stats[0] if mapped.stats else None,
-        "model": mapped.models[0] if mapped.models else None,
-        "images": len(names),
-        "seconds": {
-            "extract": seconds["extract"],
-            "match": seconds["match"],
-            "verify": None,
-            "map": seconds["map"],
-            "total": sum(seconds.values()),
-        },
-    }
-
-
-def run_ours(
-    images_dir: Path,
-    run_dir: Path,
-    correction: str,
-    camera_mode: str,
-    threads: int,
-    auto_graph: bool = True,
-    mapper: str = "incremental",
-) -> dict:
-    from localscale.sfm import read_models, reconstruct
-
-    summary = reconstruct(
-        images_dir,
-        run_dir,
-        matcher="aliked-lightglue",
-        correction=correction,
-        camera_mode=camera_mode,
-        num_keypoints=2048,
-        max_side=1024,
-        num_threads=threads,
-        overwrite=True,
-        show_progress=False,
-        auto_graph=auto_graph,
-        mapper=mapper,
-    )
-    models = read_models(run_dir / "sparse")
-    s = summary["seconds"]
-    stats = (
-        None
-        if not models
-        else {
-            k: summary[k]
-            for k in ("registered", "points", "observations", "mean_track_length", "mean_reprojection_error")
-        }
-    )
-    return {
-        "stats": stats,
-        "model": models[0] if models else None,
-        "images": summary["images"],
-        "seconds": {
-            "extract": s["extract"],
-            "match": s["pairs"] + s["match"],
-            "verify": s["geometry"],
-            "map": s["database"] + s["mapping"],
-            "total": s["total"],
-        },
-        "pairs_verified": summary["pairs_verified"],
-        "pairs": summary["pairs"],
-        "added_keypoints": summary["matching"]["added_keypoints"],
-        "feature_sets": summary["matching"]["feature_sets_computed"],
-        "warnings": summary["warnings"],
-    }
-
-
-def closeup_check(model, closeups: dict) -> tuple:
-    """``(close-ups registered, median centre error)``: a close-up's centre vs its source photo's,
-    over the median distance of the registered cameras to their centroid (None when not measurable)."""
-    if model is None or not closeups:
-        return 0, None
-    centres = {im.name: np.asarray(im.projection_center()) for im in model.images.values() if im.has_pose}
-    registered = [n for n in closeups if n in centres]
-    if len(centres) < 3:
-        return len(registered), None
-    c = np.array(list(centres.values()))
-    scale = float(np.median(np.linalg.norm(c - c.mean(0), axis=1)))
-    errs = [
-        float(np.linalg.norm(centres[n] - centres[closeups[n]["source"]])) / scale
-        for n in registered
-        if closeups[n]["source"] in centres
-    ]
-    return len(registered), (float(np.median(errs)) if errs else None)
-
-
-# ---------------------------------------------------------------- table
-
-
-def markdown(rows: list) -> str:
-    from localscale.sfm.report import markdown_table
-
-    return markdown_table(rows, COLUMNS)
-
-
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--root", default="/work/shared/data/collections", help="folder of the collections")
     p.add_argument("--collections", nargs="+", default=["kermit_bundler"])
@@ -316,6 +51,11 @@ def main(argv=None) -> int:
     )
     p.add_argument("-o", "--output", default="results/reconstruct_collections")
     p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
+    return p
+
+
+def main(argv=None) -> int:
+    p = parser()
     a = p.parse_args(argv)
     if not 1 <= a.zoom[0] <= a.zoom[1]:
         p.error("--zoom: 1 <= MIN <= MAX")
@@ -325,85 +65,15 @@ def main(argv=None) -> int:
         intrinsics = {k: read_intrinsics(Path(v)) for k, v in (item.split("=", 1) for item in a.intrinsics)}
     except (OSError, ValueError) as e:
         p.error(f"--intrinsics: {e}")
-    root, out = Path(a.root), Path(a.output)
+    root = Path(a.root)
     for c in a.collections:
         if not (root / c / "images").is_dir():
             p.error(f"no collection {c} in {root} (no {root / c / 'images'})")
     import torch
 
     torch.set_num_threads(max(1, a.threads))
-    out.mkdir(parents=True, exist_ok=True)
-    results_path = out / "results.json"
-    rows = json.loads(results_path.read_text())["rows"] if results_path.is_file() else []
-    done = {(r["collection"], r["pipeline"]) for r in rows}
     t_script = time.perf_counter()
-    for c in a.collections:
-        for version in a.versions:
-            label = c if version == "plain" else f"{c}+closeups"
-            if version == "plain":
-                images_dir, closeups, camera_mode = root / c / "images", {}, "auto"
-            else:
-                images_dir = out / "_closeup_images" / c
-                closeups = make_closeups(root / c / "images", images_dir, tuple(a.zoom), a.seed)
-                camera_mode = "per_image"
-            for method in a.pipelines:
-                pipe = method if a.mapper == "incremental" else f"{method}+{a.mapper}"
-                if (label, pipe) in done and not a.overwrite:
-                    print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
-                    continue
-                print(f"{label} / {pipe} ...", flush=True)
-                t0 = time.perf_counter()
-                run_dir = out / label / pipe
-                if method == "colmap-sift":
-                    known = intrinsics.get(c) if version == "plain" else None
-                    res = run_colmap_sift(images_dir, run_dir, camera_mode, a.threads, a.mapper, known)
-                else:
-                    correction = "auto" if "-auto" in method else "none"
-                    res = run_ours(
-                        images_dir,
-                        run_dir,
-                        correction,
-                        camera_mode,
-                        a.threads,
-                        not method.endswith("per-pair"),
-                        a.mapper,
-                    )
-                wall = time.perf_counter() - t0
-                st = res["stats"] or {
-                    "registered": 0,
-                    "points": 0,
-                    "observations": 0,
-                    "mean_track_length": None,
-                    "mean_reprojection_error": None,
-                }
-                n_close, centre_err = closeup_check(res["model"], closeups)
-                row = {
-                    "collection": label,
-                    "pipeline": pipe,
-                    "registered": f"{st['registered']}/{res['images']}",
-                    "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
-                    "closeup_centre_error": centre_err,
-                    "points": st["points"],
-                    "observations": st["observations"],
-                    "mean_track_length": st["mean_track_length"],
-                    "mean_reprojection_error": st["mean_reprojection_error"],
-                    **{f"{k}_s": (None if v is None else round(v, 1)) for k, v in res["seconds"].items()},
-                    "wall_s": round(wall, 1),
-                    "camera_mode": camera_mode,
-                    "threads": a.threads,
-                    **{
-                        k: res[k]
-                        for k in ("pairs", "pairs_verified", "added_keypoints", "feature_sets", "warnings")
-                        if k in res
-                    },
-                }
-                rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
-                metas = {k.stem: json.loads(k.read_text()) for k in sorted((out / "_closeup_images").glob("*.json"))}
-                write_text(results_path, json.dumps({"rows": rows, "closeups": metas}, indent=2) + "\n")
-                print(f"{label} / {pipe}: {row['registered']} registered, {wall:.0f} s", flush=True)
-    table = markdown(rows)
-    write_text(out / "results.md", table + "\n")
-    print(table)
+    run(ReconstructionRun(**{**vars(a), "intrinsics": intrinsics}))
     print(f"script wall time {time.perf_counter() - t_script:.0f} s", flush=True)
     return 0
 

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from localscale.evaluation.report import git_commit
 from localscale.features.descriptors import get_descriptor
 from localscale.models import LocalScaleNet
 
@@ -222,7 +223,11 @@ def main(argv=None) -> int:
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         tmp_out = Path(a.out).with_suffix(".tmp")
-        tmp_out.write_text(json.dumps({"threads": a.threads, "torch": torch.__version__, "rows": rows}, indent=1))
+        tmp_out.write_text(
+            json.dumps(
+                {"threads": a.threads, "torch": torch.__version__, "rows": rows, "commit": git_commit()}, indent=1
+            )
+        )
         tmp_out.replace(a.out)
     return 0
 

@@ -40,128 +40,26 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
+from localscale.errors import LocalScaleError
+from localscale.evaluation.report import git_commit
+from localscale.evaluation.scale_maps import (
+    STRIDE,
+    local_table,
+    pixel_errors,
+    sequence_pairs,
+    synthetic_pairs,
+)
+from localscale.evaluation.scale_real import TITLES, columns, evaluate_real
 from localscale.geometry import (
     HomographyConfig,
-    central_crop,
-    covisible_mask,
-    homography_scale_map,
-    sample_homography,
-    translation,
-    warp_image,
 )
-from localscale.io import load_image, read_homography
 from localscale.planar import planarize
-
-BANDS = [("|log2 s|<1", 0, 1), ("1<=|log2 s|<2", 1, 2), ("|log2 s|>=2", 2, 99)]
-PERSPECTIVE = [("low", 0, 0.15), ("medium", 0.15, 0.35), ("high", 0.35, 99)]
-STRIDE = 4
-
-
-def synthetic_pairs(photos: list[Path], n: int, seed: int, cfg: HomographyConfig, crop: float = 1.0):
-    """Held-out pairs at the photos' own resolution: ``(name, A, B, H)``; B filled from another photo.
-
-    ``crop < 1``: A is the central ``crop`` part of the photo and B is rendered from the whole
-    photo, so around A's content B shows the photo's real surroundings."""
-    rng = np.random.default_rng(seed)
-    cache = {}
-
-    def img(i):
-        if i not in cache:
-            cache[i] = load_image(photos[i])
-        return cache[i]
-
-    for k in range(n):
-        i, j = rng.choice(len(photos), 2, replace=False)
-        full = img(i)
-        a, (x0, y0) = central_crop(full, crop)
-        H = sample_homography(rng, a.shape[:2], a.shape[:2], cfg)
-        b, _ = warp_image(full, H @ translation(-x0, -y0), a.shape[:2], fill=img(j))
-        if covisible_mask(H, a.shape[:2], b.shape[:2], 8).sum() < 8:
-            continue
-        yield f"synthetic_{k:04d}", a, b, H
-
-
-def sequence_pairs(root: Path):
-    for seq in sorted(p for p in root.iterdir() if p.is_dir()):
-        ones = sorted(seq.glob("1.*"))
-        if not ones:
-            continue
-        a = load_image(ones[0])
-        for hf in sorted(seq.glob("H_1_*")):
-            k = hf.name.split("_")[-1]
-            bfile = next(iter(sorted(seq.glob(f"{k}.*"))), None)
-            if bfile is not None:
-                yield f"{seq.name}/1-{k}", a, load_image(bfile), read_homography(hf)
-
-
-def pixel_errors(pred: np.ndarray, H: np.ndarray, shape_b, planar: np.ndarray | None = None) -> dict:
-    h, w = pred.shape
-    gt = homography_scale_map(H, h, w, STRIDE)
-    m = covisible_mask(H, (h, w), shape_b, STRIDE) & np.isfinite(gt)
-    ys = np.minimum(np.arange(gt.shape[0]) * STRIDE + STRIDE // 2, h - 1)
-    xs = np.minimum(np.arange(gt.shape[1]) * STRIDE + STRIDE // 2, w - 1)
-    sub = lambda x: x[np.ix_(ys, xs)][m]  # noqa: E731  (pixel nearest to each grid cell centre)
-    lg = np.log(gt[m])
-    spread = float(np.log2(gt[m]).std()) if m.sum() > 1 else 0.0
-    out = {
-        "log_gt": lg,
-        "log_pred": np.log(sub(pred)),
-        "err": np.abs(np.log(sub(pred)) - lg),
-        "const1": np.abs(lg),
-        "oracle": np.abs(lg - np.median(lg)),
-        "spread": spread,
-    }
-    if planar is not None:
-        out["planar"] = np.abs(np.log(sub(planar)) - lg)
-    return out
-
-
-def summarise(rows: list[dict], select=None) -> dict:
-    errs = {k: [] for k in ("err", "planar", "const1", "oracle") if k in rows[0]}
-    npairs = 0
-    for r in rows:
-        m = np.ones_like(r["err"], bool) if select is None else select(r)
-        if m.any():
-            npairs += 1
-            for k in errs:
-                errs[k].append(r[k][m])
-    if not npairs:
-        return {"pairs": 0}
-    out = {"pairs": npairs, "pixels": int(sum(len(e) for e in errs["err"]))}
-    for k, name in (("err", "local"), ("planar", "local+planar"), ("const1", "const-1"), ("oracle", "oracle const")):
-        if k not in errs:
-            continue
-        e = np.concatenate(errs[k])
-        out[name] = {"mean_r": float(np.exp(e).mean()), "median_r": float(np.exp(np.median(e)))}
-    out["local_beats_oracle_pairs"] = float(
-        np.mean(
-            [np.exp(r["err"]).mean() < np.exp(r["oracle"]).mean() for r in rows if select is None or select(r).any()]
-        )
-    )
-    return out
-
-
-def local_table(rows: list[dict]) -> dict:
-    table = {"all": summarise(rows)}
-    for name, lo, hi in BANDS:
-        table[f"scale {name}"] = summarise(
-            rows,
-            lambda r, lo=lo, hi=hi: (
-                (np.abs(r["log_gt"] / math.log(2)) >= lo) & (np.abs(r["log_gt"] / math.log(2)) < hi)
-            ),
-        )
-    for name, lo, hi in PERSPECTIVE:
-        table[f"perspective {name}"] = summarise(
-            rows, lambda r, lo=lo, hi=hi: np.full(r["err"].shape, lo <= r["spread"] < hi)
-        )
-    return table
 
 
 def print_local_table(title: str, table: dict) -> None:
@@ -277,281 +175,31 @@ def run_global(args) -> dict:
     return res
 
 
-def real_pairs(roots: list[Path]):
-    """``(name, A, B, H)`` of every HPatches-layout folder under each root (sequences and two-image pairs)."""
-    for root in roots:
-        yield from ((f"{root.name}/{n}", a, b, H) for n, a, b, H in sequence_pairs(root))
-
-
-def _pair_row(
-    local,
-    scalenet,
-    name,
-    a,
-    b,
-    H,
-    refine: bool = True,
-    sift_seed: bool = True,
-    search: bool = False,
-    refine_matcher=None,
-) -> dict:
-    from localscale.matching.correction import CorrectionGate
-    from localscale.matching.pipeline import refine_match
-    from localscale.reliability import pair_statistics
-
-    ea, eb = local.encode_image(a), local.encode_image(b)
-    fwd = local.predict_from_features(ea, eb)
-    bwd = local.predict_from_features(eb, ea)
-    g = scalenet.predict(a, b)
-    pe = pixel_errors(fwd.scale, H, b.shape[:2])
-    h, w = fwd.scale.shape
-    ys = np.minimum(np.arange(math.ceil(h / STRIDE)) * STRIDE + STRIDE // 2, h - 1)
-    xs = np.minimum(np.arange(math.ceil(w / STRIDE)) * STRIDE + STRIDE // 2, w - 1)
-    gt = homography_scale_map(H, h, w, STRIDE)
-    cov = covisible_mask(H, (h, w), b.shape[:2], STRIDE)
-    m = cov & np.isfinite(gt)
-    row = {
-        "name": name,
-        "local": pe["err"],
-        "global": np.abs(math.log(g.scale) - pe["log_gt"]),
-        "gt_median_log2": float(np.median(pe["log_gt"])) / math.log(2),
-        "local_median_log2": float(np.median(pe["log_pred"])) / math.log(2),
-        "global_log2": math.log2(g.scale),
-        "const1": pe["const1"],
-        "oracle": pe["oracle"],
-        "log_gt": pe["log_gt"],
-        "global_pair_error_log2": abs(math.log2(g.scale) - float(np.mean(pe["log_gt"])) / math.log(2)),
-        "global_inconsistency_log2": abs(math.log2(g.scale_ab) + math.log2(g.scale_ba)),
-    }
-    if fwd.visible is not None:
-        pv = fwd.visible[np.ix_(ys, xs)] > 0.5
-        row["iou"] = float((pv & cov).sum() / max(1, (pv | cov).sum()))
-    score = fwd.reliability if fwd.reliability is not None else fwd.confidence
-    row["score"] = score[np.ix_(ys, xs)][m]
-    if refine and refine_matcher is not None:  # geometry from the auto loop of that matcher
-        from localscale.matching.pipeline import match_pair
-
-        res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
-        row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
-        v = res.verification
-        row["verification"] = {
-            "verified": bool(v.verified),
-            "model": v.model,
-            "num_inliers": int(v.num_inliers),
-            "num_matches": int(len(v.inliers)),
-            "reasons": list(v.reasons),
-            "auto": res.meta["auto"],
-        }
-    elif refine:
-        first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
-        res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
-        row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
-        v = res.verification
-        row["verification"] = {
-            "verified": bool(v.verified),
-            "model": v.model,
-            "num_inliers": int(v.num_inliers),
-            "num_matches": int(len(v.inliers)),
-            "reasons": list(v.reasons),
-            "inlier_counts": res.meta["inlier_counts"],
-            "seed_inliers": res.meta["seed_inliers"],
-        }
-    if search:
-        from localscale.search import search_global_scale, search_scale_map
-
-        gp, res = search_global_scale(local, scalenet, a, b)
-        row["search"] = pixel_errors(res.prediction.scale, H, b.shape[:2])["err"]
-        gs = gp.scale
-        row["global-search"] = np.abs(math.log(gs) - pe["log_gt"])
-        row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
-        if refine:  # the refinement seeded by the searched maps of both directions
-            back = search_scale_map(local, b, a).prediction
-            first_a, first_b = CorrectionGate().apply_predictions(res.prediction, back)
-            sref = refine_match(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
-            row["search-refined"] = pixel_errors(sref.refined_a.scale, H, b.shape[:2])["err"]
-            row["search_refined_verified"] = bool(sref.verification.verified)
-    row.update(pair_statistics(fwd, bwd))
-    return row
-
-
-#: a pair's true scale must be at least this far from 1 (log2) for its direction to count
-DIRECTION_MIN_LOG2 = 0.5
-
-
-def direction_errors(rows: list[dict]) -> dict:
-    """Pairs whose true scale (median over the co-visible pixels of A) is at least x1.41 away from
-    1 and whose predicted scale (median of the local map there / ScaleNet's one number) lies on the
-    other side of 1: the correction goes the wrong way."""
-    due = [r for r in rows if abs(r["gt_median_log2"]) >= DIRECTION_MIN_LOG2]
-    wrong = lambda key: [r["name"] for r in due if r[key] * r["gt_median_log2"] < 0]  # noqa: E731
-    return {
-        "pairs_counted": len(due),
-        "rule": f"|log2 true median| >= {DIRECTION_MIN_LOG2}, prediction on the other side of 1",
-        "local": len(wrong("local_median_log2")),
-        "global": len(wrong("global_log2")),
-        "local_pairs": wrong("local_median_log2"),
-        "global_pairs": wrong("global_log2"),
-    }
-
-
 def run_real(args) -> dict:
-    """All real pairs: local map, global ScaleNet as a constant map, const-1, per-pair oracle;
-    co-visibility IoU, reliability AUROC, the pair flag; identity and gray-copy invariants."""
-    from localscale.reliability import PairCheckConfig, auroc, flag_reasons
-
+    """All real pairs (:func:`localscale.evaluation.scale_real.evaluate_real`), the table printed."""
     local = LocalScaleNet.from_pretrained(args.model)
     scalenet = ScaleNet.from_pretrained(args.global_model)
     torch.set_num_threads(args.threads) if args.threads else None
-    roots = [Path(r) for r in args.real]
-    rows = [
-        _pair_row(
+    res = {
+        "local_model": str(args.model or "bundled"),
+        "global_model": str(args.global_model or "bundled"),
+        **evaluate_real(
             local,
             scalenet,
-            *item,
+            [Path(r) for r in args.real],
             refine=not args.no_refined,
             sift_seed=args.refine_seed == "sift",
             search=args.search,
             refine_matcher=args.refine_matcher,
-        )
-        for item in tqdm(list(real_pairs(roots)), desc="real pairs")
-    ]
-    if not rows:
-        raise SystemExit(
-            f"error: no image pairs (1.* + H_1_k) in the sequence folders under {', '.join(map(str, roots))}"
-        )
-    keys = (
-        ("local", "refined", "global", "const1", "oracle")
-        if not args.no_refined
-        else ("local", "global", "const1", "oracle")
-    )
-    if args.search:
-        keys = keys[:1] + ("search",) + keys[1:] + ("global-search",)
-        if not args.no_refined:
-            keys = keys[:3] + ("search-refined",) + keys[3:]
-    cfg = PairCheckConfig()
-    res = {
-        "local_model": str(args.model or "bundled"),
-        "global_model": str(args.global_model or "bundled"),
-        "roots": [str(r) for r in roots],
-        "pairs": len(rows),
-        "stride_px": STRIDE,
+        ),
     }
+    print_real(res, columns(not args.no_refined, args.search))
+    return res
 
-    def pooled(key, sel=lambda r: True):  # mean over pairs of each pair's mean r
-        e = [float(np.exp(r[key]).mean()) for r in rows if sel(r)]
-        return float(np.mean(e)) if e else float("nan")
 
-    groups = {
-        "all": lambda r: True,
-        "sequences": lambda r: not r["name"].startswith("pairs/"),
-        "extreme pairs": lambda r: r["name"].startswith("pairs/"),
-        "bark": lambda r: "/bark/" in r["name"],
-        "leuven 1-6": lambda r: r["name"].endswith("leuven/1-6"),
-        "ExtremeZoom": lambda r: "ExtremeZoom" in r["name"],
-    }
-    res["table"] = {g: {k: pooled(k, sel) for k in keys} | {"pairs": sum(map(sel, rows))} for g, sel in groups.items()}
-    res["per_pair"] = {
-        r["name"]: {
-            "local_mean_r": float(np.exp(r["local"]).mean()),
-            "global_mean_r": float(np.exp(r["global"]).mean()),
-            "const1_mean_r": float(np.exp(r["const1"]).mean()),
-            "oracle_mean_r": float(np.exp(r["oracle"]).mean()),
-            "gt_median_log2": r["gt_median_log2"],
-            "local_median_log2": r["local_median_log2"],
-            "global_log2": r["global_log2"],
-            "iou": r.get("iou"),
-            "inconsistency_log2": r["inconsistency_log2"],
-            "visible_fraction": r["visible_fraction"],
-            "mean_reliability": r["mean_reliability"],
-            "flag_reasons": flag_reasons(r, cfg),
-        }
-        | ({"refined_mean_r": float(np.exp(r["refined"]).mean()), **r["verification"]} if "refined" in r else {})
-        | (
-            {
-                "search_mean_r": float(np.exp(r["search"]).mean()),
-                "global_search_mean_r": float(np.exp(r["global-search"]).mean()),
-                **r["search_windows"],
-            }
-            if "search" in r
-            else {}
-        )
-        | (
-            {
-                "search_refined_mean_r": float(np.exp(r["search-refined"]).mean()),
-                "search_refined_verified": r["search_refined_verified"],
-            }
-            if "search-refined" in r
-            else {}
-        )
-        for r in rows
-    }
-    res["direction_errors"] = direction_errors(rows)
-    if not args.no_refined:
-        ver = [r for r in rows if r["verification"]["verified"]]
-        unv = [r for r in rows if not r["verification"]["verified"]]
-        worse = lambda rs: sum(
-            float(np.exp(r["refined"]).mean()) > float(np.exp(r["local"]).mean()) + 1e-9  # noqa: E731
-            for r in rs
-        )
-        if args.search:
-            res["search_refined_verified_pairs"] = sum(r["search_refined_verified"] for r in rows)
-        res["refined_summary"] = {
-            "verified_pairs": len(ver),
-            "unverified_pairs": len(unv),
-            "verified_refined_worse_than_local": worse(ver),
-            "unverified_refined_worse_than_local": worse(unv),
-            "unverified": [r["name"] for r in unv],
-        }
-    ious = [r["iou"] for r in rows if "iou" in r]
-    res["visibility_iou_mean"] = float(np.mean(ious)) if ious else None
-    err = np.exp(np.concatenate([r["local"] for r in rows]))
-    score = np.concatenate([r["score"] for r in rows])
-    keep = (err <= 1.25) | (err > 1.5)
-    res["reliability_auroc"] = auroc(score[keep], err[keep] <= 1.25)
-    bins = np.linspace(0, 1, 11)
-    res["reliability_curve"] = [
-        {
-            "score": f"{lo:.1f}-{hi:.1f}",
-            "pixels": int(((score >= lo) & (score < hi)).sum()),
-            "share_r_below_1.25": float((err[(score >= lo) & (score < hi)] <= 1.25).mean())
-            if ((score >= lo) & (score < hi)).any()
-            else None,
-        }
-        for lo, hi in zip(bins[:-1], bins[1:] + np.r_[np.zeros(9), 1e-9])
-    ]
-    bad = [r for r in rows if np.exp(r["local"]).mean() > 2]
-    good = [r for r in rows if np.exp(r["local"]).mean() < 1.3]
-    res["flag"] = {
-        "fires_on_bad (mean r > 2)": f"{sum(bool(flag_reasons(r, cfg)) for r in bad)}/{len(bad)}",
-        "fires_on_good (mean r < 1.3)": f"{sum(bool(flag_reasons(r, cfg)) for r in good)}/{len(good)}",
-    }
-    inv = []
-    for seq in sorted(p for p in roots[0].iterdir() if p.is_dir()):
-        a = load_image(next(iter(sorted(seq.glob("1.*")))))
-        same = float(np.median(local.predict(a, a).scale))
-        gray = float(np.median(local.predict(np.repeat(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)[..., None], 3, 2), a).scale))
-        inv.append(
-            {
-                "image": f"{seq.name}/1",
-                "identity_median": same,
-                "gray_vs_colour_median": gray,
-                "global_identity": scalenet.predict(a, a).scale,
-            }
-        )
-    res["invariants"] = inv
-
-    print(f"\n### real pairs ({len(rows)}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
-    titles = {
-        "local": "local map",
-        "search": "local map, window search",
-        "refined": "refined (verified geometry, else local)",
-        "global": "global ScaleNet as a constant map",
-        "const1": "constant 1",
-        "oracle": "best constant per pair (oracle)",
-        "global-search": "global ScaleNet on the searched windows",
-        "search-refined": "refined from the searched maps (verified geometry, else searched)",
-    }
-    print("| set | pairs | " + " | ".join(titles[k] for k in keys) + " |")
+def print_real(res: dict, keys) -> None:
+    print(f"\n### real pairs ({res['pairs']}): mean over pairs of the mean r over each pair's co-visible pixels of A\n")
+    print("| set | pairs | " + " | ".join(TITLES[k] for k in keys) + " |")
     print("|---|---|" + "---|" * len(keys))
     for g, v in res["table"].items():
         print(f"| {g} | {v['pairs']} | " + " | ".join(f"{v[k]:.3f}" for k in keys) + " |")
@@ -565,11 +213,10 @@ def run_real(args) -> dict:
     d = res["direction_errors"]
     print(f"wrong direction ({d['rule']}; {d['pairs_counted']} pairs): local {d['local']}, global {d['global']}")
     print("\n| image | predict(A, A) median | predict(gray A, A) median | ScaleNet(A, A) |\n|---|---|---|---|")
-    for r in inv:
+    for r in res["invariants"]:
         print(
             f"| {r['image']} | {r['identity_median']:.3f} | {r['gray_vs_colour_median']:.3f} | {r['global_identity']:.3f} |"
         )
-    return res
 
 
 def main(argv=None) -> int:
@@ -625,10 +272,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:
         p.error(f"--crop must be in (0, 1], got {args.crop}")
-    res = {"local": run_local, "global": run_global, "real": run_real}[args.mode](args)
+    try:
+        res = {"local": run_local, "global": run_global, "real": run_real}[args.mode](args)
+    except LocalScaleError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(res, indent=1))
+        Path(args.out).write_text(json.dumps({**res, "commit": git_commit()}, indent=1))
     return 0
 
 

@@ -25,16 +25,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from scale_accuracy import pixel_errors, synthetic_pairs  # noqa: E402
-
-from localscale import LocalScaleNet  # noqa: E402
-from localscale.data import list_images, split_images  # noqa: E402
-from localscale.geometry import HomographyConfig  # noqa: E402
-from localscale.matching.correction import CorrectionGate  # noqa: E402
-from localscale.matching.pipeline import refine_match  # noqa: E402
-from localscale.matching.refinement import refine_pair_maps  # noqa: E402
-from localscale.matching.verification import VerificationConfig  # noqa: E402
+from localscale import LocalScaleNet
+from localscale.data import list_images, split_images
+from localscale.evaluation.report import git_commit
+from localscale.evaluation.scale_maps import pixel_errors, synthetic_pairs
+from localscale.geometry import HomographyConfig
+from localscale.matching.correction import CorrectionGate
+from localscale.matching.pipeline import refine_match
+from localscale.matching.refinement import refine_pair_maps
+from localscale.matching.verification import VerificationConfig
 
 PERMISSIVE = VerificationConfig(min_inliers=8, min_inlier_ratio=0.0, min_coverage=0.0, max_scale_disagreement_log2=99.0)
 VARIANTS = {
@@ -124,7 +123,14 @@ def main(argv=None) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(
             json.dumps(
-                {"pairs": rows, "grid": grid, "support_variants": support, "sift_seed": seed, "args": vars(args)},
+                {
+                    "pairs": rows,
+                    "grid": grid,
+                    "support_variants": support,
+                    "sift_seed": seed,
+                    "args": vars(args),
+                    "commit": git_commit(),
+                },
                 indent=1,
             )
         )

@@ -34,6 +34,7 @@ from tqdm import tqdm
 from localscale import LocalScaleNet, ScaleNet
 from localscale.data import list_images, split_images
 from localscale.errors import LocalScaleError
+from localscale.evaluation.report import git_commit
 from localscale.geometry import (
     HomographyConfig,
     covisible_mask,
@@ -226,7 +227,13 @@ def main(argv=None) -> int:
     out = Path(args.out)
     summary = {split: summarise(records, key) for split, key in SPLITS.items()}
     write_text(
-        out, json.dumps({"args": vars(args), "summary": summary, "records": records}, indent=1, default=float) + "\n"
+        out,
+        json.dumps(
+            {"args": vars(args), "summary": summary, "records": records, "commit": git_commit()},
+            indent=1,
+            default=float,
+        )
+        + "\n",
     )
     write_text(out.with_suffix(".md"), md + "\n")
     print(f"wrote {out}")

@@ -1,11 +1,12 @@
 """``eval/reconstruct_collections.py --intrinsics``: known PINHOLE cameras read from a collection's
-``name w h fx fy cx cy`` table."""
+``name w h fx fy cx cy`` table (:mod:`localscale.evaluation.reconstruction`)."""
 
 import pytest
 
+from localscale.evaluation import reconstruction
 
-def test_intrinsics_table_is_read_per_image(tmp_path, repo_script):
-    rc = repo_script("eval/reconstruct_collections.py")
+
+def test_intrinsics_table_is_read_per_image(tmp_path):
     table = tmp_path / "intrinsics.txt"
     lines = [
         "# name w h fx fy cx cy",
@@ -14,10 +15,10 @@ def test_intrinsics_table_is_read_per_image(tmp_path, repo_script):
         "b.jpg 683 1024 819.6 819.2 341.5 512",
     ]
     table.write_text("\n".join(lines) + "\n")
-    cams = rc.read_intrinsics(table)
+    cams = reconstruction.read_intrinsics(table)
     assert cams == {"a.jpg": "819.2,819.6,512.0,341.5", "b.jpg": "819.6,819.2,341.5,512.0"}
     # the mapper keeps them: no focal length, principal point or distortion refinement
-    assert set(rc.FIXED_INTRINSICS.values()) == {False} and len(rc.FIXED_INTRINSICS) == 3
+    assert set(reconstruction.FIXED_INTRINSICS.values()) == {False} and len(reconstruction.FIXED_INTRINSICS) == 3
 
 
 def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys, repo_script):
@@ -25,7 +26,7 @@ def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys, repo_
     bad = tmp_path / "bad.txt"
     bad.write_text("a.jpg 1024 683 819.2\n")
     with pytest.raises(ValueError, match="name w h fx fy cx cy"):
-        rc.read_intrinsics(bad)
+        reconstruction.read_intrinsics(bad)
     out = tmp_path / "out"
     for arg in ("cyprus_dim", f"cyprus_dim={bad}", f"cyprus_dim={tmp_path / 'missing.txt'}"):
         with pytest.raises(SystemExit) as e:

@@ -1,4 +1,4 @@
-"""The pose evaluation's geometric bound (``eval/pose_collections.py``, method ``points:SIGMA``):
+"""The pose evaluation's geometric bound (:mod:`localscale.evaluation.pose`, method ``points:SIGMA``):
 the true projections of the shared 3D points, into a close-up cut from B and turned."""
 
 import math
@@ -9,6 +9,7 @@ import pytest
 
 from localscale.cameras import Camera, window_camera
 from localscale.errors import LocalScaleError
+from localscale.evaluation import pose, pose_data
 from localscale.two_view import TwoViewConfig, estimate_two_view_geometry, relative_pose_error
 
 
@@ -18,8 +19,7 @@ def _rot_y(deg):
 
 
 @pytest.fixture(scope="module")
-def scene(repo_script):
-    pc = repo_script("eval/pose_collections.py")
+def scene():
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-2, 2, 400), rng.uniform(-1.5, 1.5, 400), rng.uniform(6, 10, 400)]
     cam = Camera.parse("PINHOLE 640 480 500 500 320 240")
@@ -27,19 +27,19 @@ def scene(repo_script):
     t_b = -R_b @ np.array([1.5, 0.0, 0.0])
     ids = set(range(len(X)))
     views = {
-        "a": pc.View("a", Path("a.jpg"), cam, np.eye(3), np.zeros(3), ids),
-        "b": pc.View("b", Path("b.jpg"), cam, R_b, t_b, ids),
+        "a": pose_data.View("a", Path("a.jpg"), cam, np.eye(3), np.zeros(3), ids),
+        "b": pose_data.View("b", Path("b.jpg"), cam, R_b, t_b, ids),
     }
-    return pc, pc.Collection("synthetic", views, dict(enumerate(X)))
+    return pose_data.Collection("synthetic", views, dict(enumerate(X)))
 
 
 def test_shared_points_land_in_the_turned_close_up(scene):
-    pc, col = scene
+    col = scene
     a, b = col.views["a"], col.views["b"]
     window, turns = (200, 150, 213, 160), 1
     cam_w, R_turn = window_camera(b.camera, window, (640, 480), turns)
-    pa, pb = pc.shared_points_in_view(col, a, b, cam_w, R_turn)
-    all_a = pc.covisible_projections(col, a, b)[2]
+    pa, pb = pose_data.shared_points_in_view(col, a, b, cam_w, R_turn)
+    all_a = pose_data.covisible_projections(col, a, b)[2]
     assert 10 < len(pa) < len(all_a) / 2  # only the points the window shows
     assert ((pb >= 0) & (pb < [cam_w.width, cam_w.height])).all()
     # the same points, seen in B, fall inside the window
@@ -49,20 +49,19 @@ def test_shared_points_land_in_the_turned_close_up(scene):
     inside = (in_window[:, 0] >= x0) & (in_window[:, 0] < x0 + w) & (in_window[:, 1] >= y0) & (in_window[:, 1] < y0 + h)
     assert abs(inside.sum() - len(pa)) <= 2  # pixel-edge rounding of the window's camera
     # without noise the pose protocol recovers the true relative pose of A and the close-up
-    oracle = pc.make_method("points:0", 1024, {})
+    oracle = pose.make_method("points:0", 1024, {})
     oracle.tell_points(pa, pb, "pair")
     img_a, img_w = np.zeros((480, 640, 3), np.uint8), np.zeros((480, 640, 3), np.uint8)
     qa, qb = oracle.match("a", img_a, "b", img_w)
     np.testing.assert_allclose(qa, pa)
-    R, t = pc.relative_pose(a, b)
+    R, t = pose_data.relative_pose(a, b)
     R, t = R_turn @ R, R_turn @ t
     g = estimate_two_view_geometry(qa, qb, a.camera, cam_w, TwoViewConfig())
     assert max(relative_pose_error(g.R_E, g.t_E, R, t)) < 1.0
 
 
-def test_noise_is_seeded_per_pair_and_scaled(scene):
-    pc, col = scene
-    oracle = pc.make_method("points:0.5", 1024, {})
+def test_noise_is_seeded_per_pair_and_scaled():
+    oracle = pose.make_method("points:0.5", 1024, {})
     pa = np.tile([[100.0, 100.0]], (2000, 1))
     oracle.tell_points(pa, pa.copy(), "pair")
     small = np.zeros((480, 640, 3), np.uint8)
@@ -75,9 +74,8 @@ def test_noise_is_seeded_per_pair_and_scaled(scene):
     assert 0.9 < (qb - pa).std() < 1.1
 
 
-def test_bad_oracle_spec_is_refused(scene):
-    pc, _ = scene
+def test_bad_oracle_spec_is_refused():
     with pytest.raises(LocalScaleError, match="points:SIGMA"):
-        pc.make_method("points:abc", 1024, {})
+        pose.make_method("points:abc", 1024, {})
     with pytest.raises(LocalScaleError, match="noise >= 0"):
-        pc.make_method("points:-1", 1024, {})
+        pose.make_method("points:-1", 1024, {})

@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from localscale.data import list_images, split_images
+from localscale.evaluation.report import git_commit
 from localscale.features.descriptors import HardNetDescriptor, SIFTPatchDescriptor
 from localscale.features.detector import detect_keypoints, image_to_gray_tensor
 from localscale.features.patches import extract_patches, make_lafs
@@ -424,6 +425,7 @@ def main(argv=None) -> int:
         "held_out_sift_baseline": sift,
         "stopped_by_time_limit": stopped_early,
         "train_wall_minutes": round((elapsed_before + time.time() - t_start) / 60, 1),
+        "commit": git_commit(),
     }
     print(json.dumps(report, indent=1), flush=True)
     (out / "report.json").write_text(json.dumps(report, indent=1))

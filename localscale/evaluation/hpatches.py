@@ -38,7 +38,7 @@ Splits, from the GT homography of each pair:
   region): ``scale<1.4x`` for g < 0.5, ``scale1.4-2.8x`` for 0.5 <= g < 1.5, ``scale>2.8x``.
 
 Predicted maps go through :class:`localscale.matching.CorrectionGate` (default pair level 0.25;
-``docs/DECISIONS.md``). Compare gates with ``--gate-pair X [--no-consistency]``.
+``docs/decisions/correction-gate-weighting.md``). Compare gates with ``--gate-pair X [--no-consistency]``.
 
 Outputs in ``--out``: ``results.json`` (per-pair records, summaries, splits), ``splits.csv``
 (the split of every pair), ``results.md`` (tables) and ``mma_<split>.png`` plots.

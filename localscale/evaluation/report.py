@@ -8,6 +8,7 @@ import io
 import json
 import math
 import re
+import subprocess
 from pathlib import Path
 from typing import Optional
 
@@ -21,6 +22,26 @@ SIFT_RATIO = 0.8
 PERSPECTIVE_EDGES = (0.1, 0.25)
 SCALE_EDGES = (1.0, 2.0)
 ROTATION_EDGES = (30.0, 90.0)
+
+
+def git_commit(package: Optional[Path] = None) -> str:
+    """The commit checked out where the package ``package`` (default: localscale) lies, by ``git
+    rev-parse HEAD``; ``"unknown"`` outside a git checkout of it (an installed package, no git).
+    What a result file records as the code that made it."""
+    package = Path(package or Path(__file__).resolve().parents[1]).resolve()
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(package), "rev-parse", "--show-toplevel", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.split()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if len(out) != 2 or Path(out[0]).resolve() != package.parent:
+        return "unknown"
+    return out[1]
 
 
 def perspective_split(spread: float) -> str:
@@ -188,6 +209,7 @@ def write_outputs(
         },
         **(extra or {}),
         **result,
+        "commit": git_commit(),
     }
     name = f"results{'_' + tag if tag else ''}"
     write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))

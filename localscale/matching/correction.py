@@ -80,7 +80,7 @@ class CorrectionGate:
       global method, or a model without those outputs) all pixels count.
 
     Defaults: consistency on, weighting ``"reliability"``, pair-level 0.25 (a ~1.2x scale
-    change), no per-pixel rules (how they were chosen: ``docs/DECISIONS.md``). ``NO_GATE``
+    change), no per-pixel rules (how they were chosen: ``docs/decisions/correction-gate-weighting.md``). ``NO_GATE``
     disables everything.
     """
 

@@ -75,7 +75,7 @@ class VerificationConfig:
         grid_stride: pixel stride of the interpolation grid (fundamental case), upsampled bilinearly.
 
     How the defaults of ``min_inliers``, ``min_inlier_ratio`` and ``support`` were chosen:
-    ``docs/DECISIONS.md``.
+    ``docs/decisions/verification-thresholds.md``.
     """
 
     model: str = "homography"

@@ -16,7 +16,7 @@ than x1.41 (the prediction is unreliable), the pair is also predicted with B tur
 replaces the upright one if its two directions agree better by a factor of sqrt(2) at least (a
 scale does not depend on a turn). Turning A as well as B keeps swapping A and B an exact
 inversion. The rule was chosen on held-out synthetic pairs, where it is no worse than the upright
-prediction on any of four sets (``docs/DECISIONS.md``, "ScaleNet: quarter turns").
+prediction on any of four sets (``docs/decisions/scalenet-quarter-turns.md``).
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ class MappingResult:
 
 #: options of the incremental mapper when every image has its own camera: the radial distortion
 #: stays as given (zero for a guessed camera). One image's observations hardly constrain it, and a
-#: close-up's narrow view lets it trade with the focal length (``docs/DECISIONS.md``)
+#: close-up's narrow view lets it trade with the focal length (``docs/decisions/per-image-camera-distortion.md``)
 PER_IMAGE_CAMERA_OPTIONS = {"ba_refine_extra_params": False, "mapper.abs_pose_refine_extra_params": False}
 
 
