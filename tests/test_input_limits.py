@@ -121,3 +121,16 @@ def test_scales_beyond_the_bins_are_named():
 
     assert range_reasons(1.0) == [] and range_reasons(0.125) == [] and range_reasons(8.0) == []
     assert "x0.05 is outside" in range_reasons(0.05)[0] and range_reasons(12.0) and range_reasons(float("nan"))
+
+
+def test_rectify_records_and_warns_about_an_unreliable_scale(images, tmp_path, capsys):
+    import json
+
+    out = tmp_path / "out"
+    assert main(["rectify", str(images["flat_strip"]), PHOTO, "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert any(
+        line.startswith("warning: the global scale is unreliable") and "thinner" in line for line in err.splitlines()
+    )
+    (record,) = [json.loads(p.read_text()) for p in out.glob("*_rectified.json")]
+    assert record["reliable"] is False and any("thinner" in r for r in record["unreliable_because"])
