@@ -4,8 +4,8 @@ A run records the sha256 of each weight file it reads: the scale networks of its
 (``local_weights_sha256``, ``global_weights_sha256``: the checkpoint a model was loaded from, the
 bundled one for a model not given, or a hash of the parameters of a model built in memory; None
 for a network the correction does not use) and the files of its matcher's extractor and
-LightGlue (``matcher_weights_sha256``: file name -> sha256). A rerun with other weights then
-differs in :data:`WEIGHT_OPTIONS` and is refused instead of resumed.
+LightGlue (``matcher_weights_sha256``: file name -> sha256; None for SIFT, which reads none). A
+rerun with other weights then differs in :data:`WEIGHT_OPTIONS` and is refused instead of resumed.
 """
 
 from __future__ import annotations
@@ -79,5 +79,5 @@ def weight_options(correction: str, matcher: str, local_model=None, global_model
     return {
         "local_weights_sha256": sha["local"],
         "global_weights_sha256": sha["global"],
-        "matcher_weights_sha256": files,
+        "matcher_weights_sha256": files or None,
     }
