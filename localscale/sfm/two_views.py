@@ -52,6 +52,8 @@ def two_view_mapping(database_path, image_dir, output_path, options) -> dict:
         cache = pycolmap.DatabaseCache.create(db, cache_options)
     finally:
         db.close()
+    if options.random_seed >= 0:  # as COLMAP's pipeline: the same run gives the same model
+        pycolmap.set_random_seed(options.random_seed)
     mapper_options = options.get_mapper()
     for step in range(_RELAXATIONS + 1):
         rec = _initial_pair_model(pycolmap, cache, options, mapper_options)
