@@ -364,23 +364,26 @@ CameraLike = Union[Camera, str, Path, dict, "pycolmap.Camera"]  # noqa: F821
 
 def as_camera(camera) -> Optional[Camera]:
     """A :class:`Camera` from a :class:`Camera`, a ``pycolmap.Camera``, a dict, a ``cameras.txt``
-    line or the path of a file holding one (:func:`read_camera`); ``None`` stays ``None``."""
+    line or the path of a file holding one (:func:`read_camera`); ``None`` stays ``None``. All
+    but a :class:`Camera` are checked (:func:`~localscale.camera_checks.check_plausible`)."""
+    from .camera_checks import check_plausible
+
     if camera is None or isinstance(camera, Camera):
         return camera
     if isinstance(camera, dict):
-        return Camera.from_dict(camera)
+        return check_plausible(Camera.from_dict(camera))
     if isinstance(camera, Path):
-        return read_camera(camera)
+        return check_plausible(read_camera(camera), f"camera file {camera}")
     if isinstance(camera, str):
         first = camera.strip().split()[:2]
         if first and (
             first[0].upper() in CAMERA_MODELS
             or (first[0].isdigit() and len(first) > 1 and first[1].upper() in CAMERA_MODELS)
         ):
-            return Camera.parse(camera)
-        return read_camera(camera)
+            return check_plausible(Camera.parse(camera))
+        return check_plausible(read_camera(camera), f"camera file {camera}")
     if hasattr(camera, "model") and hasattr(camera, "params") and hasattr(camera, "width"):
-        return Camera.from_pycolmap(camera)
+        return check_plausible(Camera.from_pycolmap(camera))
     raise CameraError(
         f"cannot use {type(camera).__name__} as a camera (Camera, pycolmap.Camera, cameras.txt line, dict or file)"
     )

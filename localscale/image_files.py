@@ -208,12 +208,19 @@ def _read_float_tiff(path: Path, name: str) -> np.ndarray | None:
 
 #: values of a float image file this far outside its range are rounding, clipped; further out, refused
 _FLOAT_SLACK = 0.5 / 255
+#: a float image whose largest value is above 1 but below this (or whose median is at most 1) is a
+#: ``[0, 1]`` image with highlights (HDR), not a ``[0, 255]`` one: as the latter it would be nearly black
+_HDR_BELOW = 16.0
+#: the percentile of an HDR image's samples that is mapped to 1 (the brighter ones are clipped)
+_HDR_PERCENTILE = 99.5
 
 
 def _float_file_to_unit(arr: np.ndarray, label: str) -> np.ndarray:
     """A float image file's samples as float32 in ``[0, 1]``: a ``[0, 1]`` image as it is, a
-    ``[0, 255]`` one (largest value above 1) divided by 255. NaN, inf, negative values and values
-    above 255 are refused; an alpha channel is scaled with the colour channels."""
+    ``[0, 255]`` one divided by 255, an HDR one (values above 1, the largest below
+    :data:`_HDR_BELOW` or the median at most 1) divided by its :data:`_HDR_PERCENTILE` th percentile
+    and clipped, with a warning. NaN, inf, negative values and values above 255 are refused; an
+    alpha channel is scaled with the colour channels."""
     arr = arr.astype(np.float32, copy=False)
     if not np.isfinite(arr).all():
         raise ImageError(f"{label}: float image contains NaN or inf")
@@ -221,10 +228,13 @@ def _float_file_to_unit(arr: np.ndarray, label: str) -> np.ndarray:
     top = 1.0 if hi <= 1 + _FLOAT_SLACK else 255.0
     if lo < -_FLOAT_SLACK * top or hi > top * (1 + _FLOAT_SLACK):
         raise ImageError(f"{label}: float image values are in [{lo:.4g}, {hi:.4g}]; expected [0, 1] or [0, 255]")
-    if top == 255 and hi < 2:
+    if top == 255 and (hi < _HDR_BELOW or float(np.median(arr)) <= 1):
+        scale = max(1.0, float(np.percentile(arr, _HDR_PERCENTILE)))
         warnings.warn(
-            f"{label}: float image values in [{lo:.3g}, {hi:.3g}] read as a [0, 255] image "
-            f"(its largest value is above 1), so it is nearly black",
+            f"{label}: float image with values up to {hi:.3g}, {100 * float(np.mean(arr > 1)):.1f}% of them "
+            f"above 1: read as a high dynamic range image, divided by {scale:.3g} (its "
+            f"{_HDR_PERCENTILE:g}th percentile) and clipped to [0, 1]",
             stacklevel=4,
         )
+        return np.clip(arr / scale, 0, 1)
     return np.clip(arr / top if top != 1 else arr, 0, 1)

@@ -360,6 +360,11 @@ def _load_file(
         )
     if np.issubdtype(arr.dtype, np.floating):
         arr = _float_file_to_unit(arr, label)
+    elif arr.dtype not in (np.uint8, np.uint16):
+        raise ImageError(
+            f"{name}: its samples are {arr.dtype} (signed or 32-bit integers), whose range is not known: "
+            f"give 8- or 16-bit unsigned integer or float samples: {path}"
+        )
     if k > 1 and not jpeg_reduced:
         arr = cv2.resize(arr, (-(-arr.shape[1] // k), -(-arr.shape[0] // k)), interpolation=cv2.INTER_AREA)
     if arr.ndim == 3 and bgr:

@@ -10,6 +10,7 @@ temporary file is removed.
 from __future__ import annotations
 
 import os
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -143,8 +144,9 @@ def write_image(path, image_bgr: np.ndarray) -> Path:
             ok = cv2.imwrite(str(tmp), image_bgr)
         except cv2.error as e:
             raise LocalScaleError(f"cannot write {path}: {str(e).strip().splitlines()[-1]}") from None
-        if not ok:
-            raise LocalScaleError(f"cannot write {path}")
+        if not ok:  # OpenCV says no more; a full disk is the common cause
+            full = shutil.disk_usage(Path(tmp).parent).free < max(image_bgr.nbytes // 4, 1 << 16)
+            raise LocalScaleError(f"cannot write {path}" + (": no space left on the device" if full else ""))
     return Path(path)
 
 

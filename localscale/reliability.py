@@ -12,6 +12,8 @@ Per pair, :func:`check_pair` predicts both directions and combines
   that of B->A over B's visible part (a scale map and its inverse),
 * **overlap**: the share of A predicted visible in B,
 * **reliability**: the mean calibrated reliability over A's visible part,
+* **limits**: an image too thin or too small for the network, a median scale outside its
+  bins' range (:func:`localscale.model_limits.limit_reasons`),
 
 into one ``reliable`` flag with the reasons when it fires. Thresholds live in
 :class:`PairCheckConfig`.
@@ -33,6 +35,7 @@ import torch
 
 from .errors import LocalScaleError
 from .io import ImageLike
+from .model_limits import limit_reasons
 
 
 @dataclass
@@ -137,7 +140,8 @@ def check_pair(
     fwd = model.predict_from_features(ea, eb, bf16=bf16, **readout)
     bwd = model.predict_from_features(eb, ea, bf16=bf16)
     stats = pair_statistics(fwd, bwd, cfg)
-    reasons = flag_reasons(stats, cfg)
+    median = float(np.median(_map(fwd, "scale")))
+    reasons = flag_reasons(stats, cfg) + limit_reasons(ea.letterbox, eb.letterbox, median, "the median scale")
     return PairCheck(fwd, bwd, reliable=not reasons, reasons=reasons, **stats)
 
 

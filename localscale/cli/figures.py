@@ -80,11 +80,7 @@ def cmd_scale(args) -> int:
     ):
         raise LocalScaleError("ScaleNet predicted a non-finite scale (NaN or inf): the model is broken")
     if not p.reliable:
-        print(
-            f"warning: the global scale is unreliable: A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} "
-            f"disagree by x{2**p.inconsistency_log2:.2f}",
-            file=sys.stderr,
-        )
+        print(f"warning: the global scale is unreliable: {'; '.join(unreliable_because(p))}", file=sys.stderr)
     if any(p.turns):
         which = "A" if p.turns[0] else "B"
         print(
@@ -102,6 +98,7 @@ def cmd_scale(args) -> int:
                     "scale_ba": p.scale_ba,
                     "hard_scale": p.hard_scale,
                     "reliable": p.reliable,
+                    "limits": p.limits,
                     "turns": list(p.turns),
                     "inconsistency_log2": p.inconsistency_log2,
                     "probs_ab": p.probs_ab.round(4).tolist(),
@@ -116,12 +113,18 @@ def cmd_scale(args) -> int:
     return 0
 
 
+def unreliable_because(p) -> list:
+    """Why a :class:`~localscale.models.scalenet.GlobalScalePrediction` is not reliable (empty: it is)."""
+    disagree = f"A->B {p.scale_ab:.3f} and 1/(B->A) {1 / p.scale_ba:.3f} disagree by x{2**p.inconsistency_log2:.2f}"
+    return ([] if p.consistent else [disagree]) + list(p.limits)
+
+
 def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> dict:
     """Downscale the image whose content is bigger by the global scale so the pair has scale ~1.
 
     Writes ``<output>/<A>_<B>_rectified_<A|B>.png`` (``<A>``, ``<B>`` = ``<parent>-<stem>``, so pairs
     of different sequences do not collide) and ``<A>_<B>_rectified.json`` (scale, which image was
-    resized, factor, sizes, paths); returns that record.
+    resized, factor, sizes, paths, ``reliable`` and why not); returns that record.
     """
     import cv2
 
@@ -133,7 +136,8 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
     for which in "AB":
         ensure_not_input(out / f"{name}_rectified_{which}.png", inputs)
     model = model or loading.load_scale_model("global")
-    s = float(model.predict(image_a, image_b, bf16=bf16).scale)
+    pred = model.predict(image_a, image_b, bf16=bf16)
+    s = float(pred.scale)
     if not (math.isfinite(s) and s > 0):
         raise LocalScaleError(f"ScaleNet predicted a non-finite scale ({s}): the model is broken; nothing written")
     which, factor = ("B", 1 / s) if s > 1 else ("A", s)
@@ -156,6 +160,8 @@ def rectify_pair(image_a, image_b, output, model=None, bf16: bool = False) -> di
         "size_before": [w, h],
         "size_after": list(size),
         "output": str(dst),
+        "reliable": pred.reliable,
+        "unreliable_because": unreliable_because(pred),
     }
     write_text(sidecar, json.dumps(record, indent=1) + "\n")
     record["sidecar"] = str(sidecar)
@@ -166,6 +172,8 @@ def cmd_rectify(args) -> int:
     name = pair_name(args.image_a, args.image_b, always_parent=True)
     check_output_dir(args.output, [f"{name}_rectified_A.png", f"{name}_rectified.json"])
     r = rectify_pair(args.image_a, args.image_b, args.output, _model(args, "global"), bf16=args.bf16)
+    if not r["reliable"]:
+        print(f"warning: the global scale is unreliable: {'; '.join(r['unreliable_because'])}", file=sys.stderr)
     print(
         f"S(A->B) = {r['scale']:.4f}: image {r['resized']} resized by {r['factor']:.4f} -> {r['output']} "
         f"(record: {r['sidecar']})"

@@ -6,6 +6,7 @@ import argparse
 import signal
 import sys
 import threading
+import warnings
 
 from ..errors import LocalScaleError
 from .figures import cmd_demo, cmd_rectify, cmd_scale, cmd_show
@@ -212,9 +213,33 @@ def _add_scale_and_match_commands(command) -> None:
     sp.set_defaults(func=cmd_eval_hpatches)
 
 
+def _warning_lines():
+    """A ``warnings.showwarning`` that prints each Python warning as the CLI shows warnings: one
+    ``warning: ...`` line on stderr, once per message."""
+    seen: set = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split())
+        if text not in seen:
+            seen.add(text)
+            print(f"warning: {text}", file=sys.stderr, flush=True)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        print("interrupted; no partial output file was left", file=sys.stderr)
+        return 130
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_lines()
+        return _run(args)
+
+
+def _run(args) -> int:
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _on_sigterm)

@@ -118,6 +118,7 @@ def match_pair(
 
 def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     """The cameras of the full images (``None`` stays ``None``) in the pixels of the working images."""
+    from ..camera_checks import check_plausible
     from ..cameras import as_camera
     from ..errors import LocalScaleError
     from ..io import image_shape
@@ -126,6 +127,7 @@ def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     for name, cam, image, S in zip("AB", cameras, images, to_work):
         cam = as_camera(cam)
         if cam is not None:
+            check_plausible(cam, f"camera of image {name}")
             h, w = image_shape(image, f"image {name}")
             if abs(cam.width / w - cam.height / h) > 0.01 * max(cam.width / w, cam.height / h):
                 raise LocalScaleError(
@@ -414,7 +416,25 @@ def run_match(
 
 
 def _write_match_files(res: MatchResult, image_a, image_b, out: Path) -> None:
-    """The files of ``run_match``: matches and their picture; the refined maps, or the verified geometry."""
+    """The files of ``run_match`` (:func:`_write_match_set`), all or none: when one cannot be
+    written (a full disk) or the run is stopped, those this call wrote already are removed."""
+    before = _stamps(out)
+    try:
+        _write_match_set(res, image_a, image_b, out)
+    except BaseException:
+        for name, stamp in _stamps(out).items():
+            if before.get(name) != stamp:
+                (out / name).unlink(missing_ok=True)
+        raise
+
+
+def _stamps(out: Path) -> dict:
+    """``{name: modification time}`` of the files in ``out``."""
+    return {p.name: p.stat().st_mtime_ns for p in out.iterdir() if p.is_file()} if out.is_dir() else {}
+
+
+def _write_match_set(res: MatchResult, image_a, image_b, out: Path) -> None:
+    """Matches and their picture; the refined maps, or the verified geometry."""
     from ..map_files import write_refinement
 
     save_matches(res, out / "matches.npz")

@@ -70,5 +70,6 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
         ) from None
     check_record(model, ckpt.get("backbone"), path)
     model.meta = ckpt.get("meta", {})
+    model.weights_file = str(Path(path).resolve())  # the checkpoint's identity (a run records its sha256)
     model = model.to(device).eval()
     return model.to(memory_format=torch.channels_last) if torch.device(device).type == "cpu" else model

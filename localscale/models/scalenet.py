@@ -22,7 +22,7 @@ prediction on any of four sets (``docs/decisions/scalenet-quarter-turns.md``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from .. import scales
 from ..io import ImageLike
+from ..model_limits import limit_reasons
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel
 from .common import (
@@ -76,7 +77,10 @@ class GlobalScalePrediction:
         scale_ab, scale_ba: soft scales of each direction (``scale_ba`` is ``S_{B->A}``).
         hard_scale: D-ScaleNet read-out (arg-max bin of ``probs_ab``).
         probs_ab, probs_ba: the two 13-bin distributions.
-        reliable: False when the two directions disagree (see ``inconsistency_log2``).
+        reliable: False when the two directions disagree (see ``inconsistency_log2``) or when
+            ``limits`` says why the network cannot answer for these images.
+        limits: an image too thin or too small for the network, or a scale outside its bins'
+            range after the resize correction (:func:`localscale.model_limits.limit_reasons`).
         turns: quarter turns (counter-clockwise) of A and of B the prediction was made with
             (``(0, 0)``: upright; see :meth:`ScaleNet.predict`).
     """
@@ -88,6 +92,7 @@ class GlobalScalePrediction:
     probs_ab: np.ndarray
     probs_ba: np.ndarray
     turns: tuple[int, int] = (0, 0)
+    limits: list = field(default_factory=list)
 
     #: the two directions may disagree by at most this factor (log2) for a reliable estimate
     MAX_INCONSISTENCY_LOG2 = 0.5
@@ -98,9 +103,14 @@ class GlobalScalePrediction:
         return abs(math.log2(self.scale_ab) + math.log2(self.scale_ba))
 
     @property
-    def reliable(self) -> bool:
-        """False when A->B and the inverse of B->A disagree by more than x1.41: do not trust ``scale``."""
+    def consistent(self) -> bool:
+        """A->B and the inverse of B->A agree within x1.41."""
         return math.isfinite(self.scale) and self.inconsistency_log2 <= self.MAX_INCONSISTENCY_LOG2
+
+    @property
+    def reliable(self) -> bool:
+        """False when the two directions disagree or ``limits`` holds a reason: do not trust ``scale``."""
+        return self.consistent and not self.limits
 
 
 @register
@@ -161,13 +171,15 @@ class ScaleNet(ScaleModel):
         ls_ab = float(scales.soft_log_scale(p_ab, 0)) + corr
         ls_ba = float(scales.soft_log_scale(p_ba, 0)) - corr
         hard = math.log(float(scales.hard_scale(p_ab, 0))) + corr
+        scale = math.exp(float(scales.consistent_log_scale(torch.tensor(ls_ab), torch.tensor(ls_ba))))
         return GlobalScalePrediction(
-            scale=math.exp(float(scales.consistent_log_scale(torch.tensor(ls_ab), torch.tensor(ls_ba)))),
+            scale=scale,
             scale_ab=math.exp(ls_ab),
             scale_ba=math.exp(ls_ba),
             hard_scale=math.exp(hard),
             probs_ab=p_ab.cpu().numpy(),
             probs_ba=p_ba.cpu().numpy(),
+            limits=limit_reasons(lb_a, lb_b, scale),
         )
 
     @torch.inference_mode()
@@ -211,11 +223,11 @@ class ScaleNet(ScaleModel):
         shape_b: tuple[int, int] | None = None,
     ) -> GlobalScalePrediction:
         """``first`` (the upright prediction from the encodings ``ea``, ``eb`` of the arrays ``a``,
-        ``b``) when it is reliable; else the most consistent of it and the predictions with B, then A,
+        ``b``) when its two directions agree; else the most consistent of it and the predictions with B, then A,
         turned by 1, 2 and 3 quarter turns, if its two directions agree better than the upright
         ones' by :attr:`TURN_MARGIN_LOG2` at least. ``shape_a`` / ``shape_b``: full image sizes when
         the arrays were reduced (:meth:`load`)."""
-        if first.reliable:
+        if first.consistent:
             return first
         candidates = [first]
         for k in (1, 2, 3):

@@ -50,13 +50,14 @@ def read_camera_file(path):
     """The one camera of ``path`` (:func:`localscale.cameras.read_camera`: a ``cameras.txt`` line,
     comments allowed, or JSON; or a COLMAP ``cameras.txt`` holding one camera) as a
     :class:`localscale.cameras.Camera`. Raises :class:`CameraFileError`."""
+    from ..camera_checks import implausibility
     from ..cameras import CameraError, read_camera, read_cameras_txt
 
     path = Path(path)
     if not path.is_file():
         raise CameraFileError(f"camera file not found: {path}")
     try:
-        return read_camera(path)
+        camera = read_camera(path)
     except CameraError as e:
         try:
             cams = read_cameras_txt(path)
@@ -66,7 +67,11 @@ def read_camera_file(path):
             raise CameraFileError(
                 f"{path}: {len(cams)} cameras; --camera takes a file with one camera, used for every image"
             ) from None
-        return next(iter(cams.values()))
+        camera = next(iter(cams.values()))
+    problem = implausibility(camera)
+    if problem:
+        raise CameraFileError(f"camera file {path}: {problem} ({camera.to_line()})")
+    return camera
 
 
 def _fit_camera(camera, shape: tuple, what: str):

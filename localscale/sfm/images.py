@@ -8,17 +8,21 @@ in ``matches.h5`` (hloc writes ``/`` inside a name as ``-``: ``x/a.jpg`` and a f
 error: rename one of them.
 
 Files whose extension is not an image format's are listed in one ``warning:`` and skipped;
-image files that cannot be decoded each get a ``warning:`` and are skipped; hidden files and
-folders (``.name``) are ignored. Fewer than two usable images is an error.
+image files that cannot be decoded, or that are too thin at the working resolution, each get a
+``warning:`` and are skipped; of copies of one photo (the same pixels) only the first is kept, with a
+``warning:``; hidden files and folders (``.name``) are ignored. Fewer than two usable images is an error.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Optional
+
+import numpy as np
 
 from ..errors import ImageError, LocalScaleError
 from .report import warn
@@ -55,7 +59,10 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
 
     ``exclude``: folders not searched (e.g. the output folder when it lies inside ``folder``).
     ``check``: decode every image (at ``max_side``, cheap) so that a corrupt file is skipped
-    here, with a ``warning:``, and not in the middle of the reconstruction.
+    here, with a ``warning:``, and not in the middle of the reconstruction; and so that of
+    images with the same pixels (copies of one photo) only the first by name is kept (one
+    ``warning:`` lists the others). An image that ``max_side`` would shrink to less than
+    :data:`~localscale.io.MIN_SIDE` pixels on a side (a long thin strip) is skipped with a ``warning:``.
 
     Raises:
         ImageFolderError: ``folder`` missing or not a folder, no usable image, only one, or two
@@ -69,7 +76,7 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
     if not root.is_dir():
         raise ImageFolderError(f"not a folder: {root} (give the folder that holds the images)")
     skip = {Path(p).resolve() for p in exclude}
-    others, images, unreadable = [], [], []
+    others, images, unreadable, digests = [], [], [], {}
     for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
         here = Path(dirpath)
         dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and (here / d).resolve() not in skip)
@@ -82,11 +89,15 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
                 others.append(name)
                 continue
             try:
-                if check:
-                    load_working_image(path, max_side, name)  # decodes: a corrupt file fails here
+                if check:  # decodes: a corrupt file fails here
+                    digests[name] = _pixel_digest(load_working_image(path, max_side, name)[0])
                 shape = image_shape(path, name)
             except ImageError as e:
                 unreadable.append((name, str(e)))
+                continue
+            thin = _too_thin(shape, max_side)
+            if thin:
+                unreadable.append((name, thin))
                 continue
             images.append(ImageInfo(name, path, tuple(int(v) for v in shape)))
     if others:
@@ -94,7 +105,7 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
         warn(f"skipped {len(others)} file(s) that are not images ({', '.join(IMAGE_SUFFIXES)}): {shown}")
     for name, why in unreadable:
         warn(f"skipped {name}: {why}")
-    images.sort(key=lambda im: im.name)
+    images = _without_duplicates(sorted(images, key=lambda im: im.name), digests)
     if not images:
         extra = f" ({len(unreadable)} unreadable)" if unreadable else ""
         raise ImageFolderError(
@@ -106,6 +117,47 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
         )
     check_names(images)
     return images
+
+
+def _pixel_digest(rgb) -> str:
+    return hashlib.sha256(np.ascontiguousarray(rgb).tobytes()).hexdigest() + f"-{rgb.shape}"
+
+
+def _too_thin(shape: tuple, max_side: Optional[int]) -> Optional[str]:
+    """Why an image of ``shape`` (H, W) is too thin at the working resolution ``max_side``, or None."""
+    from ..io import MIN_SIDE
+
+    h, w = shape
+    if not max_side or max(h, w) <= max_side:
+        return None
+    f = max_side / max(h, w)
+    wh, ww = max(1, round(h * f)), max(1, round(w * f))
+    if min(wh, ww) >= MIN_SIDE:
+        return None
+    return (
+        f"the {w}x{h} image is {ww}x{wh} at the working resolution (longer side {max_side}), "
+        f"less than {MIN_SIDE} pixels on a side: too thin to find features in"
+    )
+
+
+def _without_duplicates(images: list, digests: dict) -> list:
+    """``images`` less those whose pixels are those of an earlier one (one ``warning:`` lists them)."""
+    first, kept, dropped = {}, [], []
+    for im in images:
+        d = digests.get(im.name)
+        if d is not None and d in first:
+            dropped.append(f"{im.name} (= {first[d]})")
+            continue
+        if d is not None:
+            first[d] = im.name
+        kept.append(im)
+    if dropped:
+        shown = ", ".join(dropped[:8]) + (f", ... ({len(dropped)} in all)" if len(dropped) > 8 else "")
+        warn(
+            f"skipped {len(dropped)} duplicate image(s), the same pixels as an image kept (a copy would be "
+            f"registered at the same pose and count its points twice): {shown}"
+        )
+    return kept
 
 
 def check_names(images: list) -> None:

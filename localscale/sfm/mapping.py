@@ -8,7 +8,8 @@ half of the cameras have a known one, COLMAP's view-graph calibration runs first
 (``colmap view_graph_calibrator``: focal lengths from the fundamental matrices; it updates the
 database's cameras and two-view geometries). The models are numbered by size (``0``: the most
 registered images). The mapper writes into a temporary folder; ``sparse/`` is replaced only when
-it has finished.
+it has finished. A database of two images, or one where the mapper makes no model (its images
+connected by single pairs only), gets the best pair's two-view model (:mod:`.two_views`).
 
 Example::
 
@@ -29,6 +30,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import LocalScaleError
+from .two_views import GLOBAL_TWO_VIEW_OPTIONS, database_images, two_view_mapping
 
 #: the mappers of :func:`run_mapping`
 MAPPERS = ("incremental", "global")
@@ -221,7 +223,6 @@ def run_mapping(
     with the next random seed (0, 1, ...), at most ``trials`` times in all; the run whose largest
     model registers the most images (then has the most observations) is kept
     (:attr:`MappingResult.trials`: each run's seed and images registered)."""
-    import pycolmap
 
     check_mapper(mapper)
     check_trials(trials)
@@ -236,12 +237,12 @@ def run_mapping(
         shutil.rmtree(d, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
-        opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
-        run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
         with colmap_log(verbose):
             if mapper == "global" and needs_calibration(database_path):
                 calibrated = calibrate_view_graph(database_path)
-            ordered, runs = _best_of_trials(run, database_path, image_dir, tmp, opts, trials)
+            ordered, runs, overrides = _map(
+                mapper, (database_path, image_dir, tmp), options, num_threads, overrides, trials
+            )
         final_tmp.mkdir()
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
@@ -254,18 +255,39 @@ def run_mapping(
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(final_tmp, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
-    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, dict(overrides or {}))
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides)
+
+
+def _map(mapper: str, paths: tuple, options, num_threads: int, overrides: Optional[dict], trials: int) -> tuple:
+    """``(models, runs, overrides)`` of the mapper on ``paths`` ``(database, images, scratch folder)``.
+    A database of two images, or one where the mapper makes no model (every pair alone), is mapped
+    again as two views (:mod:`.two_views`): the best pair's model; ``runs`` marks such runs."""
+    import pycolmap
+
+    database_path, image_dir, tmp = paths
+    two_views = database_images(database_path) == 2
+    if two_views and mapper == "global":
+        overrides = {**GLOBAL_TWO_VIEW_OPTIONS, **(overrides or {})}
+    opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
+    run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
+    if two_views and mapper == "incremental":
+        run = two_view_mapping
+    ordered, runs = _best_of_trials(run, database_path, image_dir, tmp, opts, trials)
+    if ordered or two_views or options is not None:
+        return ordered, runs, dict(overrides or {})
+    if mapper == "global":
+        overrides = {**GLOBAL_TWO_VIEW_OPTIONS, **(overrides or {})}
+        run, opts = pycolmap.global_mapping, mapping_options(num_threads, mapper=mapper, overrides=overrides)
+    else:
+        run = two_view_mapping
+    (tmp / "two_views").mkdir()
+    ordered, more = _best_of_trials(run, database_path, image_dir, tmp / "two_views", opts, 1)
+    return ordered, runs + [dict(r, two_views=True) for r in more], dict(overrides or {})
 
 
 def _best_of_trials(run, database_path, image_dir, tmp: Path, opts, trials: int) -> tuple:
     """``(models of the best run, largest first; [{"seed", "registered"}] of each run)``."""
-    import pycolmap
-
-    db = pycolmap.Database.open(str(database_path))
-    try:
-        num_images = db.num_images()
-    finally:
-        db.close()
+    num_images = database_images(database_path)
     rank = lambda ms: (ms[0].num_reg_images(), ms[0].compute_num_observations()) if ms else (0, 0)  # noqa: E731
     best, runs = [], []
     for seed in range(trials):

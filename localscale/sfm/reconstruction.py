@@ -35,7 +35,8 @@ from typing import Any, Optional
 
 from ..errors import LocalScaleError
 from ..outputs import check_writable_dir
-from .report import collecting_warnings, markdown_table, read_json, warn, write_json
+from .report import collecting_warnings, markdown_table, no_model_reason, read_json, warn, write_json
+from .weights import WEIGHT_OPTIONS, weight_options
 
 #: the files and folders a run writes into its output folder
 OUTPUTS = (
@@ -63,7 +64,7 @@ RESULT_OPTIONS = (
     "camera_mode",
     "camera_file_sha1",
     "merge_px",
-)
+) + WEIGHT_OPTIONS
 
 
 class OutputFolderError(LocalScaleError):
@@ -335,6 +336,7 @@ class _Reconstruction:
 
                 raise CameraFileError(f"camera file not found: {self.camera_file}")
             self.options["camera_file_sha1"] = _sha1(self.camera_file)
+        self.options.update(weight_options(self.correction, self.matcher, self.local_model, self.global_model))
         self.state = _output_state(self.out, self.options, self.overwrite)
         self.images = find_images(self.images_dir, exclude=[self.out], max_side=self.max_side)
         self.names = [im.name for im in self.images]
@@ -557,7 +559,7 @@ def _flag(summary: dict) -> None:
     """``warning:`` lines for a result that should not be trusted as it is."""
     n, r = summary["images"], summary["registered"]
     if r == 0:
-        warn("no model: the mapper registered no images (too few verified pairs?)")
+        warn(f"no model: the mapper registered no images ({no_model_reason(summary)})")
     elif r < n:
         shown = ", ".join(summary["unregistered_images"][:6])
         warn(

@@ -12,6 +12,7 @@ import contextvars
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -31,13 +32,35 @@ def warn(message: str) -> None:
 
 @contextlib.contextmanager
 def collecting_warnings() -> Iterator[list]:
-    """Within the block, every :func:`warn` is also appended to the yielded list."""
+    """Within the block, every :func:`warn` is also appended to the yielded list, and so is every
+    Python ``UserWarning`` that localscale's code raises (a 16-bit image rescaled, an alpha channel
+    dropped: printed as a ``warning:`` line, once per message); other warnings are shown as before."""
     kept: list = []
     token = _COLLECTED.set(kept)
-    try:
-        yield kept
-    finally:
-        _COLLECTED.reset(token)
+    seen: set = set()
+    package = str(Path(__file__).resolve().parent.parent)
+    with warnings.catch_warnings():
+        previous = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if not (issubclass(category, UserWarning) and str(Path(filename).resolve()).startswith(package)):
+                return previous(message, category, filename, lineno, file, line)
+            text = " ".join(str(message).split())
+            if text not in seen:
+                seen.add(text)
+                warn(text)
+
+        warnings.showwarning = show
+        try:
+            yield kept
+        finally:
+            _COLLECTED.reset(token)
+
+
+def no_model_reason(summary: dict) -> str:
+    """Why a run made no model, from its summary's verified pairs."""
+    v, p = summary["pairs_verified"], summary["pairs"]
+    return f"{v} of {p} pairs verified, none with enough inliers at a wide enough angle" if v else "no pair verified"
 
 
 def _jsonable(value):
