@@ -9,6 +9,7 @@ a run that builds no model at all exits with 1.
 from __future__ import annotations
 
 import argparse
+import os
 
 from .options import HelpFormatter, add_engine_options, executor_from_args, positive_int
 
@@ -170,7 +171,8 @@ def cmd_reconstruct(args) -> int:
         if executor is not None:
             executor.close()
     print(summary_table(summary))
-    print(f"wrote {args.output}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
+    shown = os.fsencode(args.output).decode("utf-8", "backslashreplace")
+    print(f"wrote {shown}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
     return 0 if summary["registered"] > 0 else 1
 
 
@@ -200,6 +202,7 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         mapper=args.mapper,
         mapping_trials=args.mapping_trials,
         mapper_options=_name_values(args.mapper_option),
+        input_files=tuple(p for p in (args.local_weights, args.global_weights) if p),
     )
 
 

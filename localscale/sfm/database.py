@@ -16,7 +16,8 @@ for every image; its size must be the images' size, or the same aspect ratio, th
 COLMAP's keypoints have the pixel centre at ``(0.5, 0.5)``; ``keypoints.h5`` has it at
 ``(0, 0)`` (hloc's convention), so 0.5 is added here (as hloc does).
 
-The database is written under a temporary name and renamed: it is complete or absent.
+The database is written under a temporary name and renamed: it is complete or absent (the
+``-wal``/``-shm`` files an earlier database left beside the name are removed first).
 :func:`read_database` reads it back (the tests' round trip).
 """
 
@@ -188,6 +189,8 @@ def write_database(
                     db.write_two_view_geometry(ids[a], ids[b], g)
         finally:
             db.close()
+        for sidecar in ("-wal", "-shm", "-journal"):  # SQLite would replay an old database's log onto the new one
+            database_path.with_name(database_path.name + sidecar).unlink(missing_ok=True)
     return ids
 
 

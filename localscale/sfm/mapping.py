@@ -7,8 +7,9 @@ adjustment; COLMAP 4's ``global_mapper``). The global mapper needs focal lengths
 half of the cameras have a known one, COLMAP's view-graph calibration runs first
 (``colmap view_graph_calibrator``: focal lengths from the fundamental matrices; it updates the
 database's cameras and two-view geometries). The models are numbered by size (``0``: the most
-registered images). The mapper writes into a temporary folder; ``sparse/`` is replaced only when
-it has finished.
+registered images). The mapper writes into temporary folders (``.sparse.tmp-*``, ``.sparse.new-*``,
+unique to the run); ``sparse/`` is replaced by the new one in one step
+(:func:`~localscale.outputs.replace_dir`) only when it has finished.
 
 Example::
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +31,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import LocalScaleError
+from ..outputs import replace_dir
 
 #: the mappers of :func:`run_mapping`
 MAPPERS = ("incremental", "global")
@@ -230,11 +233,9 @@ def run_mapping(
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
     calibrated = None
-    tmp = sparse_dir.with_name(f".{sparse_dir.name}.tmp")
-    final_tmp = sparse_dir.with_name(f".{sparse_dir.name}.new")
-    for d in (tmp, final_tmp):
-        shutil.rmtree(d, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.tmp-", dir=sparse_dir.parent))
+    final_tmp = Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.new-", dir=sparse_dir.parent))
     try:
         opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
         run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
@@ -242,14 +243,11 @@ def run_mapping(
             if mapper == "global" and needs_calibration(database_path):
                 calibrated = calibrate_view_graph(database_path)
             ordered, runs = _best_of_trials(run, database_path, image_dir, tmp, opts, trials)
-        final_tmp.mkdir()
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
             d.mkdir()
             rec.write(d)
-        if sparse_dir.exists():
-            shutil.rmtree(sparse_dir)
-        final_tmp.rename(sparse_dir)
+        replace_dir(final_tmp, sparse_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(final_tmp, ignore_errors=True)
