@@ -21,7 +21,9 @@ pycolmap mapping, incremental or global (sparse/0, largest model first) -> summa
 Images: every image file under IMAGES (recursively); names are paths relative to IMAGES, with their
 extension (a.jpg and a.png are two images). Other files and unreadable images are skipped with a
 'warning:'. An OUT that holds our previous run with the same options is resumed (finished images
-and pairs are not redone); any other non-empty OUT needs --overwrite."""
+and pairs are not redone; a killed run is finished by the same command); any other non-empty OUT needs
+--overwrite. One run per OUT at a time (OUT/.lock); a run never deletes or replaces an input (an input
+where it writes is an error). summary.json is written last: a folder without it is unfinished."""
 
 EXAMPLES = """examples:
   localscale reconstruct photos/ -o out/                              (ALIKED + LightGlue, no correction)

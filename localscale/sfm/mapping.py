@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..errors import LocalScaleError, OutputError
 from ..outputs import replace_dir
 
 #: the mappers of :func:`run_mapping`
@@ -233,10 +233,12 @@ def run_mapping(
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
     calibrated = None
-    sparse_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.tmp-", dir=sparse_dir.parent))
-    final_tmp = Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.new-", dir=sparse_dir.parent))
+    temporaries = []
     try:
+        sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+        for kind in ("tmp", "new"):
+            temporaries.append(Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.{kind}-", dir=sparse_dir.parent)))
+        tmp, final_tmp = temporaries
         opts = options or mapping_options(num_threads, mapper=mapper, overrides=overrides)
         run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
         with colmap_log(verbose):
@@ -248,9 +250,13 @@ def run_mapping(
             d.mkdir()
             rec.write(d)
         replace_dir(final_tmp, sparse_dir)
+    except (OSError, RuntimeError) as e:  # a full disk; COLMAP reports its failures as RuntimeError
+        free = shutil.disk_usage(sparse_dir.parent).free // 1024 if sparse_dir.parent.is_dir() else 0
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e).strip().splitlines()[-1]
+        raise OutputError(f"mapping into {sparse_dir} failed: {why} ({free} KB free on its file system)") from None
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(final_tmp, ignore_errors=True)
+        for d in temporaries:
+            shutil.rmtree(d, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
     return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, dict(overrides or {}))
 
