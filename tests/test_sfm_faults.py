@@ -245,3 +245,30 @@ def test_a_second_run_on_a_held_folder_is_refused_and_writes_nothing(finished_co
             assert code == 2 and len(error_lines(err)) == 1 and "another run" in err, err
             assert snapshot(out) == before
     assert run_cli(["reconstruct", str(images), "-o", str(out), *FAST]) == 0  # free again
+
+
+# ---------------------------------------------------------------- a full disk
+
+
+@pytest.mark.parametrize("failing_open", [1, 2], ids=["database write", "mapping"])
+def test_sqlite_failing_on_a_full_disk_is_one_error_line(five, tmp_path, monkeypatch, capsys, failing_open):
+    """pycolmap reports SQLite failing to open a database on a full disk as RuntimeError("No
+    registered database factory succeeded."): the database write opens it first, the mapping next."""
+    import pycolmap
+
+    real_open, calls = pycolmap.Database.open, [0]
+
+    def open_on_a_full_disk(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == failing_open:
+            raise RuntimeError("No registered database factory succeeded.")
+        return real_open(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap.Database, "open", staticmethod(open_on_a_full_disk))
+    out = tmp_path / "out"
+    code = run_cli(["reconstruct", str(five), "-o", str(out), *FAST])
+    err = capsys.readouterr().err
+    assert code == 2 and len(error_lines(err)) == 1 and "No registered database factory" in err, err
+    assert not (out / "summary.json").exists() and leftovers(out) == []
+    monkeypatch.undo()
+    assert run_cli(["reconstruct", str(five), "-o", str(out), *FAST]) == 0  # with room again
