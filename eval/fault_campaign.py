@@ -3,6 +3,7 @@ points), a full disk, read-only inputs and outputs, two runs on one folder, inpu
 writes, photos changed between runs, names that are not UTF-8, symbolic link loops.
 
     OMP_NUM_THREADS=1 python eval/fault_campaign.py -o /tmp/fault_campaign --json results/fault_campaign.json
+    git archive COMMIT | tar -x -C /tmp/old && python eval/fault_campaign.py -o /tmp/fc_old --code /tmp/old
 
 Each case runs the CLI in subprocesses (``python -m localscale``; a kill point runs it through this
 script's driver, which kills itself when ``module:attr`` is called the n-th time) and records:
@@ -25,7 +26,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+#: the checkout whose ``localscale`` the runs use (``--code``)
+CODE = {"root": Path(__file__).resolve().parents[1]}
 FAST = ["--matcher", "sift", "--num-keypoints", "800", "--no-progress", "--num-threads", "1"]
 
 
@@ -66,7 +68,7 @@ def driver(argv: list) -> int:
 def cli(args: list, kill: str = "", env: dict | None = None, wait: bool = True):
     """Run ``localscale reconstruct ARGS`` (killed at ``kill`` when given); a finished run's
     ``(exit code, stderr)``, or the ``Popen`` when not ``wait``."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT), RAY_USAGE_STATS_ENABLED="0", **(env or {}))
+    env = dict(os.environ, PYTHONPATH=str(CODE["root"]), RAY_USAGE_STATS_ENABLED="0", **(env or {}))
     cmd = [sys.executable, str(Path(__file__).resolve()), "--kill-at", kill or "-", "reconstruct", *args, *FAST]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     if not wait:
@@ -442,7 +444,12 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--work", default="/tmp/fault_campaign", help="work folder (its case folders are replaced)")
     p.add_argument("--json", default=None, help="write the rows (and the totals) to this JSON file")
     p.add_argument("--only", default=None, help="run the cases whose name contains this text")
+    p.add_argument(
+        "--code", default=None, help="a checkout of localscale to run instead of this one (e.g. an older commit)"
+    )
     args = p.parse_args(argv)
+    if args.code:
+        CODE["root"] = Path(args.code).resolve()
     c = Campaign(Path(args.work))
     for case, expected, fn in cases(c):
         if args.only is None or args.only in case:
