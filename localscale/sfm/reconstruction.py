@@ -172,8 +172,7 @@ def reconstruct(
             images out; the run that registers the most is kept.
         mapper_options: pycolmap options of the mapper set by name
             (:func:`~.mapping.set_options`, e.g. ``{"ba_refine_extra_params": False}``).
-        input_files: other files the caller read for this run (e.g. weights): like every input,
-            the run refuses to start when one lies where it writes (:mod:`.outdir`).
+        input_files: other files the caller read (weights): refused where the run writes (:mod:`.outdir`).
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
