@@ -1,16 +1,21 @@
 """Writing output files atomically, and checking output folders before any work is done.
 
 Every file localscale writes goes through :func:`atomic_path`: the data is written to a
-hidden temporary file in the same folder (``.<name>.tmp-<pid><suffix>``, same extension so
-encoders pick the same format) and renamed over the final name only when it is complete.
-An interrupted or failed write leaves no partial file under the final name, and the
-temporary file is removed.
+hidden temporary file in the same folder (``.<name>.<token>.tmp-<pid><suffix>``: a random token
+and the process id, so no two runs share one, even when a process id repeats; the same
+extension, so encoders pick the same format) and renamed over the final name only when it is
+complete. An interrupted or failed write leaves no partial file under the final name, and the
+temporary file is removed (a killed process leaves it: :func:`stale_temporaries` finds them).
+A folder is replaced in one step by :func:`replace_dir`.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import secrets
 import shutil
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -32,9 +37,21 @@ def _name_max(folder: Path) -> int:
 
 
 def temporary_name(path: Path) -> Path:
-    """The hidden temporary name :func:`atomic_path` writes ``path`` under (same suffix)."""
-    tmp = path.with_name(f".{path.stem[:200]}.tmp-{os.getpid()}{path.suffix}")
-    return tmp
+    """A new hidden temporary name for ``path`` (same folder and suffix; unique to this call)."""
+    return path.with_name(f".{path.stem[:200]}.{secrets.token_hex(4)}.tmp-{os.getpid()}{path.suffix}")
+
+
+def stale_temporaries(path: Path) -> list:
+    """The temporary files of ``path`` that :func:`atomic_path` left in its folder (a killed
+    process's), with the ``-wal``, ``-shm`` and ``-journal`` files SQLite keeps beside a database."""
+    import re
+
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    stem, suffix = re.escape(path.stem[:200]), re.escape(path.suffix)
+    pattern = re.compile(rf"\.{stem}\.(?:[0-9a-f]+\.)?tmp-[0-9]+{suffix}(?:-wal|-shm|-journal)?")
+    return sorted(p for p in path.parent.iterdir() if pattern.fullmatch(p.name))
 
 
 @contextmanager
@@ -91,6 +108,8 @@ def check_writable_dir(out: Path, names=()) -> Path:
             raise LocalScaleError(
                 f"output folder name too long ({len(os.fsencode(part))} bytes, the limit is {NAME_MAX}): {part[:40]}..."
             )
+    if out.is_symlink() and not out.exists():
+        raise LocalScaleError(f"output {out} is a broken symbolic link or a link loop")
     if out.exists():
         if not out.is_dir():
             raise LocalScaleError(f"output {out} exists and is not a folder (-o names a folder)")
@@ -179,6 +198,46 @@ def write_npy_bands(path, shape: tuple[int, int], bands) -> Path:
                 # f.write, not ndarray.tofile: a SIGTERM raised inside tofile surfaces as a TypeError
                 f.write(np.ascontiguousarray(rows, np.float32).data)
     return Path(path)
+
+
+def replace_dir(new, path) -> None:
+    """Put the folder ``new`` in the place of ``path`` (a folder, or missing) and remove the old one.
+
+    Where the system can swap two names in one step (Linux's ``renameat2`` with
+    ``RENAME_EXCHANGE``) the swap is atomic: ``path`` is always the old folder or the new one.
+    Elsewhere the old folder is renamed aside first (``path`` is missing for a moment).
+    """
+    new, path = Path(new), Path(path)
+    if not path.exists() and not path.is_symlink():
+        os.rename(new, path)
+        return
+    if _exchange(new, path):
+        _remove_tree(new)  # now the old folder
+        return
+    old = path.with_name(f".{path.name}.old-{secrets.token_hex(4)}")
+    os.rename(path, old)
+    os.rename(new, path)
+    _remove_tree(old)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the names ``a`` and ``b`` atomically (Linux ``renameat2``); False where that is not possible."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+def _remove_tree(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        _remove(path)
 
 
 def resolved_path(p) -> Path:

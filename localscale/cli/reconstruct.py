@@ -9,6 +9,7 @@ a run that builds no model at all exits with 1.
 from __future__ import annotations
 
 import argparse
+import os
 
 from .options import HelpFormatter, add_engine_options, executor_from_args, positive_int
 
@@ -20,7 +21,9 @@ pycolmap mapping, incremental or global (sparse/0, largest model first) -> summa
 Images: every image file under IMAGES (recursively); names are paths relative to IMAGES, with their
 extension (a.jpg and a.png are two images). Other files and unreadable images are skipped with a
 'warning:'. An OUT that holds our previous run with the same options is resumed (finished images
-and pairs are not redone); any other non-empty OUT needs --overwrite."""
+and pairs are not redone; a killed run is finished by the same command); any other non-empty OUT needs
+--overwrite. One run per OUT at a time (OUT/.lock); a run never deletes or replaces an input (an input
+where it writes is an error). summary.json is written last: a folder without it is unfinished."""
 
 EXAMPLES = """examples:
   localscale reconstruct photos/ -o out/                              (ALIKED + LightGlue, no correction)
@@ -170,7 +173,8 @@ def cmd_reconstruct(args) -> int:
         if executor is not None:
             executor.close()
     print(summary_table(summary))
-    print(f"wrote {args.output}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
+    shown = os.fsencode(args.output).decode("utf-8", "backslashreplace")
+    print(f"wrote {shown}/ (sparse/0: {summary['registered']} of {summary['images']} images)")
     return 0 if summary["registered"] > 0 else 1
 
 
@@ -200,6 +204,7 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         mapper=args.mapper,
         mapping_trials=args.mapping_trials,
         mapper_options=_name_values(args.mapper_option),
+        input_files=tuple(p for p in (args.local_weights, args.global_weights) if p),
     )
 
 

@@ -46,6 +46,7 @@ _EXPORTS = {
     ),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
-    ".reconstruction": ("reconstruct", "summary_table", "OUTPUTS", "OutputFolderError"),
+    ".reconstruction": ("reconstruct", "summary_table"),
+    ".outdir": ("OUTPUTS", "OutputFolderError"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

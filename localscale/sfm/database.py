@@ -16,18 +16,20 @@ for every image; its size must be the images' size, or the same aspect ratio, th
 COLMAP's keypoints have the pixel centre at ``(0.5, 0.5)``; ``keypoints.h5`` has it at
 ``(0, 0)`` (hloc's convention), so 0.5 is added here (as hloc does).
 
-The database is written under a temporary name and renamed: it is complete or absent.
+The database is written under a temporary name and renamed: it is complete or absent (the
+``-wal``/``-shm`` files an earlier database left beside the name are removed first).
 :func:`read_database` reads it back (the tests' round trip).
 """
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..errors import LocalScaleError, OutputError
 from ..outputs import atomic_path
 from .h5io import groups_with, read_group
 
@@ -160,39 +162,60 @@ def write_database(
     kp_names = set(groups_with(keypoints_path, "keypoints"))
     matches = read_all_matches(matches_path)
     geometries = read_geometries(geometries_path) if geometries_path is not None else {}
-    ids = {}
     with atomic_path(database_path) as tmp:
-        db = pycolmap.Database.open(tmp)
         try:
-            cam_ids = {}
-            for cid, camera in cameras.cameras.items():
-                cam = camera.to_pycolmap()
-                cam.camera_id = cid
-                cam_ids[cid] = db.write_camera(cam, use_camera_id=True)
-                rig = pycolmap.Rig(rig_id=cid)
-                rig.add_ref_sensor(cam.sensor_id)
-                db.write_rig(rig, use_rig_id=True)
-            for i, im in enumerate(images, 1):
-                cid = cam_ids[cameras.of_image[im.name]]
-                image = pycolmap.Image(name=im.name, camera_id=cid, image_id=i)
-                ids[im.name] = db.write_image(image, use_image_id=True)
-                frame = pycolmap.Frame(frame_id=i, rig_id=cid)
-                frame.add_data_id(image.data_id)
-                db.write_frame(frame, use_frame_id=True)
-                kps = (
-                    read_group(keypoints_path, im.name, ("keypoints",))["keypoints"]
-                    if im.name in kp_names
-                    else np.zeros((0, 2), np.float32)
-                )
-                db.write_keypoints(ids[im.name], np.ascontiguousarray(kps, np.float32) + 0.5)
-            for (a, b), (m, _) in matches.items():
-                if a in ids and b in ids:
-                    db.write_matches(ids[a], ids[b], np.ascontiguousarray(m, np.uint32))
-            for (a, b), g in geometries.items():
-                if a in ids and b in ids:
-                    db.write_two_view_geometry(ids[a], ids[b], g)
+            db = pycolmap.Database.open(tmp)
+            try:
+                ids = _fill(pycolmap, db, images, cameras, keypoints_path, kp_names, matches, geometries)
+            finally:
+                db.close()
+        except RuntimeError as e:  # how pycolmap reports SQLite's failures (a full disk)
+            free = shutil.disk_usage(database_path.parent).free // 1024
+            raise OutputError(
+                f"cannot write {database_path}: {str(e).strip().splitlines()[-1]} ({free} KB free on its file system)"
+            ) from None
         finally:
-            db.close()
+            _remove_sidecars(tmp)
+        _remove_sidecars(database_path)  # SQLite would replay an old database's log onto the new one
+    return ids
+
+
+def _remove_sidecars(path: Path) -> None:
+    """Remove the ``-wal``, ``-shm`` and ``-journal`` files SQLite keeps beside the database ``path``."""
+    for sidecar in ("-wal", "-shm", "-journal"):
+        Path(f"{path}{sidecar}").unlink(missing_ok=True)
+
+
+def _fill(pycolmap, db, images, cameras, keypoints_path, kp_names, matches, geometries) -> dict:
+    """Write the cameras, images, keypoints, matches and two-view geometries into ``db``; returns the image ids."""
+    ids = {}
+    cam_ids = {}
+    for cid, camera in cameras.cameras.items():
+        cam = camera.to_pycolmap()
+        cam.camera_id = cid
+        cam_ids[cid] = db.write_camera(cam, use_camera_id=True)
+        rig = pycolmap.Rig(rig_id=cid)
+        rig.add_ref_sensor(cam.sensor_id)
+        db.write_rig(rig, use_rig_id=True)
+    for i, im in enumerate(images, 1):
+        cid = cam_ids[cameras.of_image[im.name]]
+        image = pycolmap.Image(name=im.name, camera_id=cid, image_id=i)
+        ids[im.name] = db.write_image(image, use_image_id=True)
+        frame = pycolmap.Frame(frame_id=i, rig_id=cid)
+        frame.add_data_id(image.data_id)
+        db.write_frame(frame, use_frame_id=True)
+        kps = (
+            read_group(keypoints_path, im.name, ("keypoints",))["keypoints"]
+            if im.name in kp_names
+            else np.zeros((0, 2), np.float32)
+        )
+        db.write_keypoints(ids[im.name], np.ascontiguousarray(kps, np.float32) + 0.5)
+    for (a, b), (m, _) in matches.items():
+        if a in ids and b in ids:
+            db.write_matches(ids[a], ids[b], np.ascontiguousarray(m, np.uint32))
+    for (a, b), g in geometries.items():
+        if a in ids and b in ids:
+            db.write_two_view_geometry(ids[a], ids[b], g)
     return ids
 
 

@@ -7,7 +7,8 @@ a stem), and ``x/a.jpg`` and ``y/a.jpg`` are two images. Names that would give t
 in ``matches.h5`` (hloc writes ``/`` inside a name as ``-``: ``x/a.jpg`` and a file ``x-a.jpg``) are an
 error: rename one of them.
 
-Files whose extension is not an image format's are listed in one ``warning:`` and skipped;
+Files whose extension is not an image format's, and files whose name (path) is not valid UTF-8
+(names in COLMAP's database and the h5 files are UTF-8), are listed in one ``warning:`` each and skipped;
 image files that cannot be decoded, or that are too thin at the working resolution, each get a
 ``warning:`` and are skipped; of copies of one photo (the same pixels) only the first is kept, with a
 ``warning:``; hidden files and folders (``.name``) are ignored. Fewer than two usable images is an error.
@@ -25,6 +26,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from ..errors import ImageError, LocalScaleError
+from ..outputs import resolved_path
 from .report import warn
 
 #: extensions read as images (any case)
@@ -71,20 +73,25 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
     from ..io import image_shape, load_working_image
 
     root = Path(folder)
+    if root.is_symlink() and not root.exists():
+        raise ImageFolderError(f"images folder {root} is a broken symbolic link or a link loop")
     if not root.exists():
         raise ImageFolderError(f"images folder not found: {root}")
     if not root.is_dir():
         raise ImageFolderError(f"not a folder: {root} (give the folder that holds the images)")
-    skip = {Path(p).resolve() for p in exclude}
-    others, images, unreadable, digests = [], [], [], {}
+    skip = {resolved_path(p) for p in exclude}
+    others, images, unreadable, digests, not_utf8 = [], [], [], {}, []
     for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
         here = Path(dirpath)
-        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and (here / d).resolve() not in skip)
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and resolved_path(here / d) not in skip)
         for fn in sorted(filenames):
             if fn.startswith("."):
                 continue
             path = here / fn
             name = path.relative_to(root).as_posix()
+            if not _is_utf8(name):
+                not_utf8.append(name)
+                continue
             if path.suffix.lower() not in IMAGE_SUFFIXES:
                 others.append(name)
                 continue
@@ -103,6 +110,12 @@ def find_images(folder, exclude: Iterable = (), check: bool = True, max_side: Op
     if others:
         shown = ", ".join(others[:8]) + (f", ... ({len(others)} in all)" if len(others) > 8 else "")
         warn(f"skipped {len(others)} file(s) that are not images ({', '.join(IMAGE_SUFFIXES)}): {shown}")
+    if not_utf8:
+        shown = ", ".join(_printable(n) for n in not_utf8[:8]) + (", ..." if len(not_utf8) > 8 else "")
+        warn(
+            f"skipped {len(not_utf8)} file(s) whose name is not valid UTF-8 (image names in COLMAP's "
+            f"database and the h5 files are UTF-8; rename them to use them): {shown}"
+        )
     for name, why in unreadable:
         warn(f"skipped {name}: {why}")
     images = _without_duplicates(sorted(images, key=lambda im: im.name), digests)
@@ -158,6 +171,19 @@ def _without_duplicates(images: list, digests: dict) -> list:
             f"registered at the same pose and count its points twice): {shown}"
         )
     return kept
+
+
+def _is_utf8(name: str) -> bool:
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # bytes the file system gave that are not UTF-8 (surrogate escapes)
+        return False
+    return True
+
+
+def _printable(name: str) -> str:
+    """``name`` with the bytes that are not UTF-8 written as ``\\xNN``."""
+    return os.fsencode(name).decode("utf-8", "backslashreplace")
 
 
 def check_names(images: list) -> None:

@@ -7,9 +7,11 @@ adjustment; COLMAP 4's ``global_mapper``). The global mapper needs focal lengths
 half of the cameras have a known one, COLMAP's view-graph calibration runs first
 (``colmap view_graph_calibrator``: focal lengths from the fundamental matrices; it updates the
 database's cameras and two-view geometries). The models are numbered by size (``0``: the most
-registered images). The mapper writes into a temporary folder; ``sparse/`` is replaced only when
-it has finished. A database of two images, or one where the mapper makes no model (its images
-connected by single pairs only), gets the best pair's two-view model (:mod:`.two_views`).
+registered images). The mapper writes into temporary folders (``.sparse.tmp-*``, ``.sparse.new-*``,
+unique to the run); ``sparse/`` is replaced by the new one in one step
+(:func:`~localscale.outputs.replace_dir`) only when it has finished. A database of two images, or one
+where the mapper makes no model (its images connected by single pairs only), gets the best pair's
+two-view model (:mod:`.two_views`).
 
 Example::
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +32,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..errors import LocalScaleError, OutputError
+from ..outputs import replace_dir
 from .two_views import GLOBAL_TWO_VIEW_OPTIONS, database_images, two_view_mapping
 
 #: the mappers of :func:`run_mapping`
@@ -231,29 +235,30 @@ def run_mapping(
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
     calibrated = None
-    tmp = sparse_dir.with_name(f".{sparse_dir.name}.tmp")
-    final_tmp = sparse_dir.with_name(f".{sparse_dir.name}.new")
-    for d in (tmp, final_tmp):
-        shutil.rmtree(d, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    temporaries = []
     try:
+        sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+        for kind in ("tmp", "new"):
+            temporaries.append(Path(tempfile.mkdtemp(prefix=f".{sparse_dir.name}.{kind}-", dir=sparse_dir.parent)))
+        tmp, final_tmp = temporaries
         with colmap_log(verbose):
             if mapper == "global" and needs_calibration(database_path):
                 calibrated = calibrate_view_graph(database_path)
             ordered, runs, overrides = _map(
                 mapper, (database_path, image_dir, tmp), options, num_threads, overrides, trials
             )
-        final_tmp.mkdir()
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
             d.mkdir()
             rec.write(d)
-        if sparse_dir.exists():
-            shutil.rmtree(sparse_dir)
-        final_tmp.rename(sparse_dir)
+        replace_dir(final_tmp, sparse_dir)
+    except (OSError, RuntimeError) as e:  # a full disk; COLMAP reports its failures as RuntimeError
+        free = shutil.disk_usage(sparse_dir.parent).free // 1024 if sparse_dir.parent.is_dir() else 0
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e).strip().splitlines()[-1]
+        raise OutputError(f"mapping into {sparse_dir} failed: {why} ({free} KB free on its file system)") from None
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(final_tmp, ignore_errors=True)
+        for d in temporaries:
+            shutil.rmtree(d, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
     return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides)
 

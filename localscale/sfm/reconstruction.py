@@ -14,7 +14,7 @@ The output folder:
   the geometry, database and mapping are redone (cheap, and they depend on everything). An image
   whose file changed since (size or modification time) is an error: use ``overwrite``;
 * holding a run with other options, or anything else: an error, unless ``overwrite``, which
-  replaces our files (the names in :data:`OUTPUTS`) and leaves any other file alone.
+  replaces our files (the names in :data:`~.outdir.OUTPUTS`; see :mod:`.outdir`) and leaves any other file alone.
 
 Example::
 
@@ -26,7 +26,6 @@ Example::
 from __future__ import annotations
 
 import hashlib
-import shutil
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -34,23 +33,12 @@ from pathlib import Path
 from typing import Any, Optional
 
 from ..errors import LocalScaleError
-from ..outputs import check_writable_dir
+from ..outputs import check_writable_dir, resolved_path
+from . import outdir
+from .outdir import OutputFolderError
 from .report import collecting_warnings, markdown_table, no_model_reason, read_json, warn, write_json
 from .weights import WEIGHT_OPTIONS, weight_options
 
-#: the files and folders a run writes into its output folder
-OUTPUTS = (
-    "run.json",
-    "features.h5",
-    "pairs.txt",
-    "matches.h5",
-    "keypoints.h5",
-    "geometries.h5",
-    "database.db",
-    "sparse",
-    "summary.json",
-    "reconstruction.png",
-)
 #: options that change the result: a resumed run must have the same
 RESULT_OPTIONS = (
     "matcher",
@@ -65,10 +53,6 @@ RESULT_OPTIONS = (
     "camera_file_sha1",
     "merge_px",
 ) + WEIGHT_OPTIONS
-
-
-class OutputFolderError(LocalScaleError):
-    """The output folder holds something a run must not overwrite or resume."""
 
 
 def _sha1(path) -> Optional[str]:
@@ -110,8 +94,7 @@ def _output_state(out: Path, options: dict, overwrite: bool) -> str:
     """``new``, ``resume`` or ``overwrite`` for ``out`` (module docstring); raises :class:`OutputFolderError`."""
     if out.exists() and not out.is_dir():
         raise OutputFolderError(f"output is a file, not a folder: {out}")
-    entries = [p for p in out.iterdir()] if out.is_dir() else []
-    if not entries:
+    if not outdir.run_entries(out):
         return "new"
     if overwrite:
         return "overwrite"
@@ -160,6 +143,7 @@ def reconstruct(
     mapper: str = "incremental",
     mapping_trials: int = 3,
     mapper_options: Optional[dict] = None,
+    input_files: tuple = (),
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
     ``out_dir/summary.json``).
@@ -189,6 +173,7 @@ def reconstruct(
             images out; the run that registers the most is kept.
         mapper_options: pycolmap options of the mapper set by name
             (:func:`~.mapping.set_options`, e.g. ``{"ba_refine_extra_params": False}``).
+        input_files: other files the caller read (weights): refused where the run writes (:mod:`.outdir`).
     """
     t_total = time.perf_counter()
     run = _Reconstruction(
@@ -216,6 +201,7 @@ def reconstruct(
         mapper=mapper,
         mapping_trials=mapping_trials,
         mapper_options=dict(mapper_options or {}),
+        input_files=tuple(input_files),
     )
     return run.run(t_total)
 
@@ -251,6 +237,7 @@ class _Reconstruction:
     mapper: str = "incremental"
     mapping_trials: int = 3
     mapper_options: dict = field(default_factory=dict)
+    input_files: tuple = ()
     seconds: dict = field(default_factory=dict)
 
     def run(self, t_total: float) -> dict:
@@ -268,18 +255,19 @@ class _Reconstruction:
     def _stages(self, t_total: float) -> dict:
         with collecting_warnings() as warnings_seen:
             self.read_inputs()
-            # ---- everything is checked: from here on, files are written
-            self.prepare_output()
-            self.extract()
-            self.choose_pairs()
-            self.match()
-            self.verify()
-            self.build_database()
-            self.map_model()
-            self.seconds["total"] = time.perf_counter() - t_total
-            summary = self.summarize()
-            summary["warnings"] = list(warnings_seen)
-        write_json(self.out / "summary.json", summary)
+            # ---- everything is checked: from here on, files are written, holding the folder's lock
+            with outdir.output_lock(self.out):
+                self.prepare_output()
+                self.extract()
+                self.choose_pairs()
+                self.match()
+                self.verify()
+                self.build_database()
+                self.map_model()
+                self.seconds["total"] = time.perf_counter() - t_total
+                summary = self.summarize()
+                summary["warnings"] = list(warnings_seen)
+                write_json(self.out / "summary.json", summary)
         return summary
 
     def check_arguments(self) -> None:
@@ -301,7 +289,7 @@ class _Reconstruction:
             from .mapping import mapping_options
 
             mapping_options(mapper=self.mapper, overrides=self.mapper_options)
-        if self.out.resolve() == self.images_dir.resolve():
+        if resolved_path(self.out) == resolved_path(self.images_dir):
             raise OutputFolderError(f"the output folder is the images folder ({self.out}): give another folder")
         check_writable_dir(self.out)
         self.options = {
@@ -337,8 +325,15 @@ class _Reconstruction:
                 raise CameraFileError(f"camera file not found: {self.camera_file}")
             self.options["camera_file_sha1"] = _sha1(self.camera_file)
         self.options.update(weight_options(self.correction, self.matcher, self.local_model, self.global_model))
-        self.state = _output_state(self.out, self.options, self.overwrite)
         self.images = find_images(self.images_dir, exclude=[self.out], max_side=self.max_side)
+        inputs = [
+            ("images folder", self.images_dir),
+            ("pairs file", None if self.pairs == "exhaustive" else self.pairs),
+        ]
+        inputs += [("camera file", self.camera_file)] + [("input file", p) for p in self.input_files]
+        outdir.check_inputs_kept(self.out, inputs + [("image", im.path) for im in self.images])
+        outdir.check_not_held(self.out)
+        self.state = _output_state(self.out, self.options, self.overwrite)
         self.names = [im.name for im in self.images]
         self.cameras = image_cameras(self.images, self.camera_mode, self.camera_file)  # a bad camera file fails here
         self.pair_list = (
@@ -360,18 +355,17 @@ class _Reconstruction:
             )
 
     def prepare_output(self) -> None:
-        """Remove our files of a run being overwritten, create the folder and write ``run.json``."""
-        if self.state == "overwrite":
-            for name in OUTPUTS:
-                p = self.out / name
-                if p.is_dir():
-                    shutil.rmtree(p)
-                elif p.exists():
-                    p.unlink()
-        self.out.mkdir(parents=True, exist_ok=True)
+        """Holding the folder's lock: check its state again (another run may have ended meanwhile),
+        remove the summary, our files of a run being overwritten and stale temporaries
+        (:func:`~.outdir.begin_writing`), and write ``run.json``."""
+        if _output_state(self.out, self.options, self.overwrite) != self.state:
+            raise OutputFolderError(f"another run wrote to {self.out} while this one read its inputs: run again")
+        if self.state == "resume":
+            self._check_unchanged()
+        outdir.begin_writing(self.out, self.state == "overwrite")
         write_json(
             self.out / "run.json",
-            {"options": self.options, "images": self.stamps, "images_dir": str(self.images_dir.resolve())},
+            {"options": self.options, "images": self.stamps, "images_dir": str(resolved_path(self.images_dir))},
         )
 
     @contextmanager

@@ -10,6 +10,7 @@ images filled. Written atomically.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -95,8 +96,8 @@ def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: 
     ax1.set_title(f"pairs: {nv} verified (green), {len(pair_status) - nv} not (red); filled = registered", fontsize=9)
     ax1.set_aspect("equal")
     ax1.axis("off")
-    if title:
-        fig.suptitle(title, fontsize=10)
+    if title:  # a folder name that is not UTF-8 shows its bytes as \xNN
+        fig.suptitle(os.fsencode(title).decode("utf-8", "backslashreplace"), fontsize=10)
     fig.tight_layout()
     path = Path(path)
     with atomic_path(path) as tmp:
