@@ -49,16 +49,19 @@ def matcher_weight_files(matcher: str) -> list:
     """The pre-trained weight files that ``matcher`` (a name of ``MATCHERS``) reads: its extractor's
     and its LightGlue's (none for SIFT; the bundled HardNet for the patch matcher)."""
     from ..features.descriptors import BUNDLED_HARDNETS
+    from ..features.extractors import get_extractor
     from ..features.pretrained import find_weights
     from ..matching import match_config
-    from ..matching.lightglue import LIGHTGLUE_WEIGHTS
 
     cfg = match_config(matcher)
-    names = {"aliked": [f"{cfg.model}.pth"], "disk": ["disk-depth-save.pth"], "xfeat": ["xfeat.pt"]}
-    files = names.get(cfg.extractor, []) + ([LIGHTGLUE_WEIGHTS[cfg.extractor]] if cfg.extractor in names else [])
-    paths = [find_weights(name, cfg.weights) for name in files]
-    if cfg.extractor == "patches" and cfg.descriptor in BUNDLED_HARDNETS:
-        paths.append(BUNDLED_HARDNETS[cfg.descriptor])
+    cls = get_extractor(cfg.extractor)
+    conf = cls.check_conf(cfg.extractor_conf)
+    files = list(cls.weight_files(conf))
+    if cfg.matching == "lightglue" and cls.lightglue_weights is not None:
+        files.append(cls.lightglue_weights)
+    paths = [find_weights(f, cfg.weights) for f in files]
+    if cls.patch_based and conf.get("descriptor") in BUNDLED_HARDNETS:
+        paths.append(BUNDLED_HARDNETS[conf["descriptor"]])
     return paths
 
 
