@@ -87,6 +87,78 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+# ---------------------------------------------------------------- what a cluster leaves on this machine (/proc)
+
+
+def cluster_processes(folder, also=()) -> dict:
+    """``{pid: socket inodes}`` of the live processes holding a file under ``folder`` open (every process
+    of a Ray cluster keeps its log files in its session folder, under ``temp_dir``, open), and of ``also``."""
+    folder, found = str(folder), {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", "rb") as f:
+                if f.read().rsplit(b")", 1)[1].split()[0] == b"Z":
+                    continue
+            fds = os.listdir(f"/proc/{entry}/fd")
+        except OSError:  # gone meanwhile
+            continue
+        links = []
+        for fd in fds:
+            try:
+                links.append(os.readlink(f"/proc/{entry}/fd/{fd}"))
+            except OSError:  # closed meanwhile
+                pass
+        if int(entry) in also or any(link.startswith(folder) for link in links):
+            found[int(entry)] = {int(x[8:-1]) for x in links if x.startswith("socket:[")}
+    return found
+
+
+def wait_until_gone(folder, seconds: float) -> dict:
+    """:func:`cluster_processes` of ``folder`` but this one, once none is left or when ``seconds`` have passed."""
+    deadline = time.time() + seconds
+    while True:
+        left = {pid: s for pid, s in cluster_processes(folder).items() if pid != os.getpid()}
+        if not left or time.time() > deadline:
+            return left
+        time.sleep(0.2)
+
+
+def watchdogs_of(driver: int) -> list:
+    """The live watchdog processes of ``driver`` (the local cluster's, see ``ray_local``)."""
+    found = []
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            args = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(a.endswith(b"ray_watchdog.py") for a in args) and str(driver).encode() in args:
+            found.append(int(entry))
+    return found
+
+
+def listening_sockets() -> dict:
+    """``{inode: ip_address}`` of this machine's listening TCP sockets (``/proc/net/tcp``, ``tcp6``)."""
+    import ipaddress
+
+    found = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for row in f.read().splitlines()[1:]:
+                cols = row.split()
+                if cols[3] != "0A":  # not LISTEN
+                    continue
+                raw = bytes.fromhex(cols[1].split(":")[0])
+                raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))  # per 32-bit word, host order
+                found[int(cols[9])] = ipaddress.ip_address(raw)
+    return found
+
+
+def is_loopback(ip) -> bool:
+    return ip.is_loopback or (ip.version == 6 and ip.ipv4_mapped is not None and ip.ipv4_mapped.is_loopback)
+
+
 # ---------------------------------------------------------------- work functions (pickled by value for Ray)
 
 
@@ -355,6 +427,31 @@ class TestRayLocalCluster:
         assert dict(ray_executor.map(double, [1, 2])) == {0: 2, 1: 4}  # the executor still works
 
 
+@needs_ray
+def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
+    """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
+    loopback, and its GCS refuses a request without Ray's token."""
+    import grpc
+    from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
+
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)  # Ray's default
+    assert not ray.is_initialized()
+    with get_executor("ray", workers=1, threads_per_worker=1, temp_dir=str(short_dir)) as ex:
+        ex.worker_info()  # the cluster and its worker are up
+        processes = cluster_processes(short_dir, also=(os.getpid(),))
+        listening = listening_sockets()
+        bound = {pid: [listening[i] for i in inodes if i in listening] for pid, inodes in processes.items()}
+        assert os.getpid() in processes and len(processes) >= 5  # the driver, GCS, raylet, agents, worker
+        assert sum(map(len, bound.values())) >= 4, bound  # GCS, raylet, worker, driver at least
+        assert all(is_loopback(ip) for ips in bound.values() for ip in ips), bound
+        with grpc.insecure_channel(ray.get_runtime_context().gcs_address) as channel:
+            stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+            with pytest.raises(grpc.RpcError) as refused:
+                stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=10)
+        assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    assert not wait_until_gone(short_dir, 10)  # closed: nothing of it runs
+
+
 # ---------------------------------------------------------------- a killed driver; a two-node cluster
 
 DRIVER = r"""
@@ -412,8 +509,15 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
                 break
             written.append(int(line.split()[1]))
         assert len(written) == 3, "the driver wrote nothing"
+        assert cluster_processes(short_dir)
         os.kill(proc.pid, signal.SIGKILL)  # the driver only: its cluster goes down with it
         proc.wait(10)
+        left = wait_until_gone(short_dir, 10)
+        assert not left, f"{len(left)} process(es) of the killed driver's cluster still run"
+        deadline = time.time() + 5
+        while watchdogs_of(proc.pid) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not watchdogs_of(proc.pid)  # the watchdog that stopped them exited too
     finally:
         _stop_group(proc)  # and anything of its cluster still running
     # a write the kill interrupted leaves only its hidden temporary file, never a partial output
@@ -423,6 +527,7 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
     assert all(n.endswith(f".tmp-{proc.pid}.txt") for n in left), left
     rerun = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=90, start_new_session=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert not wait_until_gone(short_dir, 10)
     again = [int(line.split()[1]) for line in rerun.stdout.splitlines() if line.startswith("wrote")]
     assert sorted(again) == sorted(set(range(10)) - done)  # only what was missing, each once
     outputs = {p.name: p.read_text() for p in out.iterdir() if not p.name.startswith(".")}
@@ -553,6 +658,33 @@ def test_predict_pairs_engine_options_need_ray(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and "--engine ray" in err[0]
     assert not (tmp_path / "out").exists()
+
+
+@needs_ray
+@pytest.mark.parametrize("command", ["predict", "reconstruct", "eval-hpatches"])
+def test_unreachable_ray_address_fails_before_anything_is_written(command, tmp_path, capsys, photos):
+    from localscale.cli import main
+
+    out = tmp_path / "out"
+    if command == "predict":
+        argv = ["predict", "--pairs", str(_pairs_file(tmp_path)), "-o", str(out)]
+    elif command == "reconstruct":
+        pytest.importorskip("pycolmap")
+        pytest.importorskip("h5py")
+        from localscale.sfm.synthetic import write_scene
+
+        write_scene(tmp_path / "scene", num_views=3, shape=(120, 160), seed=0)
+        argv = ["reconstruct", str(tmp_path / "scene"), "-o", str(out), "--matcher", "sift", "--no-progress"]
+    else:
+        from localscale.evaluation import make_sequences
+
+        make_sequences([photos["astronaut"]], tmp_path / "hp", num_images=2, size=96, seed=0)
+        argv = ["eval-hpatches", str(tmp_path / "hp"), "-o", str(out), "--methods", "none", "--descriptor", "sift"]
+    address = f"127.0.0.1:{free_port()}"  # nothing listens there
+    assert main(argv + ["--engine", "ray", "--ray-address", address]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: cannot reach the Ray cluster at {address}: "), err
+    assert not out.exists()
 
 
 @needs_ray

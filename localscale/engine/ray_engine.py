@@ -26,6 +26,7 @@ from typing import Optional
 
 from ..errors import LocalScaleError
 from .base import RAY_INSTALL_HINT, EngineError, Executor, RunStats, WorkerLostError, progress_bar, state_key
+from .ray_local import start_local_cluster
 
 
 def _import_ray():
@@ -47,6 +48,25 @@ def _host_port(address: str) -> Optional[tuple[str, int]]:
             f"--ray-address {address!r}: expected host:port (e.g. 127.0.0.1:6379), ray://host:port or auto"
         )
     return host.strip("[]"), int(port)
+
+
+def _auto_address(temp_dir: Optional[str]) -> Optional[tuple[str, int]]:
+    """``(host, port)`` of the cluster ``--ray-address auto`` joins (``RAY_ADDRESS``, else the last
+    cluster ``ray start`` started); None when this Ray cannot tell (``ray.init`` decides then)."""
+    try:
+        from ray._private.services import canonicalize_bootstrap_address
+    except ImportError:
+        return None
+    try:
+        found = canonicalize_bootstrap_address("auto", temp_dir)
+    except Exception:
+        found = None
+    if found is None:
+        raise EngineError(
+            "--ray-address auto: no running Ray cluster found (start one with `ray start --head`, "
+            "set RAY_ADDRESS, or drop --ray-address for a local one)"
+        )
+    return _host_port(found)
 
 
 def _resolve_refs(item):
@@ -168,6 +188,7 @@ class RayExecutor(Executor):
         self.max_retries, self.in_flight = max_retries, in_flight
         self.connect_timeout, self.ready_timeout, self.temp_dir = connect_timeout, ready_timeout, temp_dir
         self._started = self._owns_session = False
+        self._cluster = None  # the local cluster this executor started
         self._actors: list = []
         self._generation: list[int] = []
         self._pool_key = None
@@ -192,19 +213,12 @@ class RayExecutor(Executor):
         elif self.address is None:
             cpus = (self._workers or max(1, (os.cpu_count() or 1) // self.threads_per_worker)) * self.threads_per_worker
             try:
-                ray.init(
-                    num_cpus=cpus,
-                    include_dashboard=False,
-                    log_to_driver=False,
-                    logging_level=logging.ERROR,
-                    _node_ip_address="127.0.0.1",
-                    _temp_dir=self.temp_dir,
-                )
+                self._cluster = start_local_cluster(ray, cpus, self.temp_dir)
             except (OSError, RuntimeError, ValueError) as e:  # e.g. a temp_dir too long for Ray's sockets
                 raise EngineError(f"cannot start a local Ray cluster: {' '.join(str(e).split())[:300]}") from None
             self._owns_session = True
         else:
-            self._check_reachable()
+            self.check_address()
             try:
                 ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
             except (ConnectionError, RuntimeError, ValueError) as e:
@@ -226,16 +240,24 @@ class RayExecutor(Executor):
         self.startup_seconds += time.perf_counter() - t0
         return self
 
-    def _check_reachable(self) -> None:
+    def check_address(self) -> None:
+        """Raise :class:`EngineError` (one line) unless ``address`` accepts a connection within
+        ``connect_timeout`` seconds (``auto``: unless Ray finds a running cluster); nothing to check
+        without ``address``. :func:`get_executor` calls it, so that a command fails before it writes."""
+        if self.address is None:
+            return
         target = _host_port(self.address)
         if target is None:
-            return
+            target = _auto_address(self.temp_dir)
+            if target is None:
+                return
         try:
             socket.create_connection(target, timeout=self.connect_timeout).close()
         except OSError as e:
             reason = "timed out" if isinstance(e, socket.timeout) else (e.strerror or str(e))
+            where = self.address if self.address != "auto" else f"{target[0]}:{target[1]} (auto)"
             raise EngineError(
-                f"cannot reach the Ray cluster at {self.address}: {reason} "
+                f"cannot reach the Ray cluster at {where}: {reason} "
                 "(start it with `ray start --head`, or drop --ray-address for a local one)"
             ) from None
 
@@ -307,9 +329,12 @@ class RayExecutor(Executor):
         if not self._started:
             return
         self._kill_actors()
-        if self._owns_session and self._ray.is_initialized():
+        if self._cluster is not None:
+            self._cluster.close()
+        elif self._owns_session and self._ray.is_initialized():
             self._ray.shutdown()
         self._started = self._owns_session = False
+        self._cluster = None
 
     # ------------------------------------------------------------------ map
 
