@@ -34,6 +34,9 @@ except ImportError:  # the local engine's tests still run
 
 needs_ray = pytest.mark.skipif(ray is None, reason="ray is not installed (pip install 'localscale[ray]')")
 PYTHON = sys.executable
+CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+needs_two_cpus = pytest.mark.skipif(CPUS < 2, reason="a local Ray cluster of 2 workers needs 2 CPUs")
+needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="lists processes and sockets in /proc")
 RAY_CLI = Path(sys.executable).with_name("ray")
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 
@@ -224,6 +227,13 @@ def test_bad_options_are_one_line_errors(monkeypatch):
     if ray is not None:
         with pytest.raises(EngineError, match="expected host:port"):
             get_executor("ray", address="nowhere")
+        # a local cluster is this machine: no more CPUs than it has
+        with pytest.raises(
+            EngineError, match=rf"{CPUS} worker.s. x 2 thread.s. need {2 * CPUS} CPUs; this machine has {CPUS}\b"
+        ):
+            get_executor("ray", workers=CPUS, threads_per_worker=2)
+        with pytest.raises(EngineError, match=rf"need {CPUS + 1} CPUs"):
+            get_executor("ray", threads_per_worker=CPUS + 1)
     monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
     with pytest.raises(EngineError, match=r"pip install 'localscale\[ray\]'"):
         get_executor("ray", workers=2)
@@ -295,6 +305,7 @@ def tiny_pairs(tmp_path_factory):
 
 
 @needs_ray
+@needs_two_cpus
 @pytest.mark.usefixtures("pickle_tests_by_value")
 class TestRayLocalCluster:
     def test_unreachable_address_fails_fast(self):
@@ -428,6 +439,7 @@ class TestRayLocalCluster:
 
 
 @needs_ray
+@needs_proc
 def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
     """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
     loopback, and its GCS refuses a request without Ray's token."""
@@ -490,6 +502,8 @@ def _stop_group(proc: subprocess.Popen) -> None:
 
 
 @needs_ray
+@needs_two_cpus
+@needs_proc
 def test_killed_driver_rerun_resumes(tmp_path, short_dir):
     out = tmp_path / "out"
     out.mkdir()

@@ -50,6 +50,13 @@ def _host_port(address: str) -> Optional[tuple[str, int]]:
     return host.strip("[]"), int(port)
 
 
+def _machine_cpus() -> int:
+    """The CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 def _auto_address(temp_dir: Optional[str]) -> Optional[tuple[str, int]]:
     """``(host, port)`` of the cluster ``--ray-address auto`` joins (``RAY_ADDRESS``, else the last
     cluster ``ray start`` started); None when this Ray cannot tell (``ray.init`` decides then)."""
@@ -185,6 +192,13 @@ class RayExecutor(Executor):
             _host_port(address)  # a malformed address is an error now, before anything starts
         self._ray = _import_ray()
         self._workers, self.threads_per_worker, self.address = workers, threads_per_worker, address
+        if address is None and not self._ray.is_initialized():
+            need, machine = self._local_cpus(), _machine_cpus()
+            if need > machine:  # a local cluster is this machine: more workers than CPUs only thrash
+                raise EngineError(
+                    f"{need // threads_per_worker} worker(s) x {threads_per_worker} thread(s) need {need} CPUs; "
+                    f"this machine has {machine} (for more, join a bigger cluster with --ray-address)"
+                )
         self.max_retries, self.in_flight = max_retries, in_flight
         self.connect_timeout, self.ready_timeout, self.temp_dir = connect_timeout, ready_timeout, temp_dir
         self._started = self._owns_session = False
@@ -199,6 +213,10 @@ class RayExecutor(Executor):
     def workers(self) -> int:
         return self._workers or 0
 
+    def _local_cpus(self) -> int:
+        """The CPUs of the local cluster: ``workers`` x ``threads_per_worker`` (default: the machine's)."""
+        return (self._workers or max(1, _machine_cpus() // self.threads_per_worker)) * self.threads_per_worker
+
     # ------------------------------------------------------------------ cluster and pool
 
     def start(self) -> "RayExecutor":
@@ -211,7 +229,7 @@ class RayExecutor(Executor):
         if ray.is_initialized():  # the caller's own Ray session
             self._owns_session = False
         elif self.address is None:
-            cpus = (self._workers or max(1, (os.cpu_count() or 1) // self.threads_per_worker)) * self.threads_per_worker
+            cpus = self._local_cpus()
             try:
                 self._cluster = start_local_cluster(ray, cpus, self.temp_dir)
             except (OSError, RuntimeError, ValueError) as e:  # e.g. a temp_dir too long for Ray's sockets
