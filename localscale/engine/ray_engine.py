@@ -9,10 +9,12 @@ of an actor that died (``kill -9``, out of memory, a lost node) to a fresh actor
 whose work raised a :class:`~localscale.errors.LocalScaleError` comes back as that exception,
 never retried.
 
-Without ``address`` a local cluster is started (``ray.init(num_cpus=workers x threads)``, no
-dashboard) on the first ``map`` and stopped by :meth:`RayExecutor.close`; with ``address`` the
-driver joins that cluster (an unreachable address is an error within ``connect_timeout``
-seconds). Image paths and weight files must be readable on every node.
+Without ``address`` a local cluster of ``workers x threads`` CPUs (no more than this machine has)
+is started on the first ``map`` and stopped by :meth:`RayExecutor.close`: on loopback, with Ray's
+token authentication, stopped by a watchdog if the driver dies (:mod:`.ray_local`). With
+``address`` the driver joins that cluster (an address that accepts no connection within
+``connect_timeout`` seconds is an error). Image paths and weight files must be readable on every
+node.
 """
 
 from __future__ import annotations
@@ -58,8 +60,9 @@ def _machine_cpus() -> int:
 
 
 def _auto_address(temp_dir: Optional[str]) -> Optional[tuple[str, int]]:
-    """``(host, port)`` of the cluster ``--ray-address auto`` joins (``RAY_ADDRESS``, else the last
-    cluster ``ray start`` started); None when this Ray cannot tell (``ray.init`` decides then)."""
+    """``(host, port)`` of the cluster ``--ray-address auto`` joins, as Ray finds it (``RAY_ADDRESS``,
+    the cluster ``ray start`` recorded, else a GCS running on this machine); None when this Ray
+    cannot tell (``ray.init`` decides then)."""
     try:
         from ray._private.services import canonicalize_bootstrap_address
     except ImportError:
