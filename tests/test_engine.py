@@ -442,25 +442,32 @@ class TestRayLocalCluster:
 @needs_proc
 def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
     """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
-    loopback, and its GCS refuses a request without Ray's token."""
+    loopback, and its GCS refuses a request without Ray's token. The driver's SIGTERM handler (the
+    command line's finishes the pair being written) is still its own once the cluster is up."""
     import grpc
     from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
 
     monkeypatch.delenv("RAY_AUTH_MODE", raising=False)  # Ray's default
     assert not ray.is_initialized()
-    with get_executor("ray", workers=1, threads_per_worker=1, temp_dir=str(short_dir)) as ex:
-        ex.worker_info()  # the cluster and its worker are up
-        processes = cluster_processes(short_dir, also=(os.getpid(),))
-        listening = listening_sockets()
-        bound = {pid: [listening[i] for i in inodes if i in listening] for pid, inodes in processes.items()}
-        assert os.getpid() in processes and len(processes) >= 5  # the driver, GCS, raylet, agents, worker
-        assert sum(map(len, bound.values())) >= 4, bound  # GCS, raylet, worker, driver at least
-        assert all(is_loopback(ip) for ips in bound.values() for ip in ips), bound
-        with grpc.insecure_channel(ray.get_runtime_context().gcs_address) as channel:
-            stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
-            with pytest.raises(grpc.RpcError) as refused:
-                stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=10)
-        assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    on_sigterm = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        with get_executor("ray", workers=1, threads_per_worker=1, temp_dir=str(short_dir)) as ex:
+            ex.worker_info()  # the cluster and its worker are up
+            assert signal.getsignal(signal.SIGTERM) is on_sigterm
+            processes = cluster_processes(short_dir, also=(os.getpid(),))
+            listening = listening_sockets()
+            bound = {pid: [listening[i] for i in inodes if i in listening] for pid, inodes in processes.items()}
+            assert os.getpid() in processes and len(processes) >= 5  # the driver, GCS, raylet, agents, worker
+            assert sum(map(len, bound.values())) >= 4, bound  # GCS, raylet, worker, driver at least
+            assert all(is_loopback(ip) for ips in bound.values() for ip in ips), bound
+            with grpc.insecure_channel(ray.get_runtime_context().gcs_address) as channel:
+                stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+                with pytest.raises(grpc.RpcError) as refused:
+                    stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=10)
+            assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     assert not wait_until_gone(short_dir, 10)  # closed: nothing of it runs
 
 

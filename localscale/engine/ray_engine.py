@@ -28,7 +28,7 @@ from typing import Optional
 
 from ..errors import LocalScaleError
 from .base import RAY_INSTALL_HINT, EngineError, Executor, RunStats, WorkerLostError, progress_bar, state_key
-from .ray_local import start_local_cluster
+from .ray_local import callers_sigterm_handler, start_local_cluster
 
 
 def _import_ray():
@@ -234,14 +234,16 @@ class RayExecutor(Executor):
         elif self.address is None:
             cpus = self._local_cpus()
             try:
-                self._cluster = start_local_cluster(ray, cpus, self.temp_dir)
+                with callers_sigterm_handler():
+                    self._cluster = start_local_cluster(ray, cpus, self.temp_dir)
             except (OSError, RuntimeError, ValueError) as e:  # e.g. a temp_dir too long for Ray's sockets
                 raise EngineError(f"cannot start a local Ray cluster: {' '.join(str(e).split())[:300]}") from None
             self._owns_session = True
         else:
             self.check_address()
             try:
-                ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
+                with callers_sigterm_handler():
+                    ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
             except (ConnectionError, RuntimeError, ValueError) as e:
                 raise EngineError(
                     f"cannot join the Ray cluster at {self.address}: {' '.join(str(e).split())[:300]}"

@@ -16,13 +16,29 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import subprocess
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 #: Ray's switch between a node on loopback (off: what Ray does on Windows and macOS) and one on a network address
 SINGLE_NODE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+@contextmanager
+def callers_sigterm_handler():
+    """Keep this process's SIGTERM handler across ``ray.init``, which replaces it with its own (an
+    exit with Ray's crash report, code 1): e.g. the command line's, which finishes the item being
+    written first."""
+    saved = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+    try:
+        yield
+    finally:
+        if saved is not None:
+            signal.signal(signal.SIGTERM, saved)
 
 
 def _children() -> set:
