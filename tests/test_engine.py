@@ -442,7 +442,8 @@ class TestRayLocalCluster:
 @needs_proc
 def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
     """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
-    loopback, and its GCS refuses a request without Ray's token. The driver's SIGTERM handler (the
+    loopback, and its GCS refuses a request without Ray's token (a driver without it is told so when it
+    joins). The driver's SIGTERM handler (the
     command line's finishes the pair being written) is still its own once the cluster is up."""
     import grpc
     from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
@@ -466,6 +467,14 @@ def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, mon
                 with pytest.raises(grpc.RpcError) as refused:
                     stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=10)
             assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+            # a driver without the token is told so, at once (Ray's own connect retries, then fails without a reason)
+            env = {k: v for k, v in os.environ.items() if k != "RAY_AUTH_MODE"}
+            join = "import sys; from localscale.engine import get_executor; get_executor('ray', address=sys.argv[1])"
+            gcs = ray.get_runtime_context().gcs_address
+            joined = subprocess.run([PYTHON, "-c", join, gcs], capture_output=True, text=True, env=env, timeout=60)
+            assert (
+                f"EngineError: the Ray cluster at {gcs} requires Ray's token: set RAY_AUTH_MODE=token" in joined.stderr
+            )
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert not wait_until_gone(short_dir, 10)  # closed: nothing of it runs

@@ -79,6 +79,26 @@ def _auto_address(temp_dir: Optional[str]) -> Optional[tuple[str, int]]:
     return _host_port(found)
 
 
+def _refuses_without_token(target: tuple[str, int], timeout: float) -> bool:
+    """Whether the GCS at ``target`` refuses a request from this process for want of Ray's token
+    (``ray.init`` would retry for a while, then fail without saying why)."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() == "token":  # this process sends its token
+        return False
+    try:
+        import grpc
+        from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
+    except ImportError:
+        return False
+    host, port = target
+    with grpc.insecure_channel(f"[{host}]:{port}" if ":" in host else f"{host}:{port}") as channel:
+        try:
+            stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+            stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=timeout)
+        except grpc.RpcError as e:
+            return e.code() == grpc.StatusCode.UNAUTHENTICATED
+    return False
+
+
 def _resolve_refs(item):
     """``item`` with every Ray object reference in it (at the top, or inside tuples, lists and
     dicts) replaced by its value, all fetched in one ``ray.get``."""
@@ -283,6 +303,11 @@ class RayExecutor(Executor):
                 f"cannot reach the Ray cluster at {where}: {reason} "
                 "(start it with `ray start --head`, or drop --ray-address for a local one)"
             ) from None
+        if not self.address.startswith("ray://") and _refuses_without_token(target, self.connect_timeout):
+            raise EngineError(
+                f"the Ray cluster at {self.address} requires Ray's token: set RAY_AUTH_MODE=token (the token: "
+                "RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token, as on the cluster)"
+            )
 
     def _new_actor(self):
         ray = self._ray
