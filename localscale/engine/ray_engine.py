@@ -303,7 +303,8 @@ class RayExecutor(Executor):
                 f"cannot reach the Ray cluster at {where}: {reason} "
                 "(start it with `ray start --head`, or drop --ray-address for a local one)"
             ) from None
-        if not self.address.startswith("ray://") and _refuses_without_token(target, self.connect_timeout):
+        explicit = self.address != "auto" and not self.address.startswith("ray://")  # auto: Ray sends a token it has
+        if explicit and _refuses_without_token(target, self.connect_timeout):
             raise EngineError(
                 f"the Ray cluster at {self.address} requires Ray's token: set RAY_AUTH_MODE=token (the token: "
                 "RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token, as on the cluster)"
