@@ -2,14 +2,14 @@
 
 ``python -I -S ray_watchdog.py DRIVER_PID [PID ...]``, with a pipe from the driver on standard input
 (Linux: it reads ``/proc``; the standard library only, nothing of localscale, torch or Ray). The
-PIDs are the driver's children from before its cluster started. Every 0.2 s the watchdog notes
+PIDs are the driver's children from before its cluster started. Every 0.1 s the watchdog notes
 (pid and start time) each process that descends from the driver and not from those children nor
-from itself; after the driver writes ``started`` (its cluster is up) it notes only the descendants
-of the processes already noted (the workers the raylet starts later), so that nothing the driver
-starts afterwards is taken for part of its cluster. When the pipe closes, or the driver is gone,
-every noted process still alive gets SIGTERM and, 2 s later, SIGKILL; then the watchdog exits. The
-driver writes ``close`` after stopping its cluster itself: the watchdog then stops what is left
-the same way, at once.
+from itself. Once the driver writes ``started`` (its cluster is up) it notes, every 0.5 s, only
+the descendants of the processes already noted (the workers the raylet starts later): nothing the
+driver starts afterwards is taken for part of its cluster. When the pipe closes, or the driver is
+gone, every noted process still alive gets SIGTERM and, 2 s later, SIGKILL; then the watchdog
+exits. The driver writes ``close`` after stopping its cluster itself: the watchdog then stops what
+is left the same way, at once.
 
 Ray's own fate-sharing stops the GCS and the raylet with their driver, but its dashboard and
 runtime-env agents outlive them by a minute (they wait on the dead GCS), one of them with a port
@@ -22,7 +22,8 @@ import signal
 import sys
 import time
 
-POLL_S = 0.2
+POLL_S = 0.1  # while the cluster starts
+POLL_S_STARTED = 0.5
 GRACE_S = 2.0
 
 
@@ -92,7 +93,7 @@ def watch(driver: int, before: set) -> None:
     stdin = sys.stdin.fileno()
     while born is not None and start_time(driver) == born:
         noted.update(descendants(alive(noted) if started else [driver], skip))
-        if select.select([stdin], [], [], POLL_S)[0]:
+        if select.select([stdin], [], [], POLL_S_STARTED if started else POLL_S)[0]:
             data = os.read(stdin, 4096)
             if not data or b"close" in data:  # the pipe closed (the driver died), or the driver stopped its cluster
                 break
