@@ -185,15 +185,21 @@ def run_case(name: str, work: Path, pairs: Path) -> list:
     elif name == "kill-init":  # while ray.init starts the cluster
         c.wait_for(lambda: any(n == "gcs_server" for n, _ in processes_under(c.tmp).values()))
         c.proc.kill()
-    elif name in ("kill-mid", "sigint-mid", "sigterm-mid", "kill-worker"):
+    elif name in ("kill-mid", "killpg-mid", "sigint-mid", "sigterm-mid", "kill-worker", "kill-watchdog"):
         c.wait_for(lambda: c.outputs() >= 3)
         c.sample()
         if name == "kill-mid":
             c.proc.kill()
         elif name == "sigint-mid":
             os.killpg(c.proc.pid, signal.SIGINT)  # Ctrl-C in a terminal: the driver's whole process group
+        elif name == "killpg-mid":
+            os.killpg(c.proc.pid, signal.SIGKILL)  # the driver's whole process group, as a terminal's job kill
         elif name == "sigterm-mid":
             c.proc.terminate()
+        elif name == "kill-watchdog":
+            for pid, (_, _) in processes_under(c.tmp, c.proc.pid).items():
+                if b"ray_watchdog.py" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                    os.kill(pid, signal.SIGKILL)
         else:
             os.kill(worker_pids(c.tmp)[0], signal.SIGKILL)
     elif name == "kill-end":  # every pair written: the driver is writing its summary or stopping the cluster
@@ -218,7 +224,9 @@ CASES = [
     "kill-init",
     "kill-mid",
     "kill-end",
+    "killpg-mid",
     "kill-worker",
+    "kill-watchdog",
     "sigint-mid",
     "sigterm-mid",
     "two-runs",
