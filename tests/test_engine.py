@@ -442,9 +442,9 @@ class TestRayLocalCluster:
 @needs_proc
 def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
     """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
-    loopback, and its GCS refuses a request without Ray's token (a driver without it is told so when it
-    joins). The driver's SIGTERM handler (the
-    command line's finishes the pair being written) is still its own once the cluster is up."""
+    loopback, and its GCS refuses a request without Ray's token (a driver without it is told so when
+    it joins). The driver's SIGTERM handler (the command line's finishes the pair being written) is
+    still its own once the cluster is up."""
     import grpc
     from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
 
