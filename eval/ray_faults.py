@@ -75,7 +75,7 @@ def exposed(procs: dict) -> list:
 
 def make_pairs(folder: Path) -> Path:
     rng = np.random.default_rng(0)
-    base = cv2.GaussianBlur((rng.random((240, 320, 3)) * 255).astype(np.uint8), (0, 0), 2)
+    base = cv2.GaussianBlur((rng.random((480, 640, 3)) * 255).astype(np.uint8), (0, 0), 2)
     names = []
     for i, f in enumerate((1.0, 0.8, 0.6, 0.5, 0.7, 0.9)):
         img = cv2.resize(base, None, fx=f, fy=f)
