@@ -96,6 +96,8 @@ def _refuses_without_token(target: tuple[str, int], timeout: float) -> bool:
             stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=timeout)
         except grpc.RpcError as e:
             return e.code() == grpc.StatusCode.UNAUTHENTICATED
+        except Exception:  # not a GCS there: ray.init says what is wrong
+            return False
     return False
 
 
