@@ -34,6 +34,9 @@ except ImportError:  # the local engine's tests still run
 
 needs_ray = pytest.mark.skipif(ray is None, reason="ray is not installed (pip install 'localscale[ray]')")
 PYTHON = sys.executable
+CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+needs_two_cpus = pytest.mark.skipif(CPUS < 2, reason="a local Ray cluster of 2 workers needs 2 CPUs")
+needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="lists processes and sockets in /proc")
 RAY_CLI = Path(sys.executable).with_name("ray")
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 
@@ -85,6 +88,78 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+# ---------------------------------------------------------------- what a cluster leaves on this machine (/proc)
+
+
+def cluster_processes(folder, also=()) -> dict:
+    """``{pid: socket inodes}`` of the live processes holding a file under ``folder`` open (every process
+    of a Ray cluster keeps its log files in its session folder, under ``temp_dir``, open), and of ``also``."""
+    folder, found = str(folder), {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", "rb") as f:
+                if f.read().rsplit(b")", 1)[1].split()[0] == b"Z":
+                    continue
+            fds = os.listdir(f"/proc/{entry}/fd")
+        except OSError:  # gone meanwhile
+            continue
+        links = []
+        for fd in fds:
+            try:
+                links.append(os.readlink(f"/proc/{entry}/fd/{fd}"))
+            except OSError:  # closed meanwhile
+                pass
+        if int(entry) in also or any(link.startswith(folder) for link in links):
+            found[int(entry)] = {int(x[8:-1]) for x in links if x.startswith("socket:[")}
+    return found
+
+
+def wait_until_gone(folder, seconds: float) -> dict:
+    """:func:`cluster_processes` of ``folder`` but this one, once none is left or when ``seconds`` have passed."""
+    deadline = time.time() + seconds
+    while True:
+        left = {pid: s for pid, s in cluster_processes(folder).items() if pid != os.getpid()}
+        if not left or time.time() > deadline:
+            return left
+        time.sleep(0.2)
+
+
+def watchdogs_of(driver: int) -> list:
+    """The live watchdog processes of ``driver`` (the local cluster's, see ``ray_local``)."""
+    found = []
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            args = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(a.endswith(b"ray_watchdog.py") for a in args) and str(driver).encode() in args:
+            found.append(int(entry))
+    return found
+
+
+def listening_sockets() -> dict:
+    """``{inode: ip_address}`` of this machine's listening TCP sockets (``/proc/net/tcp``, ``tcp6``)."""
+    import ipaddress
+
+    found = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for row in f.read().splitlines()[1:]:
+                cols = row.split()
+                if cols[3] != "0A":  # not LISTEN
+                    continue
+                raw = bytes.fromhex(cols[1].split(":")[0])
+                raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))  # per 32-bit word, host order
+                found[int(cols[9])] = ipaddress.ip_address(raw)
+    return found
+
+
+def is_loopback(ip) -> bool:
+    return ip.is_loopback or (ip.version == 6 and ip.ipv4_mapped is not None and ip.ipv4_mapped.is_loopback)
 
 
 # ---------------------------------------------------------------- work functions (pickled by value for Ray)
@@ -152,6 +227,13 @@ def test_bad_options_are_one_line_errors(monkeypatch):
     if ray is not None:
         with pytest.raises(EngineError, match="expected host:port"):
             get_executor("ray", address="nowhere")
+        # a local cluster is this machine: no more CPUs than it has
+        with pytest.raises(
+            EngineError, match=rf"{CPUS} worker.s. x 2 thread.s. need {2 * CPUS} CPUs; this machine has {CPUS}\b"
+        ):
+            get_executor("ray", workers=CPUS, threads_per_worker=2)
+        with pytest.raises(EngineError, match=rf"need {CPUS + 1} CPUs"):
+            get_executor("ray", threads_per_worker=CPUS + 1)
     monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
     with pytest.raises(EngineError, match=r"pip install 'localscale\[ray\]'"):
         get_executor("ray", workers=2)
@@ -223,6 +305,7 @@ def tiny_pairs(tmp_path_factory):
 
 
 @needs_ray
+@needs_two_cpus
 @pytest.mark.usefixtures("pickle_tests_by_value")
 class TestRayLocalCluster:
     def test_unreachable_address_fails_fast(self):
@@ -355,6 +438,48 @@ class TestRayLocalCluster:
         assert dict(ray_executor.map(double, [1, 2])) == {0: 2, 1: 4}  # the executor still works
 
 
+@needs_ray
+@needs_proc
+def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, monkeypatch):
+    """Every listening socket of the local cluster (GCS, raylet, agents, workers, driver) is bound to
+    loopback, and its GCS refuses a request without Ray's token (a driver without it is told so when
+    it joins). The driver's SIGTERM handler (the command line's finishes the pair being written) is
+    still its own once the cluster is up."""
+    import grpc
+    from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
+
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)  # Ray's default
+    assert not ray.is_initialized()
+    on_sigterm = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        with get_executor("ray", workers=1, threads_per_worker=1, temp_dir=str(short_dir)) as ex:
+            ex.worker_info()  # the cluster and its worker are up
+            assert signal.getsignal(signal.SIGTERM) is on_sigterm
+            processes = cluster_processes(short_dir, also=(os.getpid(),))
+            listening = listening_sockets()
+            bound = {pid: [listening[i] for i in inodes if i in listening] for pid, inodes in processes.items()}
+            assert os.getpid() in processes and len(processes) >= 5  # the driver, GCS, raylet, agents, worker
+            assert sum(map(len, bound.values())) >= 4, bound  # GCS, raylet, worker, driver at least
+            assert all(is_loopback(ip) for ips in bound.values() for ip in ips), bound
+            with grpc.insecure_channel(ray.get_runtime_context().gcs_address) as channel:
+                stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+                with pytest.raises(grpc.RpcError) as refused:
+                    stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=10)
+            assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+            # a driver without the token is told so, at once (Ray's own connect retries, then fails without a reason)
+            env = {k: v for k, v in os.environ.items() if k != "RAY_AUTH_MODE"}
+            join = "import sys; from localscale.engine import get_executor; get_executor('ray', address=sys.argv[1])"
+            gcs = ray.get_runtime_context().gcs_address
+            joined = subprocess.run([PYTHON, "-c", join, gcs], capture_output=True, text=True, env=env, timeout=60)
+            assert (
+                f"EngineError: the Ray cluster at {gcs} requires Ray's token: set RAY_AUTH_MODE=token" in joined.stderr
+            )
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert not wait_until_gone(short_dir, 10)  # closed: nothing of it runs
+
+
 # ---------------------------------------------------------------- a killed driver; a two-node cluster
 
 DRIVER = r"""
@@ -393,6 +518,8 @@ def _stop_group(proc: subprocess.Popen) -> None:
 
 
 @needs_ray
+@needs_two_cpus
+@needs_proc
 def test_killed_driver_rerun_resumes(tmp_path, short_dir):
     out = tmp_path / "out"
     out.mkdir()
@@ -412,8 +539,15 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
                 break
             written.append(int(line.split()[1]))
         assert len(written) == 3, "the driver wrote nothing"
+        assert cluster_processes(short_dir)
         os.kill(proc.pid, signal.SIGKILL)  # the driver only: its cluster goes down with it
         proc.wait(10)
+        left = wait_until_gone(short_dir, 10)
+        assert not left, f"{len(left)} process(es) of the killed driver's cluster still run"
+        deadline = time.time() + 5
+        while watchdogs_of(proc.pid) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not watchdogs_of(proc.pid)  # the watchdog that stopped them exited too
     finally:
         _stop_group(proc)  # and anything of its cluster still running
     # a write the kill interrupted leaves only its hidden temporary file, never a partial output
@@ -423,6 +557,7 @@ def test_killed_driver_rerun_resumes(tmp_path, short_dir):
     assert all(n.endswith(f".tmp-{proc.pid}.txt") for n in left), left
     rerun = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=90, start_new_session=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert not wait_until_gone(short_dir, 10)
     again = [int(line.split()[1]) for line in rerun.stdout.splitlines() if line.startswith("wrote")]
     assert sorted(again) == sorted(set(range(10)) - done)  # only what was missing, each once
     outputs = {p.name: p.read_text() for p in out.iterdir() if not p.name.startswith(".")}
@@ -553,6 +688,33 @@ def test_predict_pairs_engine_options_need_ray(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and "--engine ray" in err[0]
     assert not (tmp_path / "out").exists()
+
+
+@needs_ray
+@pytest.mark.parametrize("command", ["predict", "reconstruct", "eval-hpatches"])
+def test_unreachable_ray_address_fails_before_anything_is_written(command, tmp_path, capsys, photos):
+    from localscale.cli import main
+
+    out = tmp_path / "out"
+    if command == "predict":
+        argv = ["predict", "--pairs", str(_pairs_file(tmp_path)), "-o", str(out)]
+    elif command == "reconstruct":
+        pytest.importorskip("pycolmap")
+        pytest.importorskip("h5py")
+        from localscale.sfm.synthetic import write_scene
+
+        write_scene(tmp_path / "scene", num_views=3, shape=(120, 160), seed=0)
+        argv = ["reconstruct", str(tmp_path / "scene"), "-o", str(out), "--matcher", "sift", "--no-progress"]
+    else:
+        from localscale.evaluation import make_sequences
+
+        make_sequences([photos["astronaut"]], tmp_path / "hp", num_images=2, size=96, seed=0)
+        argv = ["eval-hpatches", str(tmp_path / "hp"), "-o", str(out), "--methods", "none", "--descriptor", "sift"]
+    address = f"127.0.0.1:{free_port()}"  # nothing listens there
+    assert main(argv + ["--engine", "ray", "--ray-address", address]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: cannot reach the Ray cluster at {address}: "), err
+    assert not out.exists()
 
 
 @needs_ray

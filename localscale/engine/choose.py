@@ -30,8 +30,9 @@ def get_executor(
     (one worker). ``ray`` without ``address`` starts a local Ray cluster of ``workers`` x
     ``threads_per_worker`` CPUs (stopped by :meth:`Executor.close`); with ``address``
     (``host:port``, ``ray://host:port`` or ``auto``) it joins that cluster. ``workers=None``: one
-    worker per ``threads_per_worker`` CPUs of the machine (or of the cluster). Bad options raise
-    :class:`EngineError` (one line); nothing is started before the first ``map``."""
+    worker per ``threads_per_worker`` CPUs of the machine (or of the cluster). Bad options, and an
+    ``address`` that accepts no connection, raise :class:`EngineError` (one line); nothing is
+    started before the first ``map``."""
     if isinstance(engine, Executor):
         if workers is not None or threads_per_worker is not None or address is not None:
             raise EngineError("give the engine's options to the executor itself, not with an Executor object")
@@ -52,4 +53,6 @@ def get_executor(
         return LocalExecutor(threads_per_worker)
     from .ray_engine import RayExecutor  # Ray is imported only when it is asked for
 
-    return RayExecutor(workers, threads_per_worker or 1, address, **ray_options)
+    executor = RayExecutor(workers, threads_per_worker or 1, address, **ray_options)
+    executor.check_address()
+    return executor

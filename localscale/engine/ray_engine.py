@@ -9,10 +9,12 @@ of an actor that died (``kill -9``, out of memory, a lost node) to a fresh actor
 whose work raised a :class:`~localscale.errors.LocalScaleError` comes back as that exception,
 never retried.
 
-Without ``address`` a local cluster is started (``ray.init(num_cpus=workers x threads)``, no
-dashboard) on the first ``map`` and stopped by :meth:`RayExecutor.close`; with ``address`` the
-driver joins that cluster (an unreachable address is an error within ``connect_timeout``
-seconds). Image paths and weight files must be readable on every node.
+Without ``address`` a local cluster of ``workers x threads`` CPUs (no more than this machine has)
+is started on the first ``map`` and stopped by :meth:`RayExecutor.close`: on loopback, with Ray's
+token authentication, stopped by a watchdog if the driver dies (:mod:`.ray_local`). With
+``address`` the driver joins that cluster (an address that accepts no connection within
+``connect_timeout`` seconds is an error). Image paths and weight files must be readable on every
+node.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Optional
 
 from ..errors import LocalScaleError
 from .base import RAY_INSTALL_HINT, EngineError, Executor, RunStats, WorkerLostError, progress_bar, state_key
+from .ray_local import callers_sigterm_handler, start_local_cluster
 
 
 def _import_ray():
@@ -47,6 +50,55 @@ def _host_port(address: str) -> Optional[tuple[str, int]]:
             f"--ray-address {address!r}: expected host:port (e.g. 127.0.0.1:6379), ray://host:port or auto"
         )
     return host.strip("[]"), int(port)
+
+
+def _machine_cpus() -> int:
+    """The CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def _auto_address(temp_dir: Optional[str]) -> Optional[tuple[str, int]]:
+    """``(host, port)`` of the cluster ``--ray-address auto`` joins, as Ray finds it (``RAY_ADDRESS``,
+    the cluster ``ray start`` recorded, else a GCS running on this machine); None when this Ray
+    cannot tell (``ray.init`` decides then)."""
+    try:
+        from ray._private.services import canonicalize_bootstrap_address
+    except ImportError:
+        return None
+    try:
+        found = canonicalize_bootstrap_address("auto", temp_dir)
+    except Exception:
+        found = None
+    if found is None:
+        raise EngineError(
+            "--ray-address auto: no running Ray cluster found (start one with `ray start --head`, "
+            "set RAY_ADDRESS, or drop --ray-address for a local one)"
+        )
+    return _host_port(found)
+
+
+def _refuses_without_token(target: tuple[str, int], timeout: float) -> bool:
+    """Whether the GCS at ``target`` refuses a request from this process for want of Ray's token
+    (``ray.init`` would retry for a while, then fail without saying why)."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() == "token":  # this process sends its token
+        return False
+    try:
+        import grpc
+        from ray.core.generated import gcs_service_pb2, gcs_service_pb2_grpc
+    except ImportError:
+        return False
+    host, port = target
+    with grpc.insecure_channel(f"[{host}]:{port}" if ":" in host else f"{host}:{port}") as channel:
+        try:
+            stub = gcs_service_pb2_grpc.NodeInfoGcsServiceStub(channel)
+            stub.GetClusterId(gcs_service_pb2.GetClusterIdRequest(), timeout=timeout)
+        except grpc.RpcError as e:
+            return e.code() == grpc.StatusCode.UNAUTHENTICATED
+        except Exception:  # not a GCS there: ray.init says what is wrong
+            return False
+    return False
 
 
 def _resolve_refs(item):
@@ -165,9 +217,17 @@ class RayExecutor(Executor):
             _host_port(address)  # a malformed address is an error now, before anything starts
         self._ray = _import_ray()
         self._workers, self.threads_per_worker, self.address = workers, threads_per_worker, address
+        if address is None and not self._ray.is_initialized():
+            need, machine = self._local_cpus(), _machine_cpus()
+            if need > machine:  # a local cluster is this machine: more workers than CPUs only thrash
+                raise EngineError(
+                    f"{need // threads_per_worker} worker(s) x {threads_per_worker} thread(s) need {need} CPUs; "
+                    f"this machine has {machine} (for more, join a bigger cluster with --ray-address)"
+                )
         self.max_retries, self.in_flight = max_retries, in_flight
         self.connect_timeout, self.ready_timeout, self.temp_dir = connect_timeout, ready_timeout, temp_dir
         self._started = self._owns_session = False
+        self._cluster = None  # the local cluster this executor started
         self._actors: list = []
         self._generation: list[int] = []
         self._pool_key = None
@@ -177,6 +237,10 @@ class RayExecutor(Executor):
     @property
     def workers(self) -> int:
         return self._workers or 0
+
+    def _local_cpus(self) -> int:
+        """The CPUs of the local cluster: ``workers`` x ``threads_per_worker`` (default: the machine's)."""
+        return (self._workers or max(1, _machine_cpus() // self.threads_per_worker)) * self.threads_per_worker
 
     # ------------------------------------------------------------------ cluster and pool
 
@@ -190,23 +254,18 @@ class RayExecutor(Executor):
         if ray.is_initialized():  # the caller's own Ray session
             self._owns_session = False
         elif self.address is None:
-            cpus = (self._workers or max(1, (os.cpu_count() or 1) // self.threads_per_worker)) * self.threads_per_worker
+            cpus = self._local_cpus()
             try:
-                ray.init(
-                    num_cpus=cpus,
-                    include_dashboard=False,
-                    log_to_driver=False,
-                    logging_level=logging.ERROR,
-                    _node_ip_address="127.0.0.1",
-                    _temp_dir=self.temp_dir,
-                )
+                with callers_sigterm_handler():
+                    self._cluster = start_local_cluster(ray, cpus, self.temp_dir)
             except (OSError, RuntimeError, ValueError) as e:  # e.g. a temp_dir too long for Ray's sockets
                 raise EngineError(f"cannot start a local Ray cluster: {' '.join(str(e).split())[:300]}") from None
             self._owns_session = True
         else:
-            self._check_reachable()
+            self.check_address()
             try:
-                ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
+                with callers_sigterm_handler():
+                    ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
             except (ConnectionError, RuntimeError, ValueError) as e:
                 raise EngineError(
                     f"cannot join the Ray cluster at {self.address}: {' '.join(str(e).split())[:300]}"
@@ -226,18 +285,32 @@ class RayExecutor(Executor):
         self.startup_seconds += time.perf_counter() - t0
         return self
 
-    def _check_reachable(self) -> None:
+    def check_address(self) -> None:
+        """Raise :class:`EngineError` (one line) unless ``address`` accepts a connection within
+        ``connect_timeout`` seconds (``auto``: unless Ray finds a running cluster); nothing to check
+        without ``address``. :func:`get_executor` calls it, so that a command fails before it writes."""
+        if self.address is None:
+            return
         target = _host_port(self.address)
         if target is None:
-            return
+            target = _auto_address(self.temp_dir)
+            if target is None:
+                return
         try:
             socket.create_connection(target, timeout=self.connect_timeout).close()
         except OSError as e:
             reason = "timed out" if isinstance(e, socket.timeout) else (e.strerror or str(e))
+            where = self.address if self.address != "auto" else f"{target[0]}:{target[1]} (auto)"
             raise EngineError(
-                f"cannot reach the Ray cluster at {self.address}: {reason} "
+                f"cannot reach the Ray cluster at {where}: {reason} "
                 "(start it with `ray start --head`, or drop --ray-address for a local one)"
             ) from None
+        explicit = self.address != "auto" and not self.address.startswith("ray://")  # auto: Ray sends a token it has
+        if explicit and _refuses_without_token(target, self.connect_timeout):
+            raise EngineError(
+                f"the Ray cluster at {self.address} requires Ray's token: set RAY_AUTH_MODE=token (the token: "
+                "RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token, as on the cluster)"
+            )
 
     def _new_actor(self):
         ray = self._ray
@@ -307,9 +380,12 @@ class RayExecutor(Executor):
         if not self._started:
             return
         self._kill_actors()
-        if self._owns_session and self._ray.is_initialized():
+        if self._cluster is not None:
+            self._cluster.close()
+        elif self._owns_session and self._ray.is_initialized():
             self._ray.shutdown()
         self._started = self._owns_session = False
+        self._cluster = None
 
     # ------------------------------------------------------------------ map
 
