@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 
 pytest.importorskip("pycolmap")
@@ -121,7 +122,8 @@ def test_an_input_inside_a_replaced_path_is_refused_and_kept(finished_copy, tmp_
     images, out = finished_copy
     kwargs = {}
     if what == "image":  # an image file that is a link to a file in OUT/sparse
-        (out / "sparse" / "mine.png").write_bytes((images / "view_0.png").read_bytes())
+        flipped = cv2.flip(cv2.imread(str(images / "view_0.png")), 1)  # not a copy of a photo (copies are skipped)
+        cv2.imwrite(str(out / "sparse" / "mine.png"), flipped)
         os.symlink(out / "sparse" / "mine.png", images / "view_9.png")
     elif what == "pairs file":
         kwargs["pairs"] = str(out / "pairs.txt")
