@@ -194,3 +194,30 @@ def test_script_refuses_bad_input(repo_script, tmp_path, photo, capsys, extra, m
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and message in err[0]
     assert not (tmp_path / "res").exists()
+
+
+def test_script_scores_a_training_checkpoint(repo_script, tmp_path, photo):
+    """``--local-weights`` scores the given checkpoint (a training run's ``last.pt`` with its train
+    state), and a bundled run's records in the same file are not reused for it."""
+    import torch
+
+    from localscale import LocalScaleNet, scales
+    from localscale.checkpoint import checkpoint_dict
+
+    ms = repo_script("eval/map_sanity.py")
+    net = LocalScaleNet.from_pretrained()
+    ckpt = checkpoint_dict(net)
+    ckpt["state_dict"]["head.out.bias"] = ckpt["state_dict"]["head.out.bias"].clone()
+    ckpt["state_dict"]["head.out.bias"][scales.NUM_BINS - 1] += 30.0  # every pixel: the largest bin
+    ckpt["train_state"] = {"step": 3}
+    torch.save(ckpt, tmp_path / "last.pt")
+    cv2.imwrite(str(tmp_path / "p.png"), photo)
+    out = tmp_path / "s.json"
+    argv = [str(tmp_path / "p.png"), "--predictors", "local", "--zooms", "--turns", "--rotations"]
+    argv += ["--combined-zooms", "--out", str(out)]
+    assert ms.cli(argv) == 0
+    bundled = json.loads(out.read_text())["cases"][0]["local"]["median"]
+    assert ms.cli(argv + ["--local-weights", str(tmp_path / "last.pt")]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["local_weights"] == str(tmp_path / "last.pt")
+    assert 0.8 < bundled < 1.25 and doc["cases"][0]["local"]["median"] > 4 * bundled

@@ -9,7 +9,8 @@ to its 8 nearest shared points in B and in A. Kinds of pair (:data:`KINDS`):
 * ``as-is``: the two photos;
 * ``closeup``: B replaced by a window of it with sides ``1/z`` of B's (``z`` log-uniform in
   ``zoom_range``, default 2.5-6), centred on a shared point, enlarged back to B's size; the points
-  outside the window are dropped and the labels computed again on the window's pixels;
+  outside the window are dropped and the labels computed again on the window's pixels (a window
+  with fewer than 20 labelled points is drawn again);
 * ``closeup-turned``: the close-up also turned by 1-3 quarter turns (counter-clockwise).
 
 Each predictor's ``S_{A->B}`` (:mod:`.predictors`) is read at the labelled points of A (nearest
