@@ -1,4 +1,5 @@
-"""Evaluation protocols: HPatches-style MMA with patch-size correction."""
+"""Evaluation protocols: HPatches-style MMA with patch-size correction; scale maps on sanity pairs
+(:mod:`.sanity`) and on 3D collections (:mod:`.maps3d`), with named predictors (:mod:`.predictors`)."""
 
 from .hpatches import (
     HIGH_RES,
