@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     rows = []
     for i, path in enumerate(photos):
         rows += sanity.evaluate_photo(
-            path.name, read_photo(path, args.max_side), cases, predictors, models, records, args.tolerance
+            str(path.resolve()), read_photo(path, args.max_side), cases, predictors, models, records, args.tolerance
         )
         print(f"{i + 1}/{len(photos)} {path.name}", file=sys.stderr, flush=True)
     summary = sanity.summarise(rows, predictors)

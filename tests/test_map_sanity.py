@@ -221,3 +221,15 @@ def test_script_scores_a_training_checkpoint(repo_script, tmp_path, photo):
     doc = json.loads(out.read_text())
     assert doc["local_weights"] == str(tmp_path / "last.pt")
     assert 0.8 < bundled < 1.25 and doc["cases"][0]["local"]["median"] > 4 * bundled
+
+
+def test_script_keeps_photos_of_the_same_name_apart(repo_script, tmp_path, photo):
+    ms = repo_script("eval/map_sanity.py")
+    for i, folder in enumerate(("one", "two")):
+        (tmp_path / folder).mkdir()
+        cv2.imwrite(str(tmp_path / folder / "01.png"), np.rot90(photo, 2 * i)[..., ::-1])
+    out = tmp_path / "s.json"
+    argv = [str(tmp_path / "one"), str(tmp_path / "two"), "--predictors", "one", "--zooms", "2", "--turns"]
+    assert ms.cli(argv + ["--rotations", "--combined-zooms", "--out", str(out)]) == 0
+    assert len(out.with_suffix(".records.jsonl").read_text().splitlines()) == 2 * 3  # 2 photos x 3 cases
+    assert [c["photos"] for c in json.loads(out.read_text())["cases"]] == [2, 2, 2]
