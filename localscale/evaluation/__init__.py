@@ -1,7 +1,9 @@
 """Evaluation protocols, each run by a thin script in ``eval/``: HPatches-style MMA with patch-size
 correction (:mod:`.hpatches`, ``localscale eval-hpatches``), scale-map accuracy (:mod:`.scale_maps`,
-:mod:`.scale_real`), relative pose (:mod:`.pose`, :mod:`.pose_data`) and reconstruction
-(:mod:`.reconstruction`) of photo collections. Result files record the commit (:func:`.report.git_commit`)."""
+:mod:`.scale_real`), scale maps on sanity pairs (:mod:`.sanity`) and on 3D collections (:mod:`.maps3d`)
+with named predictors (:mod:`.predictors`), relative pose (:mod:`.pose`, :mod:`.pose_data`) and
+reconstruction (:mod:`.reconstruction`) of photo collections. Result files record the commit
+(:func:`.report.git_commit`)."""
 
 from .hpatches import (
     HIGH_RES,
