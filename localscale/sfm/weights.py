@@ -49,13 +49,15 @@ def matcher_weight_files(matcher: str) -> list:
     """The pre-trained weight files that ``matcher`` (a name of ``MATCHERS``) reads: its extractor's
     and its LightGlue's (none for SIFT; the bundled HardNet for the patch matcher)."""
     from ..features.descriptors import BUNDLED_HARDNETS
+    from ..features.extractors import get_extractor
     from ..features.pretrained import find_weights
     from ..matching import match_config
-    from ..matching.lightglue import LIGHTGLUE_WEIGHTS
 
     cfg = match_config(matcher)
-    names = {"aliked": [f"{cfg.model}.pth"], "disk": ["disk-depth-save.pth"], "xfeat": ["xfeat.pt"]}
-    files = names.get(cfg.extractor, []) + ([LIGHTGLUE_WEIGHTS[cfg.extractor]] if cfg.extractor in names else [])
+    cls = get_extractor(cfg.extractor) if cfg.extractor in ("aliked", "disk", "xfeat") else None
+    model = {**getattr(cls, "default_conf", {}), **(cfg.extractor_conf or {})}.get("model")
+    names = {"aliked": [f"{model}.pth"], "disk": ["disk-depth-save.pth"], "xfeat": ["xfeat.pt"]}
+    files = names.get(cfg.extractor, []) + ([cls.lightglue_weights.filename] if cfg.extractor in names else [])
     paths = [find_weights(name, cfg.weights) for name in files]
     if cfg.extractor == "patches" and cfg.descriptor in BUNDLED_HARDNETS:
         paths.append(BUNDLED_HARDNETS[cfg.descriptor])
