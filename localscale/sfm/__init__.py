@@ -46,7 +46,16 @@ _EXPORTS = {
     ),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
-    ".reconstruction": ("reconstruct", "summary_table"),
+    ".reconstruction": ("reconstruct",),
+    ".summary": ("summary_table",),
+    ".config": (
+        "ReconstructConfig",
+        "FeaturesConfig",
+        "PairsConfig",
+        "CorrectionConfig",
+        "MappingConfig",
+        "RESULT_OPTIONS",
+    ),
     ".outdir": ("OUTPUTS", "OutputFolderError"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,4 +1,4 @@
-"""Step 5: the COLMAP database (pycolmap): cameras, images, keypoints, matches, two-view geometries.
+"""The database step: the COLMAP database (pycolmap): cameras, images, keypoints, matches, two-view geometries.
 
 Cameras (:func:`image_cameras`), ``camera_mode``:
 

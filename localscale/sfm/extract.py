@@ -1,4 +1,4 @@
-"""Step 1: the local features of every image, extracted once (``features.h5``, hloc layout).
+"""The extract step: the local features of every image, extracted once (``features.h5``, hloc layout).
 
 :func:`extract_features` runs a matcher's extractor (a name of
 :data:`~localscale.matching.MATCHERS`, the same names ``--matcher`` takes) on each image at its

@@ -1,4 +1,4 @@
-"""Step 4: the verified two-view geometry of every matched pair (``geometries.h5``).
+"""The geometry step: the verified two-view geometry of every matched pair (``geometries.h5``).
 
 Each pair's matches (``keypoints.h5`` / ``matches.h5``) and the two cameras
 (:func:`~.database.image_cameras`) go to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
