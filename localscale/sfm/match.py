@@ -345,3 +345,19 @@ def read_all_matches(matches_path) -> dict:
                 a, b = key.split("/", 1)  # written by another tool: names without '/'
             out[(a, b)] = matches_from_matches0(g["matches0"][()], g["matching_scores0"][()])
     return out
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.match``: this step alone, from files (:func:`~.steps.match_files`)."""
+    from .steps import config_of, match_files, parser, run_step
+
+    p = parser(__doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
+    p.add_argument("images", help="folder of images")
+    p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")
+    p.add_argument("--device", default="cpu", help="torch device")
+    args = p.parse_args(argv)
+    return run_step(lambda: match_files(args.images, args.out, config_of(args), args.device))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
