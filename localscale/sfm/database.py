@@ -262,7 +262,7 @@ def main(argv=None) -> int:
     """``python -m localscale.sfm.database``: this step alone, from files (:func:`~.steps.database_of_files`)."""
     from .steps import config_of, database_of_files, parser, run_step
 
-    p = parser(__doc__, ("camera_mode", "camera_file"))
+    p = parser("database", __doc__, ("camera_mode", "camera_file"))
     p.add_argument("images", help="folder of images (their cameras)")
     p.add_argument("out", help="folder with the h5 files; database.db is written there")
     args = p.parse_args(argv)

@@ -251,7 +251,7 @@ def main(argv=None) -> int:
     """``python -m localscale.sfm.extract``: this step alone, from files (:func:`~.steps.extract_folder`)."""
     from .steps import config_of, extract_folder, parser, run_step
 
-    p = parser(__doc__, ("matcher", "max_side", "num_keypoints"))
+    p = parser("extract", __doc__, ("matcher", "max_side", "num_keypoints"))
     p.add_argument("images", help="folder of images (searched recursively)")
     p.add_argument("features", help="features.h5 to write (images already in it are skipped)")
     p.add_argument("--device", default="cpu", help="torch device")

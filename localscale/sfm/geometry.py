@@ -196,7 +196,7 @@ def main(argv=None) -> int:
     """``python -m localscale.sfm.geometry``: this step alone, from files (:func:`~.steps.verify_files`)."""
     from .steps import config_of, parser, run_step, verify_files
 
-    p = parser(__doc__, ("camera_mode", "camera_file"))
+    p = parser("geometry", __doc__, ("camera_mode", "camera_file"))
     p.add_argument("images", help="folder of images (their cameras)")
     p.add_argument("out", help="folder with keypoints.h5 and matches.h5; geometries.h5 is written there")
     args = p.parse_args(argv)

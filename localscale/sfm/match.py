@@ -351,7 +351,7 @@ def main(argv=None) -> int:
     """``python -m localscale.sfm.match``: this step alone, from files (:func:`~.steps.match_files`)."""
     from .steps import config_of, match_files, parser, run_step
 
-    p = parser(__doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
+    p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
     p.add_argument("images", help="folder of images")
     p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")
     p.add_argument("--device", default="cpu", help="torch device")

@@ -44,10 +44,12 @@ FLAGS = {
 }
 
 
-def parser(module_doc: str, options: tuple) -> argparse.ArgumentParser:
-    """A step's parser: ``--config`` and the flags of ``options`` (names of :data:`FLAGS`)."""
+def parser(step: str, module_doc: str, options: tuple) -> argparse.ArgumentParser:
+    """The parser of ``python -m localscale.sfm.<step>``: ``--config`` and the flags of ``options`` (names of :data:`FLAGS`)."""
     first = (module_doc or "").strip().split("\n\n")[0]
-    p = argparse.ArgumentParser(description=first, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog=f"python -m localscale.sfm.{step}", description=first, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--config", default=None, metavar="JSON", help="run.json of reconstruct, or a ReconstructConfig")
     for name in options:
         flag, kind, text = FLAGS[name]
