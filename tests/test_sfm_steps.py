@@ -45,6 +45,8 @@ def test_the_config_is_the_run_json_and_the_keywords_map_into_it(run, scene, tmp
     assert "mapper" not in RESULT_OPTIONS and "local_weights_sha256" in RESULT_OPTIONS
     with pytest.raises(LocalScaleError, match="unknown reconstruction option 'matchr'"):
         reconstruct(scene, tmp_path / "x", matchr="sift", **OPTS)
+    with pytest.raises(LocalScaleError, match="conf must be a ReconstructConfig"):
+        reconstruct(scene, tmp_path / "x", "sift", **OPTS)  # the matcher was the third argument once
     with pytest.raises(LocalScaleError, match="--max-side must be an integer >= 16"):
         ReconstructConfig.from_flat(max_side=3).check()
     assert not (tmp_path / "x").exists()

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+from ..errors import LocalScaleError
 from ..outputs import check_writable_dir, resolved_path
 from . import outdir
 from .config import RESULT_OPTIONS, ReconstructConfig
@@ -98,7 +99,7 @@ def reconstruct(
     ``out_dir/summary.json``).
 
     Args:
-        conf: the options of the run (:class:`~.config.ReconstructConfig`; default: its defaults).
+        conf: the options of the run (:class:`~.config.ReconstructConfig` or its ``asdict()``; default: its defaults).
         options: options of ``conf`` to set by name (``matcher="sift"``, ``correction="auto"``,
             ``pairs_nearest=10``, ``mapper="global"``, ...: :meth:`~.config.ReconstructConfig.replace`).
         device: the torch device of extraction and matching.
@@ -112,6 +113,12 @@ def reconstruct(
         input_files: other files the caller read (weights): refused where the run writes (:mod:`.outdir`).
     """
     t_total = time.perf_counter()
+    if isinstance(conf, dict):
+        conf = ReconstructConfig.from_dict(conf)
+    elif conf is not None and not isinstance(conf, ReconstructConfig):
+        raise LocalScaleError(
+            f"conf must be a ReconstructConfig or its dict, got {type(conf).__name__}: give options by name"
+        )
     conf = (conf or ReconstructConfig()).replace(**options)
     run = _Reconstruction(
         Path(images_dir),
