@@ -383,7 +383,7 @@ def test_pairs_file_takes_names_tabs_and_paths(scene, tmp_path):
 
 
 def test_interrupted_matching_keeps_its_pairs_and_resumes(scene, tmp_path, monkeypatch):
-    from localscale.sfm import match as match_module
+    from localscale.sfm import pair_runner as match_module
 
     folder, _ = scene
     real_run = match_module.PairRunner.run

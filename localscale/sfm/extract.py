@@ -1,4 +1,4 @@
-"""Step 1: the local features of every image, extracted once (``features.h5``, hloc layout).
+"""The extract step: the local features of every image, extracted once (``features.h5``, hloc layout).
 
 :func:`extract_features` runs a matcher's extractor (a name of
 :data:`~localscale.matching.MATCHERS`, the same names ``--matcher`` takes) on each image at its
@@ -245,3 +245,19 @@ def snap_factor(factor: float, levels_per_octave: int = 2) -> float:
     if not (factor > 0 and math.isfinite(factor)) or levels_per_octave <= 0:
         return factor
     return float(2.0 ** (round(math.log2(factor) * levels_per_octave) / levels_per_octave))
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.extract``: this step alone, from files (:func:`~.steps.extract_folder`)."""
+    from .steps import config_of, extract_folder, parser, run_step
+
+    p = parser("extract", __doc__, ("matcher", "max_side", "num_keypoints"))
+    p.add_argument("images", help="folder of images (searched recursively)")
+    p.add_argument("features", help="features.h5 to write (images already in it are skipped)")
+    p.add_argument("--device", default="cpu", help="torch device")
+    args = p.parse_args(argv)
+    return run_step(lambda: extract_folder(args.images, args.features, config_of(args), args.device))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Step 4: the verified two-view geometry of every matched pair (``geometries.h5``).
+"""The geometry step: the verified two-view geometry of every matched pair (``geometries.h5``).
 
 Each pair's matches (``keypoints.h5`` / ``matches.h5``) and the two cameras
 (:func:`~.database.image_cameras`) go to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
@@ -14,13 +14,14 @@ Example::
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .h5io import H5Writer, groups_with, open_h5, read_group
+from .h5io import H5FileError, H5Writer, groups_with, open_h5, read_group
 from .images import names_to_pair
 from .match import read_all_matches
 from .progress import progress
@@ -37,11 +38,13 @@ class GeometryStats:
     pairs: dict = field(default_factory=dict)  # (a, b) -> {"config": name, "inliers": n, "matches": m}
     seconds: float = 0.0
     estimator: str = "pycolmap"
+    reused: int = 0  # pairs whose stored geometry was kept (same inputs)
 
     def to_dict(self) -> dict:
         return {
             "verified": self.verified,
             "pairs": len(self.pairs),
+            "reused": self.reused,
             "estimator": self.estimator,
             "seconds": round(self.seconds, 2),
         }
@@ -91,7 +94,10 @@ def verify_pairs(
     min_inliers: int = 15,
     show_progress: bool = True,
 ) -> GeometryStats:
-    """Verify every pair of ``matches_path`` and write ``geometries_path`` (anew, atomically)."""
+    """Verify every pair of ``matches_path`` and write ``geometries_path`` (atomically). A pair
+    already in ``geometries_path`` whose inputs are the same (:func:`_inputs_sha1`: its matches, their
+    keypoints, the two cameras, ``min_inliers``) keeps its stored geometry: each pair is estimated
+    once, also over reruns (``stats.reused``)."""
     t0 = time.perf_counter()
     stats = GeometryStats()
     names = {im.name for im in images}
@@ -100,33 +106,67 @@ def verify_pairs(
         for n in groups_with(keypoints_path, "keypoints")
         if n in names
     }
+    stored = _stored_inputs(geometries_path)
     writer = H5Writer(geometries_path, fresh=True)
     matches = read_all_matches(matches_path)
     for (a, b), (m, _) in progress(list(matches.items()), "verify", unit="pair", disable=not show_progress):
         if a not in kps or b not in kps:
             continue
-        if len(m) < 5:
-            g = None
+        key = names_to_pair(a, b)
+        digest = _inputs_sha1(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
+        if stored.get(key) == digest:
+            data = read_group(geometries_path, key)
+            config = str(data.pop("attrs")["config"])
+            stats.reused += 1
         else:
-            g = estimate_pair(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
-        config = "DEGENERATE" if g is None else config_name(g)
-        inl = np.zeros((0, 2), np.int32) if g is None else np.asarray(g.inlier_matches, np.int32).reshape(-1, 2)
-        data = {"inlier_matches": inl}
-        if g is not None:
-            data.update(
-                {k: np.asarray(getattr(g, k), np.float64) for k in ("F", "E", "H") if getattr(g, k, None) is not None}
-            )
-            pose = getattr(g, "cam2_from_cam1", None)
-            if pose is not None and np.linalg.norm(np.asarray(pose.translation)) > 0:
-                data.update(
-                    R=np.asarray(pose.rotation.matrix(), np.float64), t=np.asarray(pose.translation, np.float64)
-                )
-        writer.add(names_to_pair(a, b), data, {"config": config, "name0": a, "name1": b})
-        stats.pairs[(a, b)] = {"config": config, "inliers": int(len(inl)), "matches": int(len(m))}
-        stats.verified += int(len(inl) > 0)
+            config, data = _estimated(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
+        writer.add(key, data, {"config": config, "name0": a, "name1": b, "inputs_sha1": digest})
+        inliers = len(data["inlier_matches"])
+        stats.pairs[(a, b)] = {"config": config, "inliers": int(inliers), "matches": int(len(m))}
+        stats.verified += int(inliers > 0)
     writer.flush()
     stats.seconds = time.perf_counter() - t0
     return stats
+
+
+def _estimated(points_a, points_b, m, camera_a, camera_b, min_inliers: int) -> tuple:
+    """``(configuration name, datasets of geometries.h5)`` of one pair, estimated (:func:`estimate_pair`)."""
+    g = None if len(m) < 5 else estimate_pair(points_a, points_b, m, camera_a, camera_b, min_inliers)
+    config = "DEGENERATE" if g is None else config_name(g)
+    inl = np.zeros((0, 2), np.int32) if g is None else np.asarray(g.inlier_matches, np.int32).reshape(-1, 2)
+    data = {"inlier_matches": inl}
+    if g is not None:
+        data.update(
+            {k: np.asarray(getattr(g, k), np.float64) for k in ("F", "E", "H") if getattr(g, k, None) is not None}
+        )
+        pose = getattr(g, "cam2_from_cam1", None)
+        if pose is not None and np.linalg.norm(np.asarray(pose.translation)) > 0:
+            data.update(R=np.asarray(pose.rotation.matrix(), np.float64), t=np.asarray(pose.translation, np.float64))
+    return config, data
+
+
+def _inputs_sha1(points_a, points_b, m, camera_a, camera_b, min_inliers: int) -> str:
+    """The sha1 of what a pair's geometry depends on: its matches, their keypoints, the cameras, ``min_inliers``."""
+    m = np.ascontiguousarray(m, np.int64).reshape(-1, 2)
+    h = hashlib.sha1(m.tobytes())
+    h.update(np.ascontiguousarray(np.asarray(points_a, np.float32)[m[:, 0]]).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(points_b, np.float32)[m[:, 1]]).tobytes())
+    for cam in (camera_a, camera_b):
+        h.update(repr(cam.to_line() if hasattr(cam, "to_line") else cam).encode())
+    h.update(str(min_inliers).encode())
+    return h.hexdigest()
+
+
+def _stored_inputs(geometries_path) -> dict:
+    """``{pair key: inputs_sha1}`` of the pairs already in ``geometries_path`` (none if it is missing or unreadable)."""
+    if not Path(geometries_path).exists():
+        return {}
+    try:
+        with open_h5(geometries_path) as f:
+            keys = groups_with(geometries_path, "inlier_matches")
+            return {k: str(f[k].attrs["inputs_sha1"]) for k in keys if "inputs_sha1" in f[k].attrs}
+    except (OSError, H5FileError):
+        return {}
 
 
 def read_geometries(geometries_path) -> dict:
@@ -150,3 +190,18 @@ def read_geometries(geometries_path) -> dict:
                 g.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(grp["R"][()]), grp["t"][()])
             out[(str(grp.attrs["name0"]), str(grp.attrs["name1"]))] = g
     return out
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.geometry``: this step alone, from files (:func:`~.steps.verify_files`)."""
+    from .steps import config_of, parser, run_step, verify_files
+
+    p = parser("geometry", __doc__, ("camera_mode", "camera_file"))
+    p.add_argument("images", help="folder of images (their cameras)")
+    p.add_argument("out", help="folder with keypoints.h5 and matches.h5; geometries.h5 is written there")
+    args = p.parse_args(argv)
+    return run_step(lambda: verify_files(args.images, args.out, config_of(args)))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Step 6: pycolmap's mapping into ``OUT/sparse/0, 1, ...`` (binary COLMAP models).
+"""The mapping step: pycolmap's mapping into ``OUT/sparse/0, 1, ...`` (binary COLMAP models).
 
 Two mappers (:data:`MAPPERS`): COLMAP's ``incremental`` one (registers one image after the other,
 bundle adjustment along the way: hloc's and COLMAP's default), and its ``global`` one (GLOMAP:
@@ -326,3 +326,19 @@ def camera_centers(rec) -> tuple:
     """``(names, N x 3 centres)`` of the registered images of a reconstruction."""
     items = sorted((im.name, np.asarray(im.projection_center())) for im in rec.images.values() if im.has_pose)
     return [n for n, _ in items], np.array([c for _, c in items]).reshape(-1, 3)
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.mapping``: this step alone, from files (:func:`~.steps.map_files`)."""
+    from .steps import config_of, map_files, parser, run_step
+
+    p = parser("mapping", __doc__, ("mapper", "mapping_trials"))
+    p.add_argument("images", help="folder of images (the points' colours)")
+    p.add_argument("out", help="folder with database.db; sparse/ is written there")
+    p.add_argument("--num-threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
+    args = p.parse_args(argv)
+    return run_step(lambda: map_files(args.images, args.out, config_of(args), num_threads=args.num_threads))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Step 2: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
+"""The pairs step: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
 
 * :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
 * :func:`pairs_from_file`: a pairs file (:mod:`localscale.pairs_file`) of names or of image paths,
@@ -126,3 +126,19 @@ def read_pairs(path) -> list:
         if len(parts) == 2:
             out.append(tuple(parts))
     return out
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.pairs``: this step alone, from files (:func:`~.steps.pairs_of_features`)."""
+    from .steps import config_of, pairs_of_features, parser, run_step
+
+    p = parser("pairs", __doc__, ("pairs", "pairs_nearest"))
+    p.add_argument("features", help="features.h5 (its images are paired)")
+    p.add_argument("output", help="pairs.txt to write")
+    p.add_argument("--images", default=None, help="images folder (pairs files with paths)")
+    args = p.parse_args(argv)
+    return run_step(lambda: pairs_of_features(args.features, args.output, config_of(args), args.images))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
