@@ -188,3 +188,15 @@ def plot_refined_map(
         finally:
             plt.close(fig)
     return fig
+
+
+#: colours (RGB) of the source layer's labels: network grey, homography orange, matches green
+SOURCE_COLOURS = {0: (150, 150, 150), 1: (240, 140, 30), 2: (40, 170, 80)}
+
+
+def colorize_sources(layer: np.ndarray) -> np.ndarray:
+    """``H x W`` source layer (0 network, 1 homography, 2 matches) -> ``H x W x 3`` uint8 RGB."""
+    lut = np.zeros((256, 3), np.uint8)
+    for k, c in SOURCE_COLOURS.items():
+        lut[k] = c
+    return lut[np.asarray(layer, np.uint8)]

@@ -116,6 +116,12 @@ def _add_map_commands(command) -> None:
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
     sp.add_argument(
+        "--no-anchor",
+        action="store_true",
+        help="the plain one-pass map (default: the pass anchored on ScaleNet's scale and quarter turn, "
+        "with windows under strong zoom, blended toward ScaleNet's scale where the map is unreliable)",
+    )
+    sp.add_argument(
         "--search",
         action="store_true",
         help="window search: re-estimate on the windows of A or B (1/2, 1/4 of the sides) that share "
