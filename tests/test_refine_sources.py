@@ -90,4 +90,3 @@ def test_homography_pixels_are_labelled_homography_and_the_layer_is_written(rng,
     layer = np.load(tmp_path / "x_refined_source.npy")
     assert layer.dtype == np.uint8 and np.array_equal(layer, ref.source_layer)
     np.testing.assert_array_equal(np.load(tmp_path / "x_refined_weight.npy"), ref.source)
-

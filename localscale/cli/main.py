@@ -150,7 +150,19 @@ def _add_map_commands(command) -> None:
     sp.add_argument("image_b", help="image B")
     sp.add_argument("-o", "--output", default="out", help="output folder (figure <A>_<B>_figure.png)")
     sp.add_argument("--H", help="ground-truth homography A->B (3x3 text file; default: none)")
-    add_model_options(sp, local=True, global_=False, model_alias="local")
+    sp.add_argument(
+        "--refine",
+        action="store_true",
+        help="show the map refined by the verified geometry of SIFT matches, and its source layer "
+        "(network / homography / matches)",
+    )
+    sp.add_argument(
+        "--model",
+        dest="colmap_model",
+        metavar="DIR",
+        help="COLMAP sparse model with both images: adds the per-point truth at their shared 3D points",
+    )
+    add_model_options(sp, local=True, global_=False)
     add_image_options(sp)
     sp.set_defaults(func=cmd_show)
 

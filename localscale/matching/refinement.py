@@ -36,7 +36,6 @@ from ..geometry import covisible_mask, homography_scale_map, orient_homography
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches
 from .verification import VerificationConfig, VerificationResult, verify_matches
 
-
 #: labels of :attr:`RefinedScale.source_layer`: the source each pixel's scale comes from
 SOURCE_NETWORK, SOURCE_HOMOGRAPHY, SOURCE_MATCHES = 0, 1, 2
 SOURCE_NAMES = {SOURCE_NETWORK: "network", SOURCE_HOMOGRAPHY: "homography", SOURCE_MATCHES: "matches"}

@@ -41,12 +41,11 @@ from ..io import ImageLike
 from ..maps import GridMaps
 from ..planar import planarize
 from ..preprocess import Letterbox
-from .backbones import check_backbone_name
 from .anchor import Anchor, anchor_of
+from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
 from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation, warped_pair_features
 from .registry import register
-
 
 #: the bundled ScaleNet that anchors predictions, loaded once per device
 _BUNDLED_ANCHORS: dict = {}
