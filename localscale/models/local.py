@@ -390,7 +390,7 @@ class LocalScaleNet(ScaleModel):
         Returns:
             :class:`LocalScaleBatch` of ``B x H_A x W_A`` maps; tensors on the device of
             ``images_a`` for tensor input, numpy arrays for numpy input. Equal (to float
-            precision) to :meth:`predict` on each pair.
+            precision) to ``predict(..., anchor=False)`` on each pair (the one-pass map).
         """
         lb_a, lb_b, fmt, (logits, vis) = self._forward_batch(
             images_a, images_b, self.forward_features_all, bf16, batch_size
