@@ -78,10 +78,17 @@ def _window_choice(model, side, rgb, factor, shape, zoom, ea, eb, encode_window,
 
 
 def _blend(pred, anchor_log: float) -> None:
-    """Blend the map of ``pred`` toward ``exp(anchor_log)`` by its reliability (or confidence)."""
-    weight = pred.full("reliability") if pred.has("reliability") else pred.full("confidence")
-    log_s = np.log(pred.full("scale").astype(np.float64))
-    pred.set_map("scale", np.exp(weight * log_s + (1 - weight) * anchor_log).astype(np.float32))
+    """Blend the map of ``pred`` toward ``exp(anchor_log)`` by its reliability (or confidence): on
+    the processing grid when the maps are still there (no full-resolution copy), else per pixel."""
+    name = "reliability" if pred.has("reliability") else "confidence"
+    if "scale" not in pred._full and name not in pred._full:
+        grid = pred.maps.source  # channel 0: log scale; the weight channel in [0, 1] once clipped
+        w = np.clip(grid[pred.channels.index(name)], 0, 1)
+        grid[0] = w * grid[0] + (1 - w) * anchor_log
+        return
+    w = pred.full(name)
+    log_s = np.log(pred.full("scale"))
+    pred.set_map("scale", np.exp(w * log_s + (1 - w) * np.float32(anchor_log)).astype(np.float32))
 
 
 @torch.inference_mode()

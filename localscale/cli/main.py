@@ -33,7 +33,7 @@ EXAMPLES = {
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
   localscale predict wide.jpg closeup.jpg -o out/ --search     (strong zoom or low overlap)
   localscale predict localscale/assets/kodim01_a.jpg localscale/assets/kodim01_b.jpg -o out/ --refine
-      -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
+      -> also out/<A>_<B>_refined_scale.npy, _refined_source.{npy,png} (0 network, 1 homography, 2 matches), _geometry.json
   localscale predict A.jpg B.jpg -o out/ --refine --matcher aliked-lightglue   (geometry from auto)
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
       quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
@@ -45,7 +45,9 @@ EXAMPLES = {
          the other pairs still run; a pairs file with no usable pair is an 'error:', exit 2.""",
     "show": """example:
   localscale show seq/1.ppm seq/2.ppm --H seq/H_1_2 -o figures/
-      -> figures/1_2_figure.png""",
+      -> figures/1_2_figure.png
+  localscale show scene/a.jpg scene/b.jpg --refine --model scene/sparse/0 -o figures/
+      (3D scene: refined map, its source layer, truth at the model's shared 3D points)""",
     "demo": """example:
   localscale demo -o out/      -> out/demo.png""",
     "scale": """example:
@@ -160,7 +162,7 @@ def _add_map_commands(command) -> None:
         "--model",
         dest="colmap_model",
         metavar="DIR",
-        help="COLMAP sparse model with both images: adds the per-point truth at their shared 3D points",
+        help="COLMAP sparse model with both images: adds the per-point truth at their shared 3D points (default: none)",
     )
     add_model_options(sp, local=True, global_=False)
     add_image_options(sp)
