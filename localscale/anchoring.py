@@ -50,6 +50,9 @@ class AnchorConfig:
     checked: int = 4
     #: blend the map toward the global scale by the per-pixel reliability
     blend: bool = True
+    #: B's quarter turn: ScaleNet's (``"global"``), or the one of the four whose whole-pair
+    #: search score (:mod:`localscale.search`) is the highest (``"score"``, calibrated models)
+    turns: str = "global"
 
 
 def _window_choice(model, side, rgb, factor, shape, zoom, ea, eb, encode_window, bf16):
@@ -75,6 +78,20 @@ def _window_choice(model, side, rgb, factor, shape, zoom, ea, eb, encode_window,
         if plausible(fwd, bwd, side, cfg):
             return windows[j], ew
     return None
+
+
+def _best_turn(model, a, shape_a, b, shape_b, bf16) -> int:
+    """The quarter turn of B (0..3) whose whole-pair search score is the highest."""
+    fa = shape_a[0] / a.shape[0]
+    ea = _encode(model, a, fa, shape_a, None, "image A", bf16)
+    best, turn = -1.0, 0
+    for k in range(4):
+        bk, sk = turned(b, shape_b, k)
+        ek = _encode(model, bk, sk[0] / bk.shape[0], sk, None, "image B", bf16)
+        v = float(_scores(model, ea.features, ek.features, ea.letterbox, ek.letterbox, bf16)[0])
+        if v > best:
+            best, turn = v, k
+    return turn
 
 
 def _blend(pred, anchor_log: float) -> None:
@@ -106,6 +123,8 @@ def anchored_prediction(
 ):
     """``S_{A->B}`` of a Local-ScaleNet anchored on ``anchor`` (module docstring); ``a``, ``b``: the
     images as :meth:`~localscale.models.base.ScaleModel.load_pair` gives them, with their full sizes."""
+    if cfg.turns == "score" and model.config.calibration:
+        anchor = Anchor(anchor.scale, _best_turn(model, a, shape_a, b, shape_b, bf16), anchor.reliable)
     b, shape_b = turned(b, shape_b, anchor.turns)
     fa, fb = shape_a[0] / a.shape[0], shape_b[0] / b.shape[0]
     ea = _encode(model, a, fa, shape_a, None, "image A", bf16)

@@ -25,9 +25,9 @@ def _find_image(rec, image, model_dir) -> object:
     name = Path(str(image)).name
     found = [im for im in rec.images.values() if im.name == str(image) or Path(im.name).name == name]
     if not found:
-        raise LocalScaleError(f"--model {model_dir}: no image named {name} in the COLMAP model")
+        raise LocalScaleError(f"--colmap-model {model_dir}: no image named {name} in the COLMAP model")
     if len(found) > 1:
-        raise LocalScaleError(f"--model {model_dir}: {len(found)} images named {name} in the COLMAP model")
+        raise LocalScaleError(f"--colmap-model {model_dir}: {len(found)} images named {name} in the COLMAP model")
     return found[0]
 
 
@@ -42,11 +42,13 @@ def shared_point_truth(model_dir, image_a, image_b) -> tuple[np.ndarray, np.ndar
 
     d = Path(model_dir)
     if not d.is_dir() or not any((d / f"images.{ext}").is_file() for ext in ("bin", "txt")):
-        raise LocalScaleError(f"--model {model_dir}: not a COLMAP sparse model folder (images.bin or images.txt)")
+        raise LocalScaleError(
+            f"--colmap-model {model_dir}: not a COLMAP sparse model folder (images.bin or images.txt)"
+        )
     try:
         rec = pycolmap.Reconstruction(str(d))
     except Exception as e:  # pycolmap raises its own types for damaged files
-        raise LocalScaleError(f"--model {model_dir}: cannot read the COLMAP model ({e})") from None
+        raise LocalScaleError(f"--colmap-model {model_dir}: cannot read the COLMAP model ({e})") from None
     obs = []
     for image in (image_a, image_b):
         im = _find_image(rec, image, model_dir)
@@ -54,7 +56,7 @@ def shared_point_truth(model_dir, image_a, image_b) -> tuple[np.ndarray, np.ndar
     shared = sorted(obs[0].keys() & obs[1].keys())
     if len(shared) < MIN_SHARED_POINTS:
         raise LocalScaleError(
-            f"--model {model_dir}: the two images share {len(shared)} 3D points, {MIN_SHARED_POINTS} needed"
+            f"--colmap-model {model_dir}: the two images share {len(shared)} 3D points, {MIN_SHARED_POINTS} needed"
         )
     xy_a = np.array([obs[0][k] for k in shared]) - 0.5  # COLMAP: the top-left pixel's centre is 0.5
     xy_b = np.array([obs[1][k] for k in shared]) - 0.5

@@ -1,4 +1,4 @@
-"""``show --refine`` and ``show --model DIR``: the source layer and the per-point truth of a COLMAP model."""
+"""``show --refine`` and ``show --colmap-model DIR``: the source layer and the per-point truth of a COLMAP model."""
 
 import cv2
 import numpy as np
@@ -49,7 +49,7 @@ def test_shared_point_truth_reads_the_model(zoom_scene):
 def test_show_draws_the_source_layer_and_the_point_truth(zoom_scene, tmp_path, capsys):
     out = tmp_path / "figs"
     args = ["show", str(zoom_scene / "a.png"), str(zoom_scene / "b.png"), "-o", str(out)]
-    assert main(args + ["--refine", "--model", str(zoom_scene / "sparse")]) == 0
+    assert main(args + ["--refine", "--colmap-model", str(zoom_scene / "sparse")]) == 0
     fig = cv2.imread(str(out / "a_b_figure.png"))
     assert fig is not None
     plain = tmp_path / "plain"
@@ -74,7 +74,7 @@ def test_show_refuses_a_bad_model(zoom_scene, tmp_path, capsys, problem):
         model = tmp_path / "few"
         _write_text_model(model, ["a.png", "b.png"], (400, 300), xy, xy)
     out = tmp_path / "out"
-    rc = main(["show", str(zoom_scene / "a.png"), str(image_b), "-o", str(out), "--model", str(model)])
+    rc = main(["show", str(zoom_scene / "a.png"), str(image_b), "-o", str(out), "--colmap-model", str(model)])
     err = capsys.readouterr().err
-    assert rc == 2 and err.startswith("error: ") and "--model" in err and len(err.strip().splitlines()) == 1
+    assert rc == 2 and err.startswith("error: ") and "--colmap-model" in err and len(err.strip().splitlines()) == 1
     assert not out.exists() or not any(out.iterdir())

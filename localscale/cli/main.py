@@ -46,7 +46,7 @@ EXAMPLES = {
     "show": """example:
   localscale show seq/1.ppm seq/2.ppm --H seq/H_1_2 -o figures/
       -> figures/1_2_figure.png
-  localscale show scene/a.jpg scene/b.jpg --refine --model scene/sparse/0 -o figures/
+  localscale show scene/a.jpg scene/b.jpg --refine --colmap-model scene/sparse/0 -o figures/
       (3D scene: refined map, its source layer, truth at the model's shared 3D points)""",
     "demo": """example:
   localscale demo -o out/      -> out/demo.png""",
@@ -121,7 +121,8 @@ def _add_map_commands(command) -> None:
         "--no-anchor",
         action="store_true",
         help="the plain one-pass map (default: the pass anchored on ScaleNet's scale and quarter turn, "
-        "with windows under strong zoom, blended toward ScaleNet's scale where the map is unreliable)",
+        "with windows under strong zoom, blended toward ScaleNet's scale where the map is unreliable; "
+        "--pairs always gives the one-pass maps)",
     )
     sp.add_argument(
         "--search",
@@ -159,12 +160,12 @@ def _add_map_commands(command) -> None:
         "(network / homography / matches)",
     )
     sp.add_argument(
-        "--model",
+        "--colmap-model",
         dest="colmap_model",
         metavar="DIR",
         help="COLMAP sparse model with both images: adds the per-point truth at their shared 3D points (default: none)",
     )
-    add_model_options(sp, local=True, global_=False)
+    add_model_options(sp, local=True, global_=False, model_alias="local")
     add_image_options(sp)
     sp.set_defaults(func=cmd_show)
 
