@@ -13,7 +13,7 @@ number, with its quarter turns, is robust there. The anchored pass (:func:`ancho
    score (:mod:`localscale.search`) that passes :func:`~localscale.search.plausible` is kept (its
    map pasted into the whole pass's map over A's window);
 3. blends the map toward ``S`` where the network does not trust it:
-   ``log s = r log s_local + (1 - r) log S`` with ``r`` the calibrated reliability
+   ``log s = w log s_local + (1 - w) log S`` with ``w = r^2``, ``r`` the calibrated reliability
    (the entropy confidence for an uncalibrated model).
 
 Window maps are in the pixels of the original images, so no rescaling is needed to compose them.
@@ -48,8 +48,10 @@ class AnchorConfig:
     window_log2: float = 1.0
     #: window pairs checked by :func:`~localscale.search.plausible` (best scores first)
     checked: int = 4
-    #: blend the map toward the global scale by the per-pixel reliability
+    #: blend the map toward the global scale by the per-pixel reliability ``r``, with weight ``r^p``
     blend: bool = True
+    #: the power ``p`` of that weight (higher: closer to the global scale where ``r < 1``)
+    blend_power: float = 2.0
     #: B's quarter turn: ScaleNet's (``"global"``), or the one of the four whose whole-pair
     #: search score (:mod:`localscale.search`) is the highest (``"score"``, calibrated models)
     turns: str = "global"
@@ -94,16 +96,17 @@ def _best_turn(model, a, shape_a, b, shape_b, bf16) -> int:
     return turn
 
 
-def _blend(pred, anchor_log: float) -> None:
-    """Blend the map of ``pred`` toward ``exp(anchor_log)`` by its reliability (or confidence): on
-    the processing grid when the maps are still there (no full-resolution copy), else per pixel."""
+def _blend(pred, anchor_log: float, power: float) -> None:
+    """Blend the map of ``pred`` toward ``exp(anchor_log)`` with the weight ``r^power``, ``r`` its
+    reliability (or confidence): on the processing grid when the maps are still there (no
+    full-resolution copy), else per pixel."""
     name = "reliability" if pred.has("reliability") else "confidence"
     if "scale" not in pred._full and name not in pred._full:
         grid = pred.maps.source  # channel 0: log scale; the weight channel in [0, 1] once clipped
-        w = np.clip(grid[pred.channels.index(name)], 0, 1)
+        w = np.clip(grid[pred.channels.index(name)], 0, 1) ** power
         grid[0] = w * grid[0] + (1 - w) * anchor_log
         return
-    w = pred.full(name)
+    w = pred.full(name) ** np.float32(power)
     log_s = np.log(pred.full("scale"))
     pred.set_map("scale", np.exp(w * log_s + (1 - w) * np.float32(anchor_log)).astype(np.float32))
 
@@ -145,7 +148,7 @@ def anchored_prediction(
             pred = _compose(pred, inner, window) if side == "a" else model.predict_from_features(ea, ew, hard, bf16)
             window = (side, window)
     if cfg.blend:
-        _blend(pred, math.log(anchor.scale))
+        _blend(pred, math.log(anchor.scale), cfg.blend_power)
     if planar:
         pred.scale = planarize(pred.scale, pred.confidence, stride=max(1, round(8 / pred.letterbox_a.factor)))
     pred.meta["anchor"] = anchor.to_dict() | {
