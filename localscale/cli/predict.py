@@ -130,6 +130,8 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
 
         back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
     first_a, first_b = CorrectionGate().apply_predictions(pred, back)
+    from ..matching.verification import VerificationConfig
+
     res = refine_match(
         args.image_a,
         args.image_b,
@@ -139,6 +141,7 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
         back.scale,
         max_passes=args.refine_passes,
         sift_seed=args.refine_seed == "sift",
+        verification=VerificationConfig(model="two_view"),  # H for planes, F (map of the matches) for 3D scenes
     )
     v = res.verification
     extra = {k: res.meta[k] for k in _REFINE_META}
