@@ -57,12 +57,14 @@ def scale_map_paths(out_dir: Path, stem: str, visible: bool) -> list[Path]:
 
 
 def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None, inputs=()) -> list[Path]:
-    """Write ``<stem>refined_scale.npy`` (float32 ``S_{A->B}``), ``<stem>refined_source.npy`` (geometry
-    weight, 0 network .. 1 geometry), ``<stem>refined_scale.png``, with ``refined_b`` the same for B
-    (``..._b``), and ``<stem>geometry.json`` (the verification: H or F, inliers, verified, reasons)."""
+    """Write ``<stem>refined_scale.npy`` (float32 ``S_{A->B}``), ``<stem>refined_source.npy`` (uint8
+    source layer: 0 network, 1 homography, 2 matches) and its picture ``refined_source.png``,
+    ``<stem>refined_weight.npy`` (float32 geometry weight, 0 network .. 1 geometry),
+    ``<stem>refined_scale.png``, with ``refined_b`` the same for B (``..._b``), and
+    ``<stem>geometry.json`` (the verification: H or F, inliers, verified, reasons)."""
     import numpy as np
 
-    from .viz import colorize_log2_scale
+    from .viz import colorize_log2_scale, colorize_sources
 
     out = make_dir(Path(out))
     items = [("", refined_a)] + ([("_b", refined_b)] if refined_b is not None else [])
@@ -72,12 +74,16 @@ def write_refinement(out: Path, stem: str, refined_a, refined_b=None, meta=None,
             out / f"{stem}refined_scale{suffix}.npy",
             out / f"{stem}refined_source{suffix}.npy",
             out / f"{stem}refined_scale{suffix}.png",
+            out / f"{stem}refined_source{suffix}.png",
+            out / f"{stem}refined_weight{suffix}.npy",
         ]
         for q in names:
             ensure_not_input(q, inputs)
         write_npy(names[0], r.scale.astype(np.float32))
-        write_npy(names[1], r.source.astype(np.float32))
+        write_npy(names[1], r.source_layer.astype(np.uint8))
         write_image(names[2], colorize_log2_scale(r.scale)[..., ::-1])
+        write_image(names[3], colorize_sources(r.source_layer)[..., ::-1])
+        write_npy(names[4], r.source.astype(np.float32))
         paths += names
     geo = out / f"{stem}geometry.json"
     ensure_not_input(geo, inputs)

@@ -72,9 +72,13 @@ def plot_scale_prediction(
     path: str | Path | None = None,
     title: str | None = None,
     visible: np.ndarray | None = None,
+    sources: np.ndarray | None = None,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
 ):
     """Figure: A, B, predicted scale map (+ colourbar in factors), confidence, co-visibility
-    (when ``visible`` is given), and GT + error if given.
+    (when ``visible`` is given), the source layer of a refined map (``sources``: 0 network,
+    1 homography, 2 matches), the per-point truth (``points``: ``(xy N x 2, truth N)``, coloured
+    dots on A, with the map's error at them), and GT + error if given.
 
     The scale maps share one symmetric colour range on ``log2 S`` fitted to the maps
     (:func:`fitted_log2_range`); the colourbar is labelled in factors (x0.5, x1, x2).
@@ -90,6 +94,7 @@ def plot_scale_prediction(
         g = np.where(gt_mask, gt_scale, np.nan) if gt_mask is not None else gt_scale
     vmax = fitted_log2_range(scale, g)
     panels = 3 + (confidence is not None) + (visible is not None) + 2 * (gt_scale is not None)
+    panels += (sources is not None) + (points is not None)
     fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.4), constrained_layout=True)
     axes = list(np.atleast_1d(axes))
     axes[0].imshow(image_a)
@@ -109,6 +114,12 @@ def plot_scale_prediction(
         iv = axes[k].imshow(visible, cmap="gray", vmin=0, vmax=1)
         axes[k].set_title("co-visible in B (probability)")
         fig.colorbar(iv, ax=axes[k], fraction=0.046, pad=0.02)
+        k += 1
+    if sources is not None:
+        _sources_panel(axes[k], sources)
+        k += 1
+    if points is not None:
+        _points_panel(fig, axes[k], image_a, scale, points, vmax)
         k += 1
     if gt_scale is not None:
         ig = axes[k].imshow(np.log2(g), cmap=CMAP, vmin=-vmax, vmax=vmax)
@@ -188,3 +199,43 @@ def plot_refined_map(
         finally:
             plt.close(fig)
     return fig
+
+
+#: colours (RGB) of the source layer's labels: network grey, homography orange, matches green
+SOURCE_COLOURS = {0: (150, 150, 150), 1: (240, 140, 30), 2: (40, 170, 80)}
+
+
+def colorize_sources(layer: np.ndarray) -> np.ndarray:
+    """``H x W`` source layer (0 network, 1 homography, 2 matches) -> ``H x W x 3`` uint8 RGB."""
+    lut = np.zeros((256, 3), np.uint8)
+    for k, c in SOURCE_COLOURS.items():
+        lut[k] = c
+    return lut[np.asarray(layer, np.uint8)]
+
+
+def _sources_panel(ax, sources: np.ndarray) -> None:
+    from matplotlib.patches import Patch
+
+    ax.imshow(colorize_sources(sources), interpolation="nearest")
+    names = {0: "network", 1: "homography", 2: "matches"}
+    handles = [Patch(color=np.array(SOURCE_COLOURS[k]) / 255, label=names[k]) for k in names]
+    ax.legend(handles=handles, loc="lower right", fontsize=7, framealpha=0.8)
+    ax.set_title("source of each pixel")
+
+
+def _points_panel(fig, ax, image_a: np.ndarray, scale: np.ndarray, points, vmax: float) -> None:
+    """A dimmed, with the per-point truth as coloured dots; the title gives the map's mean error
+    factor at the points."""
+    xy, truth = (np.asarray(p, np.float64) for p in points)
+    ok = np.isfinite(truth) & (truth > 0)
+    xy, truth = xy[ok], truth[ok]
+    ax.imshow((np.asarray(image_a, np.float32) * 0.5 + 64).astype(np.uint8))
+    sc = ax.scatter(
+        xy[:, 0], xy[:, 1], c=np.log2(truth), cmap=CMAP, vmin=-vmax, vmax=vmax, s=9, edgecolors="k", linewidths=0.3
+    )
+    _factor_colorbar(fig, sc, ax, vmax)
+    h, w = scale.shape[:2]
+    xi = np.clip(np.round(xy[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(xy[:, 1]).astype(int), 0, h - 1)
+    r = float(np.exp(np.abs(np.log(scale[yi, xi] / truth))).mean()) if len(truth) else float("nan")
+    ax.set_title(f"3D truth at {len(truth)} points (map r {r:.2f})")

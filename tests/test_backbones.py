@@ -174,11 +174,11 @@ def test_unknown_backbone_is_refused():
 
 def test_xfeat_predictions_keep_the_shapes_and_invariants(xfeat_model, photos):
     a, b = photos["astronaut"][:300, :200], photos["coffee"]
-    pred = xfeat_model.predict(a, b)
+    pred = xfeat_model.predict(a, b, anchor=False)  # the one-pass map (as the batch)
     assert pred.scale.shape == (300, 200) and pred.visible.shape == (300, 200)
     assert np.isfinite(pred.scale).all() and (pred.scale > 0).all()
     big = np.repeat(np.repeat(b, 2, 0), 2, 1)  # B twice as large: the map doubles
-    ratio = xfeat_model.predict(a, big).scale / pred.scale
+    ratio = xfeat_model.predict(a, big, anchor=False).scale / pred.scale
     assert np.allclose(np.median(ratio), 2.0, rtol=0.1)
     gray = np.repeat(photos["camera"][..., None], 3, 2)
     assert xfeat_model.predict(gray, b).scale.shape == gray.shape[:2]  # a gray side makes the pair gray

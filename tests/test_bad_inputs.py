@@ -1536,6 +1536,7 @@ def test_a_rerun_redoes_pairs_whose_image_or_options_changed(env, tmp_path, caps
                 str(d / "b.png"),
                 "-o",
                 str(tmp_path / "single"),
+                "--no-anchor",
                 "--local-weights",
                 str(env["in"] / "local.pt"),
             ]

@@ -43,7 +43,7 @@ def test_local_predict_batch_equals_predict(local_full, photos, device):
     assert out.scale.shape == out.confidence.shape == out.visible.shape == out.reliability.shape == (3, 100, 150)
     assert out.scale.device.type == device and out.probs.shape == (3, 13, 8, 8)
     for i in range(3):
-        ref = model.predict(a[i], b[i])
+        ref = model.predict(a[i], b[i], anchor=False)
         for key in ("scale", "confidence", "visible", "reliability"):
             np.testing.assert_allclose(getattr(out, key)[i].cpu().numpy(), getattr(ref, key), atol=1e-4, err_msg=key)
     model.to("cpu")
@@ -83,7 +83,9 @@ def test_hard_readout_and_a_model_without_extra_outputs(photos):
     out = model.predict_batch(a, b, hard=True)
     assert out.visible is None and out.reliability is None
     for i in range(2):
-        np.testing.assert_allclose(out.scale[i].numpy(), model.predict(a[i], b[i], hard=True).scale, atol=1e-4)
+        np.testing.assert_allclose(
+            out.scale[i].numpy(), model.predict(a[i], b[i], hard=True, anchor=False).scale, atol=1e-4
+        )
 
 
 def test_predict_batch_refuses_bad_batches(local_full, photos):

@@ -38,9 +38,9 @@ def test_read_out_options_reach_the_batched_head(model, files):
     ((_, soft),) = predict_pairs(model, [(a, b)])
     ((_, hard),) = predict_pairs(model, [(a, b)], hard=True)
     ((_, planar),) = predict_pairs(model, [(a, b)], planar=True)
-    assert np.allclose(soft.scale, model.predict(a, b).scale, rtol=1e-4)
-    assert np.allclose(hard.scale, model.predict(a, b, hard=True).scale, rtol=1e-4)
-    assert np.allclose(planar.scale, model.predict(a, b, planar=True).scale, rtol=1e-4)
+    assert np.allclose(soft.scale, model.predict(a, b, anchor=False).scale, rtol=1e-4)
+    assert np.allclose(hard.scale, model.predict(a, b, hard=True, anchor=False).scale, rtol=1e-4)
+    assert np.allclose(planar.scale, model.predict(a, b, planar=True, anchor=False).scale, rtol=1e-4)
     assert not np.allclose(soft.scale, hard.scale)
 
 

@@ -203,6 +203,7 @@ def test_pairs_file_honours_hard_planar_and_counts_encodings(models, pair, tmp_p
     assert (
         main(
             ["predict", str(pair / "a.png"), str(pair / "b.jpg"), "-o", str(tmp_path / "single"), "--hard", "--planar"]
+            + ["--no-anchor"]
             + w
         )
         == 0

@@ -45,6 +45,7 @@ def test_prediction_maps_are_read_out_on_use(photos):
     assert pred._full == {} and s.shape == (120, 160)  # every 4th pixel
     assert np.allclose(s, pred.scale[::4, ::4], rtol=1e-5)
     batch = net.predict_batch(a[None].transpose(0, 3, 1, 2), b[None].transpose(0, 3, 1, 2))
+    pred = net.predict(a, b, anchor=False)  # the batch is the one-pass map
     assert np.allclose(pred.scale, batch.scale[0], rtol=1e-4)
     assert np.allclose(pred.confidence, batch.confidence[0], atol=1e-4)
     assert np.allclose(pred.visible, batch.visible[0], atol=1e-4)

@@ -15,9 +15,13 @@ from .common import ASSETS, _model, check_output_dir, pair_name
 SHOW_MAX_SIDE = 2048
 
 
-def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bool = False) -> Path:
+def show_pair(
+    image_a, image_b, output, H=None, model=None, title=None, bf16: bool = False, refine=False, colmap_model=None
+) -> Path:
     """Predict and write the figure (A, B, scale factor map, confidence, and GT/error when ``H`` is
-    given) to the file ``output``; returns its path."""
+    given) to the file ``output``; returns its path. ``refine``: the map refined by the verified
+    geometry of SIFT matches (:func:`refined_map`), with its source layer; ``colmap_model``: a COLMAP
+    sparse model with both images, whose shared 3D points give the per-point truth."""
     import numpy as np
 
     from ..geometry import covisible_mask, homography_scale_map
@@ -25,10 +29,20 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
     from ..viz import plot_scale_prediction
 
     output = ensure_not_input(output, (image_a, image_b, H))
+    points = None
+    if colmap_model is not None:  # bad input is refused before any model runs
+        from ..point_truth import shared_point_truth
+
+        xy, truth = shared_point_truth(colmap_model, image_a, image_b)
     model = model or loading.load_scale_model("local")
     a, to_a = load_working_image(image_a, SHOW_MAX_SIDE, "image A")  # a figure needs no more pixels
     b, to_b = load_working_image(image_b, SHOW_MAX_SIDE, "image B")
+    if colmap_model is not None:  # in the working image's pixels; a scale ratio does not change with the resize
+        points = (xy @ to_a[:2, :2].T + to_a[:2, 2], truth)
     pred = model.predict(a, b, bf16=bf16)
+    scale, sources = pred.scale, None
+    if refine:
+        scale, sources = refined_map(a, b, scale)
     gt = mask = None
     if H is not None:
         Hm = to_b @ read_homography(H) @ np.linalg.inv(to_a)
@@ -37,18 +51,57 @@ def show_pair(image_a, image_b, output, H=None, model=None, title=None, bf16: bo
     make_dir(Path(output).parent)
     try:
         plot_scale_prediction(
-            a, b, pred.scale, pred.confidence, gt, mask, output, title, visible=getattr(pred, "visible", None)
+            a,
+            b,
+            scale,
+            pred.confidence,
+            gt,
+            mask,
+            output,
+            title,
+            visible=getattr(pred, "visible", None),
+            sources=sources,
+            points=points,
         )
     except (OSError, ValueError) as e:
         raise LocalScaleError(f"cannot write figure {output}: {e}") from None
     return Path(output)
 
 
+def refined_map(a, b, scale):
+    """``(map, source layer)``: ``scale`` (A's network map) refined by the geometry of OpenCV SIFT
+    matches verified as COLMAP's two-view geometry chooses (homography, or fundamental matrix with
+    the dense map of its matches); the network map where nothing verifies."""
+    from ..matching.refinement import refine_scale_map, sift_seed_points
+    from ..matching.verification import VerificationConfig, verify_matches
+
+    pa, pb = sift_seed_points(a, b, 2000)
+    v = verify_matches(pa, pb, a.shape[:2], b.shape[:2], scale, VerificationConfig(model="two_view"))
+    if not v.verified:
+        print(
+            f"warning: the matches did not verify ({'; '.join(v.reasons)}): the network map is shown", file=sys.stderr
+        )
+    ref = refine_scale_map(scale, v)
+    return ref.scale, ref.source_layer
+
+
 def cmd_show(args) -> int:
     name = f"{pair_name(args.image_a, args.image_b)}_figure.png"
     out = check_output_dir(args.output, [name])
     fig = ensure_not_input(out / name, (args.image_a, args.image_b, args.H))
-    print(show_pair(args.image_a, args.image_b, fig, args.H, _model(args, "local"), bf16=args.bf16))
+    model = _model(args, "local")
+    print(
+        show_pair(
+            args.image_a,
+            args.image_b,
+            fig,
+            args.H,
+            model,
+            bf16=args.bf16,
+            refine=args.refine,
+            colmap_model=args.colmap_model,
+        )
+    )
     return 0
 
 

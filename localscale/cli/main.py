@@ -34,7 +34,7 @@ EXAMPLES = {
   localscale predict --pairs pairs.txt -o out/ --batch-size 8
   localscale predict wide.jpg closeup.jpg -o out/ --search     (strong zoom or low overlap)
   localscale predict localscale/assets/kodim01_a.jpg localscale/assets/kodim01_b.jpg -o out/ --refine
-      -> also out/<A>_<B>_refined_scale.npy, _refined_source.npy, _geometry.json
+      -> also out/<A>_<B>_refined_scale.npy, _refined_source.{npy,png} (0 network, 1 homography, 2 matches), _geometry.json
   localscale predict A.jpg B.jpg -o out/ --refine --matcher aliked-lightglue   (geometry from auto)
       pairs.txt: one pair per line, 'A<TAB>B' (names as written) or 'A B' with shell-like
       quoting ("my photo.jpg" b.jpg); relative to the file's folder; lines starting with '#'
@@ -46,7 +46,9 @@ EXAMPLES = {
          the other pairs still run; a pairs file with no usable pair is an 'error:', exit 2.""",
     "show": """example:
   localscale show seq/1.ppm seq/2.ppm --H seq/H_1_2 -o figures/
-      -> figures/1_2_figure.png""",
+      -> figures/1_2_figure.png
+  localscale show scene/a.jpg scene/b.jpg --refine --colmap-model scene/sparse/0 -o figures/
+      (3D scene: refined map, its source layer, truth at the model's shared 3D points)""",
     "demo": """example:
   localscale demo -o out/      -> out/demo.png""",
     "scale": """example:
@@ -117,6 +119,13 @@ def _add_map_commands(command) -> None:
     sp.add_argument("--hard", action="store_true", help="D-ScaleNet (arg-max bin) read-out")
     sp.add_argument("--planar", action="store_true", help="fit a homography's scale field (planar scenes only)")
     sp.add_argument(
+        "--no-anchor",
+        action="store_true",
+        help="the plain one-pass map (default: the pass anchored on ScaleNet's scale and quarter turn, "
+        "with windows under strong zoom, blended toward ScaleNet's scale where the map is unreliable; "
+        "--pairs always gives the one-pass maps)",
+    )
+    sp.add_argument(
         "--search",
         action="store_true",
         help="window search: re-estimate on the windows of A or B (1/2, 1/4 of the sides) that share "
@@ -145,6 +154,18 @@ def _add_map_commands(command) -> None:
     sp.add_argument("image_b", help="image B")
     sp.add_argument("-o", "--output", default="out", help="output folder (figure <A>_<B>_figure.png)")
     sp.add_argument("--H", help="ground-truth homography A->B (3x3 text file; default: none)")
+    sp.add_argument(
+        "--refine",
+        action="store_true",
+        help="show the map refined by the verified geometry of SIFT matches, and its source layer "
+        "(network / homography / matches)",
+    )
+    sp.add_argument(
+        "--colmap-model",
+        dest="colmap_model",
+        metavar="DIR",
+        help="COLMAP sparse model with both images: adds the per-point truth at their shared 3D points (default: none)",
+    )
     add_model_options(sp, local=True, global_=False, model_alias="local")
     add_image_options(sp)
     sp.set_defaults(func=cmd_show)

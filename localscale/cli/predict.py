@@ -28,7 +28,7 @@ def cmd_predict(args) -> int:
     if args.search and (args.hard or args.planar):
         raise LocalScaleError("predict: --search uses the soft read-out; drop --hard/--planar")
     check = check_pair(model, args.image_a, args.image_b, bf16=args.bf16, hard=args.hard, planar=args.planar)
-    pred = _searched_prediction(model, args) if args.search else check.forward
+    pred = _searched_prediction(model, args) if args.search else _anchored(model, args, check)
     _write_prediction(args, pred, check, out, inputs)
     if getattr(args, "refine", False) and not extractor_of(args.matcher).patch_based:
         _refine_with_matcher(args, model, out, inputs)
@@ -62,6 +62,19 @@ def _check_pair_options(args) -> None:
             raise LocalScaleError(f"predict: --search refines with a patch matcher, not {args.matcher}; drop --matcher")
     if not (args.image_a and args.image_b):
         raise LocalScaleError("predict: give two images A B, or --pairs FILE")
+
+
+def _anchored(model, args, check):
+    """The map of A anchored on ScaleNet (the default), with its line on stderr; the one-pass map
+    of the check with ``--no-anchor``."""
+    if args.no_anchor:
+        return check.forward
+    pred = model.predict(args.image_a, args.image_b, hard=args.hard, bf16=args.bf16, planar=args.planar)
+    a = pred.meta["anchor"]
+    win = a["window"]
+    where = f", local pass on {win['image']} window {tuple(win['box'])}" if win else ""
+    print(f"anchor: ScaleNet S(A->B) {a['scale']:.3f}, B turned {90 * a['turns']} deg{where}", file=sys.stderr)
+    return pred
 
 
 def _searched_prediction(model, args):
@@ -118,6 +131,8 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
 
         back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
     first_a, first_b = CorrectionGate().apply_predictions(pred, back)
+    from ..matching.verification import VerificationConfig
+
     res = refine_match(
         args.image_a,
         args.image_b,
@@ -128,6 +143,7 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
         matcher=args.matcher,
         max_passes=args.refine_passes,
         sift_seed=args.refine_seed == "sift",
+        verification=VerificationConfig(model="two_view"),  # H for planes, F (map of the matches) for 3D scenes
     )
     v = res.verification
     extra = {k: res.meta[k] for k in _REFINE_META}

@@ -5,7 +5,9 @@
   over its support (co-visible region of A under ``H`` and the dilated inlier hull), or per-inlier
   scales of local affine fits interpolated between the inliers (fundamental-matrix case);
   blended with the network map in ``log2`` with a weight that decays with the distance to the
-  support. Unverified: the network map unchanged, source all 0.
+  support. Unverified: the network map unchanged, source all 0. ``source_layer`` labels each
+  pixel by where its scale comes from (0 network, 1 homography, 2 matches).
+* :func:`matches_scale_map`: the dense map of a match set alone (local affine fits, interpolated).
 * :func:`refine_matching`: match, verify, refine the maps of both images, re-cut the patches
   with the refined maps and match again, until the inlier count stops growing; the pass with
   the most inliers is returned. When the first pass is not verified, an optional *seed* match
@@ -34,6 +36,10 @@ from ..geometry import covisible_mask, homography_scale_map, orient_homography
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches
 from .verification import VerificationConfig, VerificationResult, verify_matches
 
+#: labels of :attr:`RefinedScale.source_layer`: the source each pixel's scale comes from
+SOURCE_NETWORK, SOURCE_HOMOGRAPHY, SOURCE_MATCHES = 0, 1, 2
+SOURCE_NAMES = {SOURCE_NETWORK: "network", SOURCE_HOMOGRAPHY: "homography", SOURCE_MATCHES: "matches"}
+
 
 @dataclass
 class RefinedScale:
@@ -44,12 +50,24 @@ class RefinedScale:
         source: ``H x W`` float32 weight of the geometry in ``log2`` (0 = network map, 1 = geometry).
         verification: the :class:`VerificationResult` it came from (seen from this image).
         verified: whether a verified geometry was used.
+        source_layer: ``H x W`` uint8, where each pixel's scale comes from: :data:`SOURCE_NETWORK`
+            (0, the network's map), :data:`SOURCE_HOMOGRAPHY` (1, the verified homography's analytic
+            map) or :data:`SOURCE_MATCHES` (2, local affine fits of the verified matches of a
+            fundamental or essential matrix); a pixel is labelled by the geometry where its
+            weight ``source`` is at least 0.5.
     """
 
     scale: np.ndarray
     source: np.ndarray
     verification: VerificationResult
     verified: bool
+    source_layer: Optional[np.ndarray] = None
+
+    def __post_init__(self):
+        if self.source_layer is None:
+            label = SOURCE_HOMOGRAPHY if self.verification.model == "homography" else SOURCE_MATCHES
+            geo = (self.source >= 0.5) if self.verified else np.zeros(self.source.shape, bool)
+            self.source_layer = np.where(geo, label, SOURCE_NETWORK).astype(np.uint8)
 
     @property
     def H(self):
@@ -118,6 +136,36 @@ def _interpolate_log_scales(points: np.ndarray, log_scales: np.ndarray, shape, n
     return full.astype(np.float64), _distance_to(mask)
 
 
+def _matches_log2_map(points: np.ndarray, log2_scales: np.ndarray, shape, config: VerificationConfig):
+    """``log2`` scales of points interpolated over an image (NaN without points) and the mask of
+    the points' pixels (the support of the map)."""
+    support = np.zeros(shape, bool)
+    if not len(points):
+        return np.full(shape, np.nan), support
+    geo, _ = _interpolate_log_scales(points, log2_scales, shape, config.interp_neighbours, config.grid_stride)
+    pi = np.clip(np.round(points).astype(int), 0, [shape[1] - 1, shape[0] - 1])
+    support[pi[:, 1], pi[:, 0]] = True
+    return geo, support
+
+
+def matches_scale_map(
+    points_a: np.ndarray, points_b: np.ndarray, shape: tuple, config: VerificationConfig = VerificationConfig()
+) -> tuple[np.ndarray, np.ndarray]:
+    """A dense ``S_{A->B}`` from matches alone: a least-squares affine map fitted to each match and
+    its ``config.affine_neighbours - 1`` nearest matches in A (scale ``sqrt|det|``, kept where the
+    fit's residuals are within ``config.affine_threshold`` px), interpolated over A in ``log2``
+    (inverse distance to the ``config.interp_neighbours`` nearest fits).
+
+    Returns ``(scale H x W float32, NaN where no fit exists; distance H x W to the nearest fit, px)``.
+    """
+    from .verification import local_affine_scales
+
+    pa, pb = np.asarray(points_a, np.float64).reshape(-1, 2), np.asarray(points_b, np.float64).reshape(-1, 2)
+    s, ok = local_affine_scales(pa, pb, config.affine_neighbours, config.affine_threshold)
+    geo, support = _matches_log2_map(pa[ok], np.log2(s[ok]), tuple(shape)[:2], config)
+    return np.exp2(geo).astype(np.float32), _distance_to(support)
+
+
 def refine_scale_map(
     scale_map,
     verification: VerificationResult,
@@ -151,10 +199,9 @@ def refine_scale_map(
         support &= np.isfinite(geo)
     else:
         ls = np.log2(verification.local_scales[verification.inliers])
-        geo, _ = _interpolate_log_scales(inl_a, ls, shape, config.interp_neighbours, config.grid_stride)
-        support = np.zeros(shape, bool)
-        pi = np.clip(np.round(inl_a).astype(int), 0, [shape[1] - 1, shape[0] - 1])
-        support[pi[:, 1], pi[:, 0]] = True
+        known = np.isfinite(ls)  # inliers without a consistent local affine fit have no scale
+        geo, _ = _matches_log2_map(inl_a[known], ls[known], shape, config)
+        support = _hull_mask(inl_a[known], shape, config.hull_margin * diag)
     dist = _distance_to(support)
     weight = np.exp(-dist / (config.decay * diag)).astype(np.float64)
     ok = np.isfinite(geo)

@@ -66,7 +66,8 @@ class VerificationConfig:
             local affine fit; inliers of ``F`` without such a consistent fit are dropped.
     Refinement:
         support: ``"covisible"`` (the region of A that ``H`` maps into B, plus the dilated inlier hull)
-            or ``"hull"`` (the dilated inlier hull only); fundamental case: the inliers themselves.
+            or ``"hull"`` (the dilated inlier hull only); fundamental case: the dilated hull of the
+            inliers with a local scale.
         hull_margin: dilation of the inlier hull, as a fraction of A's diagonal.
         decay: length (fraction of A's diagonal) over which the geometry's weight decays as
             ``exp(-d / (decay * diag))`` with the distance ``d`` to the support.

@@ -41,10 +41,14 @@ from ..io import ImageLike
 from ..maps import GridMaps
 from ..planar import planarize
 from ..preprocess import Letterbox
+from .anchor import Anchor, anchor_of
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, as_numpy, upsample_to_original
 from .common import ReductionBlock, conv_bn_relu, correlation, normalise_correlation, warped_pair_features
 from .registry import register
+
+#: the bundled ScaleNet that anchors predictions, loaded once per device
+_BUNDLED_ANCHORS: dict = {}
 
 
 @dataclass
@@ -248,6 +252,7 @@ class LocalScaleNet(ScaleModel):
     def __init__(self, config: LocalScaleNetConfig | None = None, **overrides):
         config = config or LocalScaleNetConfig(**overrides)
         super().__init__(config)
+        self._anchor: list = []  # [the ScaleNet of the anchored pass] (a list: not a submodule)
         n = self.grid_size**2
         self.reduce_self = ReductionBlock(n, config.reduction)
         self.reduce_cross = ReductionBlock(n, config.reduction)
@@ -316,7 +321,13 @@ class LocalScaleNet(ScaleModel):
 
     @torch.inference_mode()
     def predict(
-        self, image_a: ImageLike, image_b: ImageLike, hard: bool = False, bf16: bool = False, planar: bool = False
+        self,
+        image_a: ImageLike,
+        image_b: ImageLike,
+        hard: bool = False,
+        bf16: bool = False,
+        planar: bool = False,
+        anchor: bool | Anchor = True,
     ) -> LocalScalePrediction:
         """Per-pixel scale ``S_{A->B}`` between two images (paths or arrays, any size).
 
@@ -325,11 +336,43 @@ class LocalScaleNet(ScaleModel):
             bf16: run the network under bfloat16 autocast (faster on CPUs with AMX).
             planar: replace the map by the best scale field of a homography (planar scenes
                 only; see :mod:`localscale.planar`).
+            anchor: ``True``: the pass is anchored on the global ScaleNet's scale and quarter
+                turn (:mod:`localscale.anchoring`; ``pred.meta["anchor"]`` says how);
+                an :class:`~localscale.models.anchor.Anchor`: anchored on that; ``False``: the
+                plain one-pass map of both images letterboxed as they are.
 
         When exactly one image is gray, the other is turned gray before encoding.
         """
-        ea, eb = self.encode_pair(image_a, image_b, bf16)
-        return self.predict_from_features(ea, eb, hard, bf16, planar)
+        if anchor is False:
+            ea, eb = self.encode_pair(image_a, image_b, bf16)
+            return self.predict_from_features(ea, eb, hard, bf16, planar)
+        (a, shape_a), (b, shape_b) = self.load_pair(image_a, image_b)
+        if not isinstance(anchor, Anchor):
+            anchor = self.find_anchor(a, shape_a, b, shape_b, bf16)
+        from ..anchoring import anchored_prediction
+
+        return anchored_prediction(self, a, shape_a, b, shape_b, anchor, hard, bf16, planar)
+
+    def anchor_model(self) -> ScaleModel:
+        """The ScaleNet that anchors :meth:`predict`: the one given to :meth:`set_anchor_model`,
+        else the bundled one on this model's device."""
+        if self._anchor:
+            return self._anchor[0]
+        key = str(self.device)
+        if key not in _BUNDLED_ANCHORS:
+            from .scalenet import ScaleNet
+
+            _BUNDLED_ANCHORS[key] = ScaleNet.from_pretrained(device=self.device)
+        return _BUNDLED_ANCHORS[key]
+
+    def set_anchor_model(self, model: ScaleModel | None) -> None:
+        """Anchor :meth:`predict` on ``model`` (a ScaleNet; None: the bundled one)."""
+        self._anchor[:] = [] if model is None else [model]
+
+    def find_anchor(self, a: np.ndarray, shape_a, b: np.ndarray, shape_b, bf16: bool = False) -> Anchor:
+        """ScaleNet's :class:`~localscale.models.anchor.Anchor` of two images as :meth:`load_pair`
+        gives them."""
+        return anchor_of(self.anchor_model().predict_loaded(a, shape_a, b, shape_b, bf16))
 
     @torch.inference_mode()
     def predict_batch(
@@ -347,7 +390,7 @@ class LocalScaleNet(ScaleModel):
         Returns:
             :class:`LocalScaleBatch` of ``B x H_A x W_A`` maps; tensors on the device of
             ``images_a`` for tensor input, numpy arrays for numpy input. Equal (to float
-            precision) to :meth:`predict` on each pair.
+            precision) to ``predict(..., anchor=False)`` on each pair (the one-pass map).
         """
         lb_a, lb_b, fmt, (logits, vis) = self._forward_batch(
             images_a, images_b, self.forward_features_all, bf16, batch_size

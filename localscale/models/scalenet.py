@@ -206,6 +206,19 @@ class ScaleNet(ScaleModel):
         and keep the most consistent prediction (module docstring; ``pred.turns`` says which).
         """
         (a, shape_a), (b, shape_b) = self.load_pair(image_a, image_b)
+        return self.predict_loaded(a, shape_a, b, shape_b, bf16, turns)
+
+    @torch.inference_mode()
+    def predict_loaded(
+        self,
+        a: np.ndarray,
+        shape_a: tuple[int, int],
+        b: np.ndarray,
+        shape_b: tuple[int, int],
+        bf16: bool = False,
+        turns: bool = True,
+    ) -> GlobalScalePrediction:
+        """:meth:`predict` on two images as :meth:`load_pair` gives them (arrays and full sizes)."""
         ea, eb = self.encode_image(a, "image A", bf16, shape_a), self.encode_image(b, "image B", bf16, shape_b)
         first = self.predict_from_features(ea, eb, bf16)
         return self.retry_turned(first, a, b, ea, eb, bf16, shape_a, shape_b) if turns else first
