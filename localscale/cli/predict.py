@@ -109,16 +109,16 @@ def _refine_with_matcher(args, model, out, inputs) -> None:
 
 
 def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
-    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.refine_match`)."""
+    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.match_refined_pair`)."""
     from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import refine_match
+    from ..matching.pipeline import match_refined_pair
 
     if args.search:  # B's map from its own search, as the searched correction of match does
         from ..search import search_scale_map
 
         back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
     first_a, first_b = CorrectionGate().apply_predictions(pred, back)
-    res = refine_match(
+    res = match_refined_pair(
         args.image_a,
         args.image_b,
         first_a,
