@@ -102,7 +102,7 @@ class AutoConfig:
         if not (0 <= self.accept_ratio <= 1):
             raise LocalScaleError(f"auto accept_ratio must be in [0, 1], got {self.accept_ratio!r}")
         if self.zoom_model is not None:
-            from .verification import VERIFICATION_MODELS
+            from ..verification import VERIFICATION_MODELS
 
             if self.zoom_model not in VERIFICATION_MODELS:
                 raise LocalScaleError(
