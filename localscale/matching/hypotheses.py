@@ -3,7 +3,12 @@ goes in the next release."""
 
 import warnings
 
-from .auto.hypotheses import Hypothesis, propose  # noqa: F401
+from .auto.hypotheses import (
+    Hypothesis,
+    propose,
+)
+
+__all__ = ["Hypothesis", "propose"]
 
 warnings.warn(
     "localscale.matching.hypotheses is deprecated and goes in the next release: import localscale.matching.auto.hypotheses",

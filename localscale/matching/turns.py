@@ -3,7 +3,14 @@ goes in the next release."""
 
 import warnings
 
-from .auto.turns import match_turned, nearest_turn, turn_matrix, unturn_points  # noqa: F401
+from .auto.turns import (
+    match_turned,
+    nearest_turn,
+    turn_matrix,
+    unturn_points,
+)
+
+__all__ = ["match_turned", "nearest_turn", "turn_matrix", "unturn_points"]
 
 warnings.warn(
     "localscale.matching.turns is deprecated and goes in the next release: import localscale.matching.auto.turns",

@@ -3,7 +3,12 @@ goes in the next release."""
 
 import warnings
 
-from ..matching.auto.graph import PairGraph, Relation  # noqa: F401
+from ..matching.auto.graph import (
+    PairGraph,
+    Relation,
+)
+
+__all__ = ["PairGraph", "Relation"]
 
 warnings.warn(
     "localscale.sfm.pair_graph is deprecated and goes in the next release: import localscale.matching.auto.graph",
