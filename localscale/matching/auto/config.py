@@ -30,7 +30,7 @@ class AutoConfig:
         geometry_log2: a verified result whose own geometry differs from its hypothesis by more
             than this (log2 of the scale), or by a quarter turn, is matched again at the geometry's
             scale and turn.
-        seed: a name of :data:`~.matchers.MATCHERS` (scale- and rotation-invariant and cheap:
+        seed: a name of :data:`~localscale.matching.MATCHERS` (scale- and rotation-invariant and cheap:
             ``"sift"``) run once when the identity is not clear; its verified geometry is the first
             hypothesis of the matcher's. Its run is listed among the trials but is not one of the
             budget's and never the result. ``None``: no seed.

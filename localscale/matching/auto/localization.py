@@ -124,7 +124,7 @@ def locate_window(
         max_share: a window larger than this share of the wide view is no window.
     Returns:
         ``(window, votes)``: ``window`` = ``(image, x0, y0, x1, y1)`` (``image`` 0: a window of A;
-        1: of B before its turn; integer pixels), as :attr:`~.auto.Hypothesis.window`, and the
+        1: of B before its turn; integer pixels), as :attr:`~.hypotheses.Hypothesis.window`, and the
         matches that agree on it; ``None`` without enough agreeing matches.
     """
     pa, pb = _points(points_a), _points(points_b)

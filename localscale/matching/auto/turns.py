@@ -40,7 +40,7 @@ def match_turned(
 ):
     """``matcher.match`` with B turned by ``turn`` quarter turns; B's keypoints are returned in the
     pixels of B as given. ``scale_b``: a map of B as given (turned here), or of the turned B
-    (``maps_turned``), or a float. ``max_side``: :meth:`~.matcher.Matcher.match`'s. B's
+    (``maps_turned``), or a float. ``max_side``: :meth:`~localscale.matching.Matcher.match`'s. B's
     ``frames_b`` are ``None`` when B was turned."""
     if turn % 4 == 0:
         return matcher.match(image_a, image_b, scale_a, scale_b, keys, max_side=max_side)
