@@ -16,7 +16,7 @@ from localscale import LocalScaleNet
 from localscale.geometry import covisible_mask, homography_scale_map
 from localscale.io import load_image, read_homography
 from localscale.matching.correction import CorrectionGate
-from localscale.matching.pipeline import refine_match
+from localscale.matching.pipeline import match_refined_pair
 from localscale.viz import plot_refined_map
 
 
@@ -33,7 +33,7 @@ def main(argv=None) -> int:
     H = read_homography(seq / f"H_1_{args.k}")
     model = LocalScaleNet.from_pretrained()
     fwd, bwd = model.predict(a, b), model.predict(b, a)
-    res = refine_match(a, b, *CorrectionGate().apply_predictions(fwd, bwd), fwd.scale, bwd.scale)
+    res = match_refined_pair(a, b, *CorrectionGate().apply_predictions(fwd, bwd), fwd.scale, bwd.scale)
     gt = homography_scale_map(H, *a.shape[:2])
     gt[~covisible_mask(H, a.shape[:2], b.shape[:2])] = np.nan
     v = res.verification

@@ -13,7 +13,7 @@ the pair (std of log2 s over the co-visible region: low < 0.15 <= medium < 0.35 
 
 Real mode also scores ``refined``: the local maps (gated) for a first HardNet matching pass, the
 matches verified with a MAGSAC homography, the local map refined by the verified geometry and a
-second matching pass (:func:`localscale.matching.refine_match`; when the first pass is not
+second matching pass (:func:`localscale.matching.match_refined_pair`; when the first pass is not
 verified, OpenCV SIFT matches are verified instead and their geometry refines the map); where
 verification fails the refined map is the local map. With ``--search`` it also scores the
 window search (:func:`localscale.search.search_scale_map`) and ScaleNet run on the windows the

@@ -7,7 +7,7 @@ with the gated maps, verification with permissive thresholds (so that every geom
 the per-pixel r (over the co-visible pixels of A) of the local map and of the refined map for each
 support variant. The tables then show, for a grid of ``min_inliers`` / ``min_inlier_ratio``, the
 mean r of "refined where verified, else local" and on how many pairs it is worse than the local map;
-and, with the default :class:`VerificationConfig`, the whole ``refine_match`` (two passes) without
+and, with the default :class:`VerificationConfig`, the whole ``match_refined_pair`` (two passes) without
 and with the OpenCV SIFT seed (used when the first pass is not verified).
 
     python eval/select_verification.py --photos ../shared/data/train_images --pairs 80 \
@@ -31,7 +31,7 @@ from localscale.evaluation.report import git_commit
 from localscale.evaluation.scale_maps import pixel_errors, synthetic_pairs
 from localscale.geometry import HomographyConfig
 from localscale.matching.correction import CorrectionGate
-from localscale.matching.pipeline import refine_match
+from localscale.matching.pipeline import match_refined_pair
 from localscale.matching.refinement import refine_pair_maps
 from localscale.matching.verification import VerificationConfig
 
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     for name, a, b, H in synthetic_pairs(held, args.pairs, args.seed, cfg, crop=0.7):
         fwd, bwd = model.predict(a, b), model.predict(b, a)
         fa, fb = CorrectionGate().apply_predictions(fwd, bwd)
-        res = refine_match(a, b, fa, fb, fwd.scale, bwd.scale, verification=PERMISSIVE, max_passes=1)
+        res = match_refined_pair(a, b, fa, fb, fwd.scale, bwd.scale, verification=PERMISSIVE, max_passes=1)
         v = res.verification
         r = {
             "name": name,
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
             for k, c in VARIANTS.items():
                 ra, _ = refine_pair_maps(fwd.scale, bwd.scale, forced, c)
                 r[k] = float(np.exp(pixel_errors(ra.scale, H, b.shape[:2])["err"]).mean())
-        full = refine_match(a, b, fa, fb, fwd.scale, bwd.scale, sift_seed=True)
+        full = match_refined_pair(a, b, fa, fb, fwd.scale, bwd.scale, sift_seed=True)
         r["seed_used"] = full.meta["seed_inliers"] is not None
         r["refined_seed"] = float(np.exp(pixel_errors(full.refined_a.scale, H, b.shape[:2])["err"]).mean())
         r["refined_seed_verified"] = bool(full.refined_a.verified)
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
         }
     seed["seed_used"] = int(sum(r["seed_used"] for r in rows))
     seed["seed_verified"] = int(sum(r["seed_used"] and r["refined_seed_verified"] for r in rows))
-    print("refine_match with the default config, without / with the SIFT seed:", seed)
+    print("match_refined_pair with the default config, without / with the SIFT seed:", seed)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(

@@ -221,7 +221,7 @@ def test_the_gt_correction_rectifies_the_true_scale_and_turn(photo):
 
 
 def test_a_degenerate_geometry_gives_no_window():
-    from localscale.matching.localization import homography_window as _window
+    from localscale.matching.auto.localization import homography_window as _window
 
     assert _window(np.zeros((3, 3)), 0.5, (100, 100), (100, 100), 0.25, 0.5) is None
     assert _window(np.full((3, 3), np.nan), 2.0, (100, 100), (100, 100), 0.25, 0.5) is None
@@ -240,7 +240,7 @@ def test_a_bad_zoom_model_is_refused():
 
 @needs_aliked
 def test_with_cameras_strong_zooms_are_verified_by_the_homography_and_the_choice_by_two_view(photo, monkeypatch):
-    import localscale.matching.auto as auto_module
+    import localscale.matching.auto.trial as auto_module
 
     models = []
     verify = auto_module.verify_matches
@@ -274,7 +274,7 @@ def test_a_strong_zoom_without_a_window_enlarges_the_wide_view_up_to_zoom_max_si
     detail): the hypothesis S = 4 without a window shrinks B and enlarges A up to
     ``zoom_max_side`` when the matcher's ``max_side`` is smaller, so B keeps its detail and more
     matches are right."""
-    from localscale.matching import Hypothesis, auto_match, get_matcher
+    from localscale.matching import Hypothesis, get_matcher, try_hypotheses
     from localscale.matching.metrics import reprojection_errors
 
     h, w = photo.shape[:2]
@@ -287,7 +287,7 @@ def test_a_strong_zoom_without_a_window_enlarges_the_wide_view_up_to_zoom_max_si
     for side in (None, 2560):
         config = AutoConfig(zoom_max_side=side, window_share=0, locate=False)  # no window: this run alone
         m = get_matcher("aliked-lightglue", max_side=1024, auto=config)
-        f = auto_match(m, a, photo, hypotheses=[Hypothesis(4.0, 0, "test")], networks=False).matches
+        f = try_hypotheses(m, a, photo, hypotheses=[Hypothesis(4.0, 0, "test")], networks=False).matches
         errors = reprojection_errors(f.keypoints_a, f.keypoints_b, f.matches, H)
         found[side] = (f.factors, int((errors < 8).sum()))  # 2 pixels of A
     (fa0, fb0), right0 = found[None]

@@ -6,7 +6,7 @@ import pytest
 from localscale.errors import LocalScaleError
 from localscale.geometry import turn_matrix
 from localscale.matching.auto import AutoConfig
-from localscale.matching.localization import locate_turn, locate_window
+from localscale.matching.auto.localization import locate_turn, locate_window
 
 SHAPE = (600, 800)  # (H, W) of both images
 
@@ -77,6 +77,7 @@ def test_auto_matches_again_where_the_matches_of_a_failed_zoom_agree(rng, monkey
     """The loop's wiring, with a stand-in matcher: shrunk, the zoomed view gives a dozen correct
     matches among many wrong ones (no verification); in the located window it gives many."""
     from localscale.matching import auto
+    from localscale.matching.auto import trial
     from localscale.matching.matcher import Matches
     from localscale.matching.verification import VerificationConfig
 
@@ -89,12 +90,14 @@ def test_auto_matches_again_where_the_matches_of_a_failed_zoom_agree(rng, monkey
         pa, pb, _ = _zoomed_matches(rng, zoom, turn, centre, n_true, n_false)
         idx = np.arange(len(pa))
         found = Matches(pa.astype(np.float32), pb.astype(np.float32), np.stack([idx, idx], 1), np.zeros(len(pa)))
-        return found, auto._verify(found, a_, b_, vconf, cameras)
+        return found, trial.verify_found(found, a_, b_, vconf, cameras)
 
-    monkeypatch.setattr(auto, "_run", stand_in_run)
+    monkeypatch.setattr(trial, "run_hypothesis", stand_in_run)
     config = AutoConfig(budget=2, seed=None, locate=locate)
     h = auto.Hypothesis(zoom * 0.9, (4 - turn) % 4, "test")
-    res = auto.auto_match(None, a, b, config=config, verification=VerificationConfig(), hypotheses=[h], networks=False)
+    res = auto.try_hypotheses(
+        None, a, b, config=config, verification=VerificationConfig(), hypotheses=[h], networks=False
+    )
     sources = [t.hypothesis.source for t in res.trials]
     if not locate:
         assert sources == ["test"] and not res.verified
@@ -124,7 +127,8 @@ def test_a_bad_zoom_coverage_is_refused():
 
 
 def test_strong_zooms_are_verified_with_their_own_coverage():
-    from localscale.matching.auto import Hypothesis, _Loop
+    from localscale.matching.auto import Hypothesis
+    from localscale.matching.auto.loop import _Loop
     from localscale.matching.verification import VerificationConfig
 
     config = AutoConfig(zoom_min_coverage=0.02, zoom_min_log2=1.0)
@@ -141,6 +145,7 @@ def test_a_window_is_enlarged_up_to_window_max_side(rng, window_max_side, side):
     matcher's max_side (1024: 8x gives 800 px) or to window_max_side, and the close-up shrunk for
     the rest of the zoom."""
     from localscale.matching import auto
+    from localscale.matching.auto import trial
     from localscale.matching.config import match_config
     from localscale.matching.matcher import Matcher
     from localscale.matching.verification import VerificationConfig
@@ -158,7 +163,7 @@ def test_a_window_is_enlarged_up_to_window_max_side(rng, window_max_side, side):
     b = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
     window = (1, 200, 150, 300, 225)  # 100 x 75 px of B
     h = auto.Hypothesis(0.125, 0, "test", window=window)
-    auto._run(matcher, a, b, h, (None, None), VerificationConfig(), max_side=window_max_side)
+    trial.run_hypothesis(matcher, a, b, h, (None, None), VerificationConfig(), max_side=window_max_side)
     f_window, f_close = factors[(75, 100)], factors[(480, 640)]
     assert f_window * 100 == pytest.approx(side)
     assert f_close == pytest.approx(0.125 * f_window)  # the pair still brought to one scale
@@ -186,7 +191,7 @@ def test_sift_frames_give_the_scale_turn_and_window_of_a_close_up(photos, turn):
     keypoints' sizes and orientations agree on gives the zoom, the turn that undoes B's, and a
     window of A around the part B shows."""
     from localscale.matching.auto import mapping_hypothesis
-    from localscale.matching.localization import locate_similarity
+    from localscale.matching.auto.localization import locate_similarity
     from localscale.matching.matcher import Matcher
 
     a = np.ascontiguousarray(photos["astronaut"])  # 512 x 512
@@ -211,7 +216,7 @@ def test_sift_frames_give_the_scale_turn_and_window_of_a_close_up(photos, turn):
 
 
 def test_random_frames_locate_no_similarity(rng):
-    from localscale.matching.localization import locate_similarity
+    from localscale.matching.auto.localization import locate_similarity
 
     pa, pb = rng.random((300, 2)) * [800, 600], rng.random((300, 2)) * [800, 600]
     frames_a = np.stack([rng.uniform(2, 40, 300), rng.uniform(0, 360, 300)], 1)
@@ -228,12 +233,13 @@ def test_an_unverified_seed_proposes_the_similarity_of_its_keypoints_first(photo
     from types import SimpleNamespace
 
     from localscale.matching import auto
+    from localscale.matching.auto import trial
     from localscale.matching.matcher import Matcher, Matches
     from localscale.matching.verification import VerificationConfig
 
     a = np.ascontiguousarray(photos["astronaut"])
     b = _close_up(a, (200, 60, 360, 220), 3.0, 1)
-    seed, real_run = Matcher("sift"), auto._run
+    seed, real_run = Matcher("sift"), trial.run_hypothesis
 
     def stand_in_run(matcher, a_, b_, h, keys, vconf, cameras=(None, None), window_max_side=None):
         if matcher is seed:
@@ -241,12 +247,12 @@ def test_an_unverified_seed_proposes_the_similarity_of_its_keypoints_first(photo
             return found, dataclasses.replace(v, verified=False)
         none = np.zeros((0, 2), np.float32)
         found = Matches(none, none, np.zeros((0, 2), np.int64), np.zeros(0))
-        return found, auto._verify(found, a_, b_, vconf, cameras)
+        return found, trial.verify_found(found, a_, b_, vconf, cameras)
 
-    monkeypatch.setattr(auto, "_run", stand_in_run)
+    monkeypatch.setattr(trial, "run_hypothesis", stand_in_run)
     matcher = SimpleNamespace(config=SimpleNamespace(name="stand-in"))
     config = AutoConfig(budget=2, turns=False)
-    res = auto.auto_match(
+    res = auto.try_hypotheses(
         matcher, a, b, config=config, seed_matcher=seed, verification=VerificationConfig(), networks=False
     )
     assert [t.hypothesis.source for t in res.trials] == ["identity", "seed (sift)", "seed similarity"]
@@ -254,7 +260,7 @@ def test_an_unverified_seed_proposes_the_similarity_of_its_keypoints_first(photo
     assert h.scale == pytest.approx(3.0, rel=0.1) and h.turn == 3 and h.window is not None and h.window[0] == 0
     assert not res.verified
     # without locating, the seed's unverified matches propose nothing
-    res = auto.auto_match(
+    res = auto.try_hypotheses(
         matcher,
         a,
         b,
@@ -270,7 +276,7 @@ def test_an_unverified_seed_proposes_the_similarity_of_its_keypoints_first(photo
 def test_a_few_correct_sift_matches_among_many_wrong_ones_still_agree(photos, rng, turn):
     """Eight correct SIFT matches of a 3x close-up, turned, hidden among 150 random ones (random
     points, sizes and orientations): their sizes and orientations put them in one Hough bin."""
-    from localscale.matching.localization import locate_similarity, similarity_votes
+    from localscale.matching.auto.localization import locate_similarity, similarity_votes
     from localscale.matching.matcher import Matcher
 
     a = np.ascontiguousarray(photos["astronaut"])
@@ -315,26 +321,26 @@ def test_a_collection_seed_that_does_not_verify_gives_its_similarity(photos, mon
     import dataclasses
 
     pytest.importorskip("h5py")
-    from localscale.matching import auto
+    from localscale.matching.auto import trial
     from localscale.matching.matcher import Matcher
     from localscale.sfm.pair_runner import PairRunner
 
     a = np.ascontiguousarray(photos["astronaut"])
     images = {"wide": a, "close": _close_up(a, (200, 60, 360, 220), 3.0, 1)}
-    real_run = auto._run
+    real_run = trial.run_hypothesis
 
     def unverified_run(*args, **kwargs):
         found, v = real_run(*args, **kwargs)
         return found, dataclasses.replace(v, verified=False)
 
-    monkeypatch.setattr(auto, "_run", unverified_run)
+    monkeypatch.setattr(trial, "run_hypothesis", unverified_run)
     runner = PairRunner({}, None, None, "auto", "cpu", Matcher("hardnet"), None, None, 2)
     runner._image = lambda name: (images[name], 1.0)
     r = runner.seed("wide", "close")
     assert r.relation is None and r.hypothesis is not None and r.hypothesis.source == "seed similarity"
     assert r.hypothesis.scale == pytest.approx(3.0, rel=0.1) and r.hypothesis.turn == 3
     assert r.hypothesis.window is not None and r.hypothesis.window[0] == 0 and r.support >= 20
-    monkeypatch.setattr(auto, "_run", real_run)  # verified: the geometry's relation and hypothesis
+    monkeypatch.setattr(trial, "run_hypothesis", real_run)  # verified: the geometry's relation and hypothesis
     r = runner.seed("wide", "close")
     assert r.relation is not None and r.relation.turn == 3 and r.hypothesis.source == "sift geometry"
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from localscale.sfm.pair_graph import PairGraph, Relation
+from localscale.matching.auto.graph import PairGraph, Relation
 
 
 def test_relations_compose_and_invert():
@@ -68,8 +68,8 @@ def test_auto_on_a_collection_tries_the_graphs_hypotheses_before_the_networks(tm
     import numpy as np
 
     from localscale.matching import Hypothesis
+    from localscale.matching.auto.collection import match_with_graph
     from localscale.sfm import match as M
-    from localscale.sfm.auto_graph import match_with_graph
     from localscale.sfm.keypoints import KeypointSet
     from localscale.sfm.pair_runner import PairResult
 
@@ -101,7 +101,11 @@ def test_auto_on_a_collection_tries_the_graphs_hypotheses_before_the_networks(tm
     by_name = {n: SimpleNamespace(shape=(10, 10, 3)) for n in names}
     output = M._MatchOutput(tmp_path / "m.h5", tmp_path / "k.h5", sets, by_name, fresh=True)
     stats = M.MatchStats()
-    match_with_graph(run_items, todo, sets, output, stats, 1e9, same_log2=0.25)
+
+    def apply(results, pairs):
+        M.apply_in_order(results, pairs, sets, output, stats, 1e9)
+
+    match_with_graph(run_items, todo, apply, stats, same_log2=0.25)
 
     steps = {}
     for a, b, step, *args in calls:
@@ -126,7 +130,7 @@ def test_auto_on_a_collection_tries_the_graphs_hypotheses_before_the_networks(tm
 
 
 def test_clear_pairs_fix_the_quarter_turns_that_hypotheses_must_keep():
-    from localscale.sfm.auto_graph import _quarter_turns, _turn_fits
+    from localscale.matching.auto.collection import _quarter_turns, _turn_fits
 
     # a ring of upright views (a-b-c-d), and e, f: f is e turned by a quarter turn, joined to nothing else
     turns = _quarter_turns([("a", "b", 0), ("b", "c", 0), ("c", "d", 0), ("e", "f", 1)])
@@ -141,7 +145,7 @@ def test_mild_composed_zooms_are_not_tried_again():
     (around a ring of views the composed scales drift), a turned or strong one is tried."""
     from types import SimpleNamespace
 
-    from localscale.sfm.auto_graph import _graph_hypotheses
+    from localscale.matching.auto.collection import _graph_hypotheses
 
     g = PairGraph()
     g.add("a", "m", Relation(1.3, 0, 100))
@@ -162,7 +166,7 @@ def test_graph_pairs_run_in_rounds_charged_to_the_image_they_would_join():
     """Each image first tries its best supported pairs; an image gets its next best pairs only when
     one of its pairs of the round before verified (hypotheses that keep failing for a close-up are
     not tried further)."""
-    from localscale.sfm.auto_graph import GRAPH_PAIRS_PER_IMAGE, _first_round, _next_round
+    from localscale.matching.auto.collection import GRAPH_PAIRS_PER_IMAGE, _first_round, _next_round
 
     g = PairGraph()
     photos = [f"p{k}" for k in range(1, 11)]

@@ -117,8 +117,8 @@ def test_window_matches_land_on_the_wide_views_stored_keypoints(tmp_path, monkey
     import cv2
 
     from localscale.features.extractors import Extractor
-    from localscale.matching.hypotheses import Hypothesis
-    from localscale.matching.turns import unturn_points
+    from localscale.matching.auto.hypotheses import Hypothesis
+    from localscale.matching.auto.turns import unturn_points
     from localscale.sfm import extract_features, find_images
     from localscale.sfm.extract import FeatureConf, features_for_matcher
     from localscale.sfm.pair_runner import PairRunner
@@ -165,7 +165,7 @@ def test_graph_levels_keep_the_photos_stored_features(tmp_path):
     (shrunk by the zoom, turned back)."""
     import cv2
 
-    from localscale.matching.hypotheses import Hypothesis
+    from localscale.matching.auto.hypotheses import Hypothesis
     from localscale.sfm import extract_features, find_images
     from localscale.sfm.extract import FeatureConf, features_for_matcher
     from localscale.sfm.pair_runner import PairRunner

@@ -10,7 +10,7 @@ from localscale.cli import main
 from localscale.geometry import covisible_mask, homography_scale_at, homography_scale_map, project
 from localscale.io import load_image, read_homography
 from localscale.matching.metrics import corner_error, homography_auc
-from localscale.matching.pipeline import match_pair, refine_match
+from localscale.matching.pipeline import match_pair, match_refined_pair
 from localscale.matching.refinement import refine_scale_map
 from localscale.matching.verification import VerificationConfig, local_affine_scales, verify_matches
 
@@ -61,7 +61,7 @@ def test_no_valid_matches_keeps_the_network_map(rng):
     b = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
     net_a = np.exp2(rng.normal(0, 0.3, a.shape[:2])).astype(np.float32)
     net_b = np.exp2(rng.normal(0, 0.3, b.shape[:2])).astype(np.float32)
-    res = refine_match(a, b, net_a, net_b, descriptor="sift", num_features=300)
+    res = match_refined_pair(a, b, net_a, net_b, descriptor="sift", num_features=300)
     assert not res.verification.verified and res.verification.reasons
     assert res.meta["passes"] == 1
     for ref, net in ((res.refined_a, net_a), (res.refined_b, net_b)):
@@ -198,7 +198,7 @@ def test_cli_predict_search_refine_seeds_the_refinement_with_both_searched_maps(
 def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
     import torch
 
-    from localscale.matching.refinement import describe_and_match, refine_matching
+    from localscale.matching.refinement import describe_and_match, refine_passes
 
     a, b, H = example
     kp = rng.uniform([0, 0], [639, 426], (300, 2))
@@ -210,7 +210,7 @@ def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
 
     pa, pb = _points(H, a.shape[:2], 100, rng)
     net = np.ones(a.shape[:2], np.float32)
-    out = refine_matching(
+    out = refine_passes(
         describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net, seed=lambda: (pa, pb)
     )
     assert out.seed is not None and out.seed.verified and out.refined_a.verified
@@ -218,5 +218,5 @@ def test_seed_geometry_refines_when_the_first_pass_fails(example, rng):
     gt = homography_scale_map(H, *a.shape[:2])
     sup = out.refined_a.source > 0.999
     assert np.nanmax(np.abs(np.log2(out.refined_a.scale[sup] / gt[sup]))) < 1e-3
-    no = refine_matching(describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net)
+    no = refine_passes(describe_and_match(describe, describe), a.shape[:2], b.shape[:2], None, None, net, net)
     assert no.passes == 1 and not no.refined_a.verified and (no.refined_a.source == 0).all()

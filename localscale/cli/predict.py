@@ -122,9 +122,9 @@ def _refine_with_matcher(args, model, out, inputs) -> None:
 
 
 def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
-    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.refine_match`)."""
+    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.match_refined_pair`)."""
     from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import refine_match
+    from ..matching.pipeline import match_refined_pair
 
     if args.search:  # B's map from its own search, as the searched correction of match does
         from ..search import search_scale_map
@@ -133,7 +133,7 @@ def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
     first_a, first_b = CorrectionGate().apply_predictions(pred, back)
     from ..matching.verification import VerificationConfig
 
-    res = refine_match(
+    res = match_refined_pair(
         args.image_a,
         args.image_b,
         first_a,

@@ -20,7 +20,7 @@ keypoints detected and described on a 4-level image pyramid with step sqrt(2)...
 ``refined`` (the ``local`` maps, matching, verification with a MAGSAC homography, maps refined by
 the verified geometry and a second matching pass; when the first pass is not verified, the
 ``opencv-sift`` matches are verified instead and their geometry refines the maps;
-:func:`localscale.matching.refine_matching`),
+:func:`localscale.matching.refine_passes`),
 ``opencv-sift`` (baseline: OpenCV's DoG detector, top-K keypoints, OpenCV SIFT descriptors,
 mutual nearest neighbours that pass Lowe's ratio test 0.8).
 

@@ -149,7 +149,7 @@ class LibraryMatcher:
 
 class TruthMatcher:
     """The matcher given the true relation of the pair as its only hypothesis
-    (:func:`localscale.matching.auto_match` without the images as they are, the seed or the networks)."""
+    (:func:`localscale.matching.try_hypotheses` without the images as they are, the seed or the networks)."""
 
     def __init__(self, name: str, max_side: int, window: bool, features=None):
         from localscale.matching import get_matcher
@@ -163,14 +163,14 @@ class TruthMatcher:
         self.truth = (scale, turn, window_a if self.window else None)
 
     def match(self, key_a, a, key_b, b, cameras=(None, None)):
-        from localscale.matching import Hypothesis, auto_match
+        from localscale.matching import Hypothesis, try_hypotheses
 
         if max(a.shape[:2] + b.shape[:2]) > self.matcher.config.max_side:
             raise LocalScaleError("truth methods need images within --max-side")
         scale, turn, window = self.truth
         h = Hypothesis(scale, turn, "truth", window=None if window is None else (0, *window))
         config = dataclasses.replace(self.matcher.config.auto, locate=False)
-        out = auto_match(self.matcher, a, b, config=config, keys=(key_a, key_b), hypotheses=[h], networks=False)
+        out = try_hypotheses(self.matcher, a, b, config=config, keys=(key_a, key_b), hypotheses=[h], networks=False)
         self.trials = out.to_dict()
         m = np.asarray(out.matches.matches, int).reshape(-1, 2)
         return np.asarray(out.matches.keypoints_a, np.float64)[m[:, 0]], np.asarray(

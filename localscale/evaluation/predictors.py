@@ -124,11 +124,11 @@ def _correction(name: str) -> Predictor:
 
 def _refined(ctx: PairContext) -> np.ndarray:
     from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import refine_match
+    from ..matching.pipeline import match_refined_pair
 
     pa, pb = ctx.local_predictions()
     first_a, first_b = CorrectionGate().apply_predictions(pa, pb)
-    res = refine_match(ctx.a, ctx.b, first_a, first_b, pa.scale, pb.scale, sift_seed=True)
+    res = match_refined_pair(ctx.a, ctx.b, first_a, first_b, pa.scale, pb.scale, sift_seed=True)
     return res.refined_a.scale
 
 

@@ -5,7 +5,7 @@ ScaleNet's global scale as a constant map, the constant 1 and the best constant 
 
 Optional columns: ``refined``, the local maps (gated) for a first HardNet matching pass, the
 matches verified with a MAGSAC homography, the local map refined by the verified geometry
-(:func:`localscale.matching.refine_match`; an OpenCV SIFT seed when the first pass is not
+(:func:`localscale.matching.match_refined_pair`; an OpenCV SIFT seed when the first pass is not
 verified), or the geometry ``auto`` verifies with a given matcher; where verification fails the
 refined map is the local map. ``search``: the window search
 (:func:`localscale.search.search_scale_map`), ScaleNet on the windows it chose and the refinement
@@ -103,7 +103,7 @@ def _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed: bool, refine_ma
     """``row["refined"]`` and its verification: the geometry of ``auto`` with ``refine_matcher``,
     or HardNet's refinement passes."""
     from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import match_pair, refine_match
+    from ..matching.pipeline import match_pair, match_refined_pair
 
     if refine_matcher is not None:
         res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
@@ -111,7 +111,7 @@ def _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed: bool, refine_ma
         row["verification"] = _verification(res.verification, auto=res.meta["auto"])
         return
     first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
-    res = refine_match(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
+    res = match_refined_pair(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
     row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
     row["verification"] = _verification(
         res.verification, inlier_counts=res.meta["inlier_counts"], seed_inliers=res.meta["seed_inliers"]
@@ -121,7 +121,7 @@ def _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed: bool, refine_ma
 def _searched(row, local, scalenet, a, b, H, refine: bool, sift_seed: bool) -> None:
     """The window search's columns, and the refinement seeded by the searched maps."""
     from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import refine_match
+    from ..matching.pipeline import match_refined_pair
     from ..search import search_global_scale, search_scale_map
 
     gp, res = search_global_scale(local, scalenet, a, b)
@@ -131,7 +131,7 @@ def _searched(row, local, scalenet, a, b, H, refine: bool, sift_seed: bool) -> N
     if refine:
         back = search_scale_map(local, b, a).prediction
         first_a, first_b = CorrectionGate().apply_predictions(res.prediction, back)
-        sref = refine_match(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
+        sref = match_refined_pair(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
         row["search-refined"] = pixel_errors(sref.refined_a.scale, H, b.shape[:2])["err"]
         row["search_refined_verified"] = bool(sref.verification.verified)
 

@@ -4,7 +4,7 @@ refinement, correction methods, ``auto`` and the pipeline that runs them.
 One module per concept: :mod:`.config` (:class:`MatchConfig`, :data:`MATCHERS`), :mod:`.matcher`
 (:class:`Matcher`), :mod:`.nearest_neighbour`, :mod:`.lightglue`, :mod:`.rectification`,
 :mod:`.correction`, :mod:`.verification` (with :mod:`localscale.two_view`), :mod:`.refinement`,
-:mod:`.hypotheses`, :mod:`.localization`, :mod:`.auto`,
+:mod:`.auto` (the hypothesis loop, its hypotheses, localisation, turns and the pair graph),
 :mod:`.metrics`, :mod:`.result`, :mod:`.viz` and :mod:`.pipeline` (:func:`match_pair`).
 The submodules (torch, kornia, OpenCV) are imported on first use of a name below.
 
@@ -48,19 +48,21 @@ _EXPORTS = {
         "RefinedMatching",
         "refine_scale_map",
         "refine_pair_maps",
-        "refine_matching",
+        "refine_passes",
         "describe_and_match",
         "sift_seed_points",
     ),
-    ".hypotheses": ("Hypothesis", "propose"),
-    ".localization": ("locate_window", "locate_turn", "locate_similarity", "homography_window"),
-    ".auto": ("AutoConfig", "AutoResult", "auto_match"),
-    ".turns": ("turn_matrix", "nearest_turn", "unturn_points", "match_turned"),
+    ".auto.hypotheses": ("Hypothesis", "propose"),
+    ".auto.localization": ("locate_window", "locate_turn", "locate_similarity", "homography_window"),
+    ".auto.config": ("AutoConfig",),
+    ".auto.trial": ("AutoResult",),
+    ".auto.loop": ("try_hypotheses",),
+    ".auto.turns": ("turn_matrix", "nearest_turn", "unturn_points", "match_turned"),
     ".result": ("MatchResult", "save_matches"),
     ".viz": ("draw_matches",),
     ".pipeline": (
         "match_pair",
-        "refine_match",
+        "match_refined_pair",
         "run_match",
         "match_auto",
         "match_refined",
@@ -68,4 +70,27 @@ _EXPORTS = {
         "match_with_truth",
     ),
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+#: old names kept for one release (they go in the next): old name -> (module, new name)
+_RENAMED = {
+    "auto_match": (".auto.loop", "try_hypotheses"),
+    "refine_match": (".pipeline", "match_refined_pair"),
+    "refine_matching": (".refinement", "refine_passes"),
+}
+
+
+def _renamed(name):
+    if name not in _RENAMED:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+    import warnings
+
+    module, new = _RENAMED[name]
+    warnings.warn(
+        f"localscale.matching.{name} is deprecated and goes in the next release: use {new}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return getattr(importlib.import_module(module, __name__), new)
+
+
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, fallback=_renamed)

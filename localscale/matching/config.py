@@ -34,7 +34,7 @@ from typing import Optional
 from ..checks import check_int, check_number
 from ..errors import LocalScaleError
 from ..features.extractors import get_extractor, named_matchers
-from .auto import AutoConfig
+from .auto.config import AutoConfig
 from .correction import CorrectionGate
 from .verification import VerificationConfig
 
@@ -107,7 +107,7 @@ class MatchConfig(_MatchFields):
         gate: gating of predicted scale maps (:class:`~.correction.CorrectionGate`).
         bf16: run the scale networks under bfloat16 autocast.
         refine, max_passes, sift_seed, verification: verify the matches, refine the maps by the
-            verified geometry and match again (:func:`~.verification.refine_matching`).
+            verified geometry and match again (:func:`~.refinement.refine_passes`).
         auto: the hypothesis loop of ``correction="auto"`` (:class:`~.auto.AutoConfig`: budget, acceptance).
     """
 

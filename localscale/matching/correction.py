@@ -20,7 +20,7 @@ convention ``scale_map = S_{this->other}``):
 * ``"gt"``: A gets ``homography_scale_map(H, h_A, w_A)``, B gets it from ``inv(H)``;
 * ``"gt_gated"``: the ``"gt"`` maps through the same gate as ``"local"`` (what gating costs an oracle);
 * ``"refined"``: the ``"local"`` maps, then the matches are verified, the maps refined by the
-  verified geometry and the pair matched again (:func:`~.verification.refine_matching`);
+  verified geometry and the pair matched again (:func:`~.refinement.refine_passes`);
 * ``"auto"``: hypotheses of scale and quarter turn from both networks, each matched and verified
   (:mod:`.auto`); it makes no maps here (``None, None``).
 
@@ -237,6 +237,11 @@ class Correction:
 
     def __str__(self) -> str:
         return self.name
+
+    @property
+    def as_is(self) -> bool:
+        """Whether the images are matched as they are: no maps, no truth, no hypothesis loop."""
+        return not (self.models or self.needs_H or self.auto)
 
     def maps(
         self,

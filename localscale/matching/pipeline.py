@@ -4,7 +4,7 @@
 resolution, the maps of a correction method (:mod:`.correction`), a :class:`~.matcher.Matcher`
 (named configurations in :data:`~.config.MATCHERS`), and optionally verification and
 refinement by the verified geometry. Everything in the result is in full-image pixels.
-:func:`refine_match` matches with given maps and refines them; :func:`run_match` also writes
+:func:`match_refined_pair` matches with given maps and refines them; :func:`run_match` also writes
 the result to a folder.
 
 Example::
@@ -29,14 +29,14 @@ import cv2
 import numpy as np
 
 from ..io import load_image, load_working_image, read_homography
-from .auto import auto_match
+from .auto.loop import try_hypotheses
+from .auto.turns import match_turned, nearest_turn
 from .config import MatchConfig, match_config
 from .correction import Correction, get_correction
 from .matcher import Matcher, Matches, get_matcher
 from .metrics import reprojection_errors
-from .refinement import refine_matching, refine_pair_maps, sift_seed_points
+from .refinement import refine_pair_maps, refine_passes, sift_seed_points
 from .result import MatchResult, save_matches
-from .turns import match_turned, nearest_turn
 from .verification import verify_matches
 from .viz import draw_matches
 
@@ -203,14 +203,14 @@ def match_auto(
     cameras: tuple = (None, None),
     verification=None,
 ) -> MatchResult:
-    """``correction="auto"``: the hypothesis loop (:func:`~.auto.auto_match`); with ``refine``, the
+    """``correction="auto"``: the hypothesis loop (:func:`~.auto.loop.try_hypotheses`); with ``refine``, the
     maps are refined by the winner's verified geometry (Local-ScaleNet's maps, or 1, elsewhere)."""
     from ..models import LocalScaleNet, ScaleNet
 
     local_model = local_model if local_model is not None else LocalScaleNet.from_pretrained()
     global_model = global_model if global_model is not None else ScaleNet.from_pretrained()
     seed = m.config.auto.seed
-    out = auto_match(
+    out = try_hypotheses(
         m,
         a,
         b,
@@ -284,7 +284,7 @@ def _refine_full_frame(res: MatchResult, image_a, image_b, to_a: np.ndarray, to_
 
 def match_refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, correction: Correction) -> MatchResult:
     """Match with ``first_*``, verify, refine the maps (from ``prior_*``, default ``first_*``; 1
-    where both are None) and match again (:func:`~.verification.refine_matching`)."""
+    where both are None) and match again (:func:`~.refinement.refine_passes`)."""
     cfg = m.config
     history = []
 
@@ -297,9 +297,7 @@ def match_refined(m: Matcher, a, b, first_a, first_b, prior_a, prior_b, H, corre
     pb = _as_map(first_b if prior_b is None else prior_b, b.shape[:2])
     n = cfg.extractor_conf.get("num_features", 1000)
     seed = (lambda: sift_seed_points(a, b, max(n, 1000))) if cfg.sift_seed else None
-    out = refine_matching(
-        run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification, cfg.max_passes, seed
-    )
+    out = refine_passes(run, a.shape[:2], b.shape[:2], first_a, first_b, pa, pb, cfg.verification, cfg.max_passes, seed)
     found, used_a, used_b = history[out.best_pass]
     res = match_result(m, found, H, correction)
     res.scale_a, res.scale_b = used_a, used_b
@@ -341,7 +339,7 @@ def _as_map(scale, shape):
     return np.asarray(scale, np.float32)
 
 
-def refine_match(
+def match_refined_pair(
     image_a,
     image_b,
     scale_a=None,
@@ -372,6 +370,16 @@ def refine_match(
     res = match_refined(m, a, b, scale_a, scale_b, prior_a, prior_b, H, get_correction("refined"))
     res.H = H
     return res
+
+
+def refine_match(*args, **kwargs) -> MatchResult:
+    """Deprecated name of :func:`match_refined_pair`; goes in the next release."""
+    import warnings
+
+    warnings.warn(
+        "refine_match is deprecated and goes in the next release: use match_refined_pair", DeprecationWarning, 2
+    )
+    return match_refined_pair(*args, **kwargs)
 
 
 def run_match(

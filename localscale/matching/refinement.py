@@ -8,7 +8,7 @@
   support. Unverified: the network map unchanged, source all 0. ``source_layer`` labels each
   pixel by where its scale comes from (0 network, 1 homography, 2 matches).
 * :func:`matches_scale_map`: the dense map of a match set alone (local affine fits, interpolated).
-* :func:`refine_matching`: match, verify, refine the maps of both images, re-cut the patches
+* :func:`refine_passes`: match, verify, refine the maps of both images, re-cut the patches
   with the refined maps and match again, until the inlier count stops growing; the pass with
   the most inliers is returned. When the first pass is not verified, an optional *seed* match
   set (e.g. OpenCV SIFT on a DoG scale space, :func:`sift_seed_points`, which finds matches under
@@ -227,7 +227,7 @@ def refine_pair_maps(
 
 @dataclass
 class RefinedMatching:
-    """Outcome of :func:`refine_matching`.
+    """Outcome of :func:`refine_passes`.
 
     Attributes:
         keypoints_a, keypoints_b: ``N_A x 2``, ``N_B x 2``; matches: ``K x 2`` int64; distances: ``K``.
@@ -251,7 +251,7 @@ class RefinedMatching:
     seed: Optional[VerificationResult] = None
 
 
-def refine_matching(
+def refine_passes(
     match: Callable,
     shape_a: tuple,
     shape_b: tuple,
@@ -321,7 +321,7 @@ def refine_matching(
 
 
 def describe_and_match(describe_a: Callable, describe_b: Callable, ratio: Optional[float] = None) -> Callable:
-    """The ``match`` of :func:`refine_matching` from two describers ``f(scale_map) -> (keypoints
+    """The ``match`` of :func:`refine_passes` from two describers ``f(scale_map) -> (keypoints
     N x 2, descriptors N x D)``: mutual nearest neighbours (with Lowe's ``ratio`` if given)."""
 
     def match(map_a, map_b):
@@ -347,3 +347,13 @@ def sift_seed_points(image_a, image_b, num_features: int = 1000, ratio: float = 
         descs.append(np.zeros((0, 128), np.float32) if desc is None else desc)
     m = ratio_mutual_matches(descs[0], descs[1], ratio)
     return pts[0][m[:, 0]], pts[1][m[:, 1]]
+
+
+def refine_matching(*args, **kwargs) -> RefinedMatching:
+    """Deprecated name of :func:`refine_passes`; goes in the next release."""
+    import warnings
+
+    warnings.warn(
+        "refine_matching is deprecated and goes in the next release: use refine_passes", DeprecationWarning, 2
+    )
+    return refine_passes(*args, **kwargs)

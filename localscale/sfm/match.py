@@ -4,12 +4,12 @@
 
 * ``none``: the cached features of ``features.h5`` matched with the matcher (LightGlue or
   nearest neighbours), what an hloc user runs;
-* ``auto``: scales and quarter turns found for the collection as a whole (:func:`~.auto_graph.match_with_graph`):
+* ``auto``: scales and quarter turns found for the collection as a whole (:func:`~localscale.matching.auto.collection.match_with_graph`):
   every pair as it is with a two-view verification, the SIFT seed's geometry of the pairs that do
-  not verify, then hypotheses composed along the verified pairs (:mod:`.pair_graph`: a close-up
+  not verify, then hypotheses composed along the verified pairs (:mod:`localscale.matching.auto.graph`: a close-up
   verified against one photo is related to that photo's neighbours) and the networks only for
   pairs that the graph cannot join; ``auto_graph=False``: the whole hypothesis loop
-  (:func:`~localscale.matching.auto_match`) on every pair. One :class:`~.extract.LevelMatcher`, built
+  (:func:`~localscale.matching.auto.try_hypotheses`) on every pair. One :class:`~.extract.LevelMatcher`, built
   from the configuration and seeded from ``features.h5``, is shared by all pairs, so that an image's features at a level and turn are computed once;
 * ``global``, ``local``, ``fused``, ``searched``: the pair rectified by the correction's maps
   (:mod:`localscale.matching.correction`), again with the shared level cache.
@@ -34,11 +34,11 @@ from typing import Optional
 import numpy as np
 
 from ..errors import LocalScaleError
+from ..matching.auto.graph import Relation
 from .extract import FeatureConf
 from .h5io import H5FileError, H5Writer, groups_with, matches0_from_matches, read_group
 from .images import names_to_pair
 from .keypoints import KeypointSet, one_to_one
-from .pair_graph import Relation
 from .pair_runner import MatchPair, PairRunnerFactory
 from .progress import progress
 from .report import warn
@@ -132,26 +132,32 @@ def match_pairs(
         raise LocalScaleError(
             f"correction must be one of {', '.join(SFM_CORRECTIONS)} for reconstruction, got {correction!r}"
         )
+    from ..matching import get_correction
+
+    method = get_correction(correction)
     t_start = time.perf_counter()
     _check_extracted(features_path, pairs)
     sets = _keypoint_sets(images, features_path, keypoints_path, conf.mapping.merge_px, fresh=overwrite)
     stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
     output = _MatchOutput(matches_path, keypoints_path, sets, {im.name: im for im in images}, fresh=overwrite)
-    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, correction, device, *models)
+    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, method, device, *models)
     runner, run_items = _pair_runs(factory, executor, show_progress) if todo else (None, None)
-    if todo and correction == "auto" and conf.correction.auto_graph:
-        from .auto_graph import match_with_graph
+    if todo and method.auto and conf.correction.auto_graph:
+        from ..matching.auto.collection import match_with_graph
 
-        match_with_graph(run_items, todo, sets, output, stats, flush_s, fconf.match_config().auto.same_log2)
+        def apply(results, pairs):
+            apply_in_order(results, pairs, sets, output, stats, flush_s)
+
+        match_with_graph(run_items, todo, apply, stats, fconf.match_config().auto.same_log2)
     elif todo:
-        apply_in_order(run_items(todo, f"match ({correction})"), todo, sets, output, stats, flush_s)
+        apply_in_order(run_items(todo, f"match ({method})"), todo, sets, output, stats, flush_s)
     else:
         output.flush()
     if runner is not None:
         stats.feature_sets = runner.feature_sets
     stats.added_keypoints = sum(len(s) - s.num_base for s in sets.values())
     stats.seconds = time.perf_counter() - t_start
-    if correction == "auto":
+    if method.auto:
         unverified = [p for p in stats.pairs if p.verified is False]
         if unverified and len(unverified) == len(stats.pairs):
             warn(f"auto verified none of the {len(stats.pairs)} pairs: the images may not overlap")

@@ -1,6 +1,6 @@
 """Matching one pair of a collection with the correction (the worker side of the matching step,
 :mod:`.match`): the whole correction per pair, or the steps of ``auto`` that the pair graph
-(:mod:`.pair_graph`) drives: the pair as it is, the seed's geometry, given hypotheses (through the
+(:mod:`localscale.matching.auto.graph`) drives: the pair as it is, the seed's geometry, given hypotheses (through the
 hypothesis loop, or at the images' levels)."""
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..matching.auto.graph import Relation, relation_of
 from .extract import FeatureConf, build_matcher, features_for_matcher, load_working, to_full
-from .pair_graph import Relation
 
 
 @dataclass
 class PairResult:
     """What matching one pair gives the driver: the keypoints of A and B (full-image pixels), K x 2
     matches, K scores, whether it verified (None: not checked), the hypothesis chosen, the pair's
-    :class:`~.pair_graph.Relation` when it verified, the seed step's hypothesis (with its window),
+    :class:`~localscale.matching.auto.graph.Relation` when it verified, the seed step's hypothesis (with its window),
     whether the pair needs no other hypothesis, seconds and feature sets computed for it, and the
     seed's matches that agree with its hypothesis (what ranks the anchors)."""
 
@@ -38,20 +38,6 @@ class PairResult:
     support: int = 0
 
 
-def relation_of(v, hypothesis) -> Optional[Relation]:
-    """The relation a verified result's own geometry gives (else its ``hypothesis``'s; None if
-    it did not verify)."""
-    from ..matching.auto import geometry_hypothesis
-
-    if not v.verified:
-        return None
-    g = geometry_hypothesis(v)
-    h = g if g is not None else hypothesis
-    if h is None:
-        return Relation(1.0, 0, int(v.num_inliers))
-    return Relation(float(h.scale), int(h.turn) % 4, int(v.num_inliers))
-
-
 def costs_to_scores(costs: np.ndarray, lightglue: bool) -> np.ndarray:
     c = np.asarray(costs, np.float32)
     return (1.0 - c) if lightglue else (1.0 - 0.5 * c**2)
@@ -64,7 +50,7 @@ class PairRunnerFactory:
     images: tuple
     features_path: str
     conf: FeatureConf
-    correction: str
+    correction: Any  #: a :class:`~localscale.matching.Correction` or its name
     device: str = "cpu"
     local_model: Any = None  #: the networks to ship to the workers (None: each loads the bundled weights)
     global_model: Any = None
@@ -108,21 +94,20 @@ class PairRunner:
     ):
         from ..matching import get_correction
 
-        self.by_name, self.features_path, self.conf, self.correction = by_name, features_path, conf, correction
+        self.by_name, self.features_path, self.conf = by_name, features_path, conf
+        self.correction = get_correction(correction)
         self.matcher = matcher or build_matcher(conf, device, num_images)
         self.lightglue = self.matcher.config.matching == "lightglue"
-        self.method = get_correction(correction)
         self.local_model, self.global_model = local_model, global_model
-        if correction != "none" and (
-            (local_model is None and "local" in self.method.models)
-            or (global_model is None and "global" in self.method.models)
+        if (local_model is None and "local" in self.correction.models) or (
+            global_model is None and "global" in self.correction.models
         ):
-            loaded = self.method.load_models(device=device)  # the bundled weights of what is missing
+            loaded = self.correction.load_models(device=device)  # the bundled weights of what is missing
             self.local_model = local_model if local_model is not None else loaded[0]
             self.global_model = global_model if global_model is not None else loaded[1]
         self.seed_matcher = None
         seed_name = self.matcher.config.auto.seed
-        if correction == "auto" and seed_name is not None and seed_name != self.matcher.config.name:
+        if self.correction.auto and seed_name is not None and seed_name != self.matcher.config.name:
             from ..matching import match_config
             from .extract import LevelMatcher
 
@@ -172,17 +157,17 @@ class PairRunner:
     def run(self, a: str, b: str) -> "PairResult":
         """The pair matched with the whole correction (``auto``: the per-pair hypothesis loop)."""
         m = self.matcher
-        if self.correction == "none":
+        if self.correction.as_is:
             (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
             matches, costs = m.match_features(fa, fb)
             return PairResult(
                 to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb), matches, costs_to_scores(costs, self.lightglue)
             )
-        if self.correction == "auto":
+        if self.correction.auto:
             return self.hypotheses(a, b, None, True, per_pair=True)
         fa, fb, ia, ib, Sa, Sb = self._prepared(a, b)
         cfg = m.config
-        sa, sb = self.method.maps(ia, ib, None, self.local_model, self.global_model, cfg.gate, bf16=cfg.bf16)
+        sa, sb = self.correction.maps(ia, ib, None, self.local_model, self.global_model, cfg.gate, bf16=cfg.bf16)
         if m.extractor.rectified:
             from ..matching import pair_scale
 
@@ -220,10 +205,10 @@ class PairRunner:
         """The seed matcher's (SIFT) run on the images as they are: no matches kept, only the
         relation and the hypothesis (with its window) of its verified geometry; when it does not
         verify, or gives a strong zoom no window, the hypothesis of the similarity its matches'
-        keypoints agree on (:func:`~localscale.matching.auto.seed_similarity`), if any."""
+        keypoints agree on (:func:`~localscale.matching.auto.seed.seed_similarity`), if any."""
         import dataclasses
 
-        from ..matching.auto import seed_choices, seed_hypothesis
+        from ..matching.auto.seed import seed_choices, seed_hypothesis
 
         empty = PairResult(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64))
         if self.seed_matcher is None:
@@ -243,26 +228,26 @@ class PairRunner:
         return empty
 
     def hypotheses(self, a: str, b: str, hypotheses, networks: bool, per_pair: bool = False) -> "PairResult":
-        """:func:`~localscale.matching.auto_match` on the pair: ``per_pair``: the whole loop (the
+        """:func:`~localscale.matching.auto.try_hypotheses` on the pair: ``per_pair``: the whole loop (the
         images as they are, the seed, the networks); else ``hypotheses`` first, then the networks if
         ``networks``, a verified result that its own geometry confirms ending the loop. A winner
         matched at another level, turn or window is matched again with the image whose content
         is smaller at its stored level (its keypoints are those the other pairs use)."""
         import dataclasses
 
-        from ..matching import auto_match
+        from ..matching.auto.loop import try_hypotheses
 
         m = self.matcher
         fa, fb, ia, ib, Sa, Sb = self._prepared(a, b)
         if per_pair:
-            out = auto_match(
+            out = try_hypotheses(
                 m, ia, ib, self.local_model, self.global_model, keys=(a, b), seed_matcher=self.seed_matcher
             )
         else:  # a window no larger than the photos, a photo no larger than the working size: the cost of a photo
             c = m.config
             photos = None if c.max_side is None else min(c.max_side, max(ia.shape[:2] + ib.shape[:2]))
             config = dataclasses.replace(c.auto, accept_consistent=True, window_max_side=photos, zoom_max_side=None)
-            out = auto_match(
+            out = try_hypotheses(
                 m, ia, ib, self.local_model, self.global_model, config, (a, b), None,
                 hypotheses=list(hypotheses or []), networks=networks,
             )  # fmt: skip
@@ -329,7 +314,7 @@ class PairRunner:
         its match ran (``factors``, A's and B's), matched with the close-up's features of that run;
         B turned by the hypothesis's turn as the run turned it."""
         from ..geometry import project, turn_matrix
-        from ..matching.turns import unturn_points
+        from ..matching.auto.turns import unturn_points
 
         m = self.matcher
         i, x0, y0, x1, y1 = (int(v) for v in h.window)
@@ -362,7 +347,7 @@ class PairRunner:
         turned by ``turn`` quarter turns: the close-up (the image whose content is bigger) is turned
         (B by ``turn``, or A by ``-turn``), each image extracted at its factor (``f_a``, ``f_b``,
         levels of the shared cache; the wide view's level 1 is its stored features ``fa`` / ``fb``)."""
-        from ..matching.turns import unturn_points
+        from ..matching.auto.turns import unturn_points
         from .extract import snap_factor
 
         m = self.matcher
