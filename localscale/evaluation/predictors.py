@@ -7,7 +7,9 @@ models once (:class:`ScaleModels`) and computes what several predictors share on
 
 Built in (:data:`PREDICTORS`):
 
-* ``local``: Local-ScaleNet's map (``LocalScaleNet.predict``, soft read-out), as it is;
+* ``local``: Local-ScaleNet's one-pass map (``LocalScaleNet.predict(anchor=False)``, soft read-out);
+* ``anchored``: the map ``LocalScaleNet.predict`` and ``localscale predict`` give by default, the
+  local pass anchored on ScaleNet's scale and quarter turn (:mod:`localscale.anchoring`);
 * ``scalenet``: ScaleNet's consistency-checked factor, one number;
 * ``one``: the constant 1 (the ``none`` correction);
 * ``correction:NAME``: the map A gets from the correction method ``NAME`` of
@@ -133,6 +135,7 @@ def _refined(ctx: PairContext) -> np.ndarray:
 
 
 register_predictor("local", lambda ctx: ctx.local_predictions()[0].scale)
+register_predictor("anchored", lambda ctx: ctx.models.local.predict(ctx.a, ctx.b).scale)
 register_predictor("scalenet", lambda ctx: ctx.global_scale())
 register_predictor("one", lambda ctx: 1.0)
 for _name in ("global", "local", "fused", "searched", "gt", "gt_gated"):
