@@ -46,7 +46,8 @@ GROUPS = {
 
 #: the columns' titles
 TITLES = {
-    "local": "local map",
+    "local": "local map, one pass",
+    "anchored": "local map anchored on ScaleNet (predict's default)",
     "search": "local map, window search",
     "refined": "refined (verified geometry, else local)",
     "global": "global ScaleNet as a constant map",
@@ -144,6 +145,7 @@ def pair_row(local, scalenet, name, a, b, H, refine=True, sift_seed=True, search
     fwd = local.predict_from_features(ea, eb)
     bwd = local.predict_from_features(eb, ea)
     row = _base_row(name, fwd, scalenet.predict(a, b), H, b.shape[:2])
+    row["anchored"] = pixel_errors(local.predict(a, b).scale, H, b.shape[:2])["err"]
     if refine:
         _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed, refine_matcher)
     if search:
@@ -170,11 +172,12 @@ def direction_errors(rows: List[dict]) -> dict:
 
 def columns(refined: bool, search: bool) -> tuple:
     """The table's columns, in order."""
-    keys = ("local", "refined", "global", "const1", "oracle") if refined else ("local", "global", "const1", "oracle")
+    keys = ("local", "anchored", "refined", "global", "const1", "oracle")
+    keys = keys if refined else tuple(k for k in keys if k != "refined")
     if search:
-        keys = keys[:1] + ("search",) + keys[1:] + ("global-search",)
+        keys = keys[:2] + ("search",) + keys[2:] + ("global-search",)
         if refined:
-            keys = keys[:3] + ("search-refined",) + keys[3:]
+            keys = keys[:4] + ("search-refined",) + keys[4:]
     return keys
 
 
