@@ -15,8 +15,10 @@ Built in (:data:`PREDICTORS`):
 * ``correction:NAME``: the map A gets from the correction method ``NAME`` of
   :mod:`localscale.matching.correction` (``global``, ``local``, ``fused``, ``searched``, ``gt``,
   ``gt_gated``); a gate that switches the correction off gives 1;
-* ``refined``: the map ``localscale predict --refine`` writes (hardnet matches, verified, the map
-  refined by the geometry, OpenCV SIFT as the seed when the first pass is not verified).
+* ``refined``: the map ``localscale predict --refine`` writes: the anchored maps of A and B gated,
+  hardnet matches verified as COLMAP's two-view geometry chooses (H, F or E), the map refined by the
+  geometry (the homography's map, or the dense map of the verified matches), the anchored map where
+  nothing verifies or matches are too sparse; OpenCV SIFT as the seed when the first pass fails.
 
 More can be added by name (:func:`register_predictor`), e.g. a system's own map from a function
 ``f(image_a, image_b, local_model=..., global_model=...)`` (:func:`function_predictor`,
@@ -95,6 +97,11 @@ class PairContext:
 
         return self._once("local", make)
 
+    def anchored_predictions(self):
+        """``LocalScaleNet.predict``'s default (anchored) predictions A->B and B->A."""
+        m = self.models.local
+        return self._once("anchored", lambda: (m.predict(self.a, self.b), m.predict(self.b, self.a)))
+
     def global_scale(self) -> float:
         """ScaleNet's consistency-checked ``S_{A->B}``."""
         return self._once("global", lambda: float(self.models.global_.predict(self.a, self.b).scale))
@@ -127,15 +134,25 @@ def _correction(name: str) -> Predictor:
 def _refined(ctx: PairContext) -> np.ndarray:
     from ..matching.correction import CorrectionGate
     from ..matching.pipeline import match_refined_pair
+    from ..matching.verification import VerificationConfig
 
-    pa, pb = ctx.local_predictions()
+    pa, pb = ctx.anchored_predictions()
     first_a, first_b = CorrectionGate().apply_predictions(pa, pb)
-    res = match_refined_pair(ctx.a, ctx.b, first_a, first_b, pa.scale, pb.scale, sift_seed=True)
+    res = match_refined_pair(
+        ctx.a,
+        ctx.b,
+        first_a,
+        first_b,
+        pa.scale,
+        pb.scale,
+        sift_seed=True,
+        verification=VerificationConfig(model="two_view"),
+    )
     return res.refined_a.scale
 
 
 register_predictor("local", lambda ctx: ctx.local_predictions()[0].scale)
-register_predictor("anchored", lambda ctx: ctx.models.local.predict(ctx.a, ctx.b).scale)
+register_predictor("anchored", lambda ctx: ctx.anchored_predictions()[0].scale)
 register_predictor("scalenet", lambda ctx: ctx.global_scale())
 register_predictor("one", lambda ctx: 1.0)
 for _name in ("global", "local", "fused", "searched", "gt", "gt_gated"):
