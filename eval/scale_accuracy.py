@@ -59,7 +59,7 @@ from localscale.evaluation.scale_real import TITLES, columns, evaluate_real
 from localscale.geometry import (
     HomographyConfig,
 )
-from localscale.planar import planarize
+from localscale.geometry.planar import planarize
 
 
 def print_local_table(title: str, table: dict) -> None:

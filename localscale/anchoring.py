@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .geometry.planar import planarize
 from .models.anchor import Anchor, turned
-from .planar import planarize
 from .search import WindowSearchConfig, _compose, _encode, _encode_windows, _scores, grid_windows, plausible
 
 

@@ -19,3 +19,7 @@ class CheckpointError(LocalScaleError):
 
 class OutputError(LocalScaleError):
     """An output file cannot be written (full disk, no permission, read-only file system)."""
+
+
+class CameraError(LocalScaleError):
+    """A camera (file, string, model or parameters) cannot be used."""

@@ -66,7 +66,7 @@ def cmd_match(args) -> int:
 
 def _cameras(args) -> tuple:
     """``(camera of A, camera of B)`` from ``--camera`` / ``--camera-a`` / ``--camera-b`` (None: not given)."""
-    from ..cameras import as_camera
+    from ..geometry.cameras import as_camera
 
     if args.camera is not None and (args.camera_a is not None or args.camera_b is not None):
         raise LocalScaleError("--camera is the camera of both images: give it, or --camera-a / --camera-b, not both")

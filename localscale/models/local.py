@@ -37,9 +37,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .. import scales
+from ..geometry.planar import planarize
 from ..io import ImageLike
 from ..maps import GridMaps
-from ..planar import planarize
 from ..preprocess import Letterbox
 from .anchor import Anchor, anchor_of
 from .backbones import check_backbone_name
@@ -335,7 +335,7 @@ class LocalScaleNet(ScaleModel):
             hard: D-ScaleNet read-out (arg-max bin) instead of the soft expectation.
             bf16: run the network under bfloat16 autocast (faster on CPUs with AMX).
             planar: replace the map by the best scale field of a homography (planar scenes
-                only; see :mod:`localscale.planar`).
+                only; see :mod:`localscale.geometry.planar`).
             anchor: ``True``: the pass is anchored on the global ScaleNet's scale and quarter
                 turn (:mod:`localscale.anchoring`; ``pred.meta["anchor"]`` says how);
                 an :class:`~localscale.models.anchor.Anchor`: anchored on that; ``False``: the

@@ -7,8 +7,8 @@ Cameras (:func:`image_cameras`), ``camera_mode``:
 * ``auto``: ``single`` when every image has the same size and the same EXIF focal length
   (or none), else ``per_image`` (COLMAP's own rule).
 
-Cameras are :class:`localscale.cameras.Camera`: COLMAP's guess from the file
-(:meth:`~localscale.cameras.Camera.from_exif`: SIMPLE_RADIAL, focal length from EXIF when there is
+Cameras are :class:`localscale.geometry.cameras.Camera`: COLMAP's guess from the file
+(:meth:`~localscale.geometry.cameras.Camera.from_exif`: SIMPLE_RADIAL, focal length from EXIF when there is
 one, else 1.2 x the longer side; bundle adjustment refines it), or the camera of ``camera_file``
 (``--camera``: one ``cameras.txt`` line or a COLMAP ``cameras.txt`` with one camera, or JSON; used
 for every image; its size must be the images' size, or the same aspect ratio, then it is rescaled).
@@ -49,11 +49,11 @@ def _pycolmap():
 
 
 def read_camera_file(path):
-    """The one camera of ``path`` (:func:`localscale.cameras.read_camera`: a ``cameras.txt`` line,
+    """The one camera of ``path`` (:func:`localscale.geometry.cameras.read_camera`: a ``cameras.txt`` line,
     comments allowed, or JSON; or a COLMAP ``cameras.txt`` holding one camera) as a
-    :class:`localscale.cameras.Camera`. Raises :class:`CameraFileError`."""
-    from ..camera_checks import implausibility
-    from ..cameras import CameraError, read_camera, read_cameras_txt
+    :class:`localscale.geometry.cameras.Camera`. Raises :class:`CameraFileError`."""
+    from ..geometry.camera_checks import implausibility
+    from ..geometry.cameras import CameraError, read_camera, read_cameras_txt
 
     path = Path(path)
     if not path.is_file():
@@ -91,7 +91,7 @@ def _fit_camera(camera, shape: tuple, what: str):
 
 @dataclass
 class CameraSetup:
-    """``cameras`` (camera id -> :class:`localscale.cameras.Camera`) and ``of_image`` (image name ->
+    """``cameras`` (camera id -> :class:`localscale.geometry.cameras.Camera`) and ``of_image`` (image name ->
     camera id); ``mode``: the mode used (``auto`` resolved); ``source``: ``exif`` or the camera file."""
 
     cameras: dict = field(default_factory=dict)
@@ -105,7 +105,7 @@ class CameraSetup:
 
 def image_cameras(images: list, mode: str = "auto", camera_file=None) -> CameraSetup:
     """The cameras of ``images`` (:class:`~.images.ImageInfo`) under ``mode`` (module docstring)."""
-    from ..cameras import Camera, CameraError
+    from ..geometry.cameras import Camera, CameraError
 
     if mode not in CAMERA_MODES:
         raise LocalScaleError(f"camera mode must be one of {', '.join(CAMERA_MODES)}, got {mode!r}")
