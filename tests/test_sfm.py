@@ -156,7 +156,8 @@ def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path
 def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
     """``mapper_options`` set pycolmap's options by dotted name, strings read as the option's type;
     the mapper is given them, and the summary records them."""
-    from localscale.sfm.mapping import mapping_options, run_mapping
+    from localscale.sfm.mapper_options import mapping_options
+    from localscale.sfm.mapping import run_mapping
 
     opts = mapping_options(
         1,
@@ -185,7 +186,7 @@ def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
 def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
     """A camera per image keeps the distortion out of the incremental mapper's refinement unless
     the user's options say otherwise; a shared camera keeps pycolmap's defaults."""
-    from localscale.sfm.mapping import PER_IMAGE_CAMERA_OPTIONS, default_overrides
+    from localscale.sfm.mapper_options import PER_IMAGE_CAMERA_OPTIONS, default_overrides
 
     assert default_overrides("incremental", "per_image") == PER_IMAGE_CAMERA_OPTIONS
     assert default_overrides("incremental", "single") == {} and default_overrides("global", "per_image") == {}

@@ -61,8 +61,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
 def _add_feature_options(p: argparse.ArgumentParser) -> None:
     """The options of the features, pairs and correction sections of :class:`~localscale.sfm.ReconstructConfig`."""
     from ..matching import MATCHERS
-    from ..sfm.config import ReconstructConfig
-    from ..sfm.match import SFM_CORRECTIONS
+    from ..sfm.config import SFM_CORRECTIONS, ReconstructConfig
 
     d = ReconstructConfig().flat()
     p.add_argument(
@@ -108,9 +107,9 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
 
 def _add_mapping_options(p: argparse.ArgumentParser) -> None:
     """The options of the mapping section of :class:`~localscale.sfm.ReconstructConfig`."""
+    from ..sfm.cameras import CAMERA_MODES
     from ..sfm.config import ReconstructConfig
-    from ..sfm.database import CAMERA_MODES
-    from ..sfm.mapping import MAPPERS
+    from ..sfm.mapper_options import MAPPERS
 
     d = ReconstructConfig().flat()
     p.add_argument(

@@ -18,13 +18,16 @@ from __future__ import annotations
 import itertools
 import shlex
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from ..errors import LocalScaleError
 from ..outputs import write_text
 from ..pairs_file import PairsFileError, read_pairs_lines
+from .config import ReconstructConfig
 from .h5io import read_group
+from .steps import config_of, parser, run_step
 
 
 def pairs_exhaustive(names: list) -> list:
@@ -128,10 +131,25 @@ def read_pairs(path) -> list:
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m localscale.sfm.pairs``: this step alone, from files (:func:`~.steps.pairs_of_features`)."""
-    from .steps import config_of, pairs_of_features, parser, run_step
+def pairs_of_features(features_path, pairs_path, conf: Optional[ReconstructConfig] = None, images_dir=None):
+    """The pairs step from paths: the pairs of the images of ``features_path`` (``conf.pairs``)
+    written to ``pairs_path``."""
+    from .h5io import groups_with
 
+    p = (conf or ReconstructConfig()).pairs
+    names = sorted(groups_with(features_path, "keypoints"))
+    if p.pairs != "exhaustive":
+        pairs = pairs_from_file(p.pairs, names, images_dir)
+    elif p.pairs_nearest:
+        pairs = pairs_from_retrieval(names, features_path, p.pairs_nearest)
+    else:
+        pairs = pairs_exhaustive(names)
+    Path(pairs_path).parent.mkdir(parents=True, exist_ok=True)
+    return write_pairs(pairs_path, pairs)
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.pairs``: this step alone, from files (:func:`pairs_of_features`)."""
     p = parser("pairs", __doc__, ("pairs", "pairs_nearest"))
     p.add_argument("features", help="features.h5 (its images are paired)")
     p.add_argument("output", help="pairs.txt to write")

@@ -202,7 +202,7 @@ class _Reconstruction:
     def read_inputs(self) -> None:
         """Read and check the pairs and camera files, the output folder (:attr:`state`), the images
         and their cameras; nothing is written yet."""
-        from .database import image_cameras
+        from .cameras import image_cameras
         from .images import find_images
         from .pairs import pairs_from_file
 
@@ -332,7 +332,7 @@ class _Reconstruction:
 
     def map_model(self) -> None:
         """``sparse/``: pycolmap's mapping (the mapping section of :attr:`conf`), with the options of
-        the cameras' mode (:func:`~.mapping.default_overrides`) and ``mapper_options`` over them."""
+        the cameras' mode (:func:`~.mapper_options.default_overrides`) and ``mapper_options`` over them."""
         from .mapping import default_overrides, run_mapping
 
         m = self.conf.mapping
