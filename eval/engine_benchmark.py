@@ -143,7 +143,7 @@ def main(argv=None) -> int:
         )
     print("\n".join(lines))
     if args.json:
-        from localscale.outputs import write_text
+        from localscale.core.outputs import write_text
 
         args.json.parent.mkdir(parents=True, exist_ok=True)
         doc = {

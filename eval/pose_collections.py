@@ -20,7 +20,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation.pose import PoseRun, run
 from localscale.evaluation.pose_data import COLLECTIONS
 from localscale.geometry.two_view import TwoViewConfig

@@ -45,8 +45,8 @@ import torch
 from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
+from localscale.core.errors import LocalScaleError
 from localscale.data import list_images, split_images
-from localscale.errors import LocalScaleError
 from localscale.evaluation.report import git_commit
 from localscale.evaluation.scale_maps import (
     STRIDE,

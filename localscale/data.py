@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .errors import ImageError
+from .core.errors import ImageError
 from .geometry import HomographyConfig, grid_points, homography_scale_map, project, sample_homography, translation
 from .io import load_image
 from .preprocess import letterbox, make_letterbox, to_tensor

@@ -9,8 +9,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .errors import LocalScaleError
-from .outputs import ensure_not_input, make_dir, write_image, write_npy, write_npy_bands, write_text
+from .core.errors import LocalScaleError
+from .core.outputs import ensure_not_input, make_dir, write_image, write_npy, write_npy_bands, write_text
 
 
 def write_scale_map(pred, out_dir: Path, stem: str, inputs=()) -> list[Path]:

@@ -11,7 +11,7 @@ import shlex
 import stat
 from pathlib import Path
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 
 PAIRS_FORMAT = (
     "one pair per line: 'A<TAB>B' (each field taken as written: spaces, '#' and quotes are part "

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 from .io import ImageLike
 from .model_limits import limit_reasons
 

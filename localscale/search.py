@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 from .io import ImageLike
 from .models.local import LocalScaleNet, LocalScalePrediction
 from .models.windows import (

@@ -135,7 +135,7 @@ def plot_scale_prediction(
     if title:
         fig.suptitle(title)
     if path is not None:
-        from .outputs import atomic_path
+        from .core.outputs import atomic_path
 
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         try:

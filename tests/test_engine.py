@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from localscale.core.errors import CheckpointError, ImageError, LocalScaleError
 from localscale.engine import (
     EngineError,
     LocalExecutor,
@@ -25,7 +26,6 @@ from localscale.engine import (
     predict_pairs_with,
 )
 from localscale.engine.pairs import PairStats
-from localscale.errors import CheckpointError, ImageError, LocalScaleError
 
 try:
     import ray
@@ -485,7 +485,7 @@ def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, mon
 DRIVER = r"""
 import os, sys, time
 from localscale.engine import get_executor
-from localscale.outputs import write_text
+from localscale.core.outputs import write_text
 
 def work(state, x):
     time.sleep(0.3)

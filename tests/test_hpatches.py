@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from localscale.cli import main as cli_main
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation import (
     evaluate,
     load_hpatches,

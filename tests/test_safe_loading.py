@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from localscale.checkpoint import FORMAT_VERSION, read_checkpoint, restore_train_state, save_model, train_state
-from localscale.errors import CheckpointError
+from localscale.core.errors import CheckpointError
 from localscale.features.descriptors import HardNetDescriptor
 from localscale.models import LocalScaleNet, load_model
 
@@ -183,7 +183,7 @@ import cv2  # noqa: E402
 from PIL import Image, ImageOps  # noqa: E402
 
 import localscale.io as lio  # noqa: E402
-from localscale.errors import HomographyError, ImageError  # noqa: E402
+from localscale.core.errors import HomographyError, ImageError  # noqa: E402
 from localscale.io import load_image, read_homography  # noqa: E402
 
 HUGE_HEADERS = {

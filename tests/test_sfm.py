@@ -146,7 +146,7 @@ def test_the_mapper_runs_again_while_images_are_left_out(run, tmp_path, monkeypa
 
 
 def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path):
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match="mapper must be one of incremental, global"):
         reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper="glomap", show_progress=False)
@@ -216,7 +216,7 @@ def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
     ],
 )
 def test_bad_mapper_options_are_refused_before_anything_is_written(scene, tmp_path, options, message):
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match=message):
         reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper_options=options, show_progress=False)

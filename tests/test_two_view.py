@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.geometry.cameras import (
     Camera,
     CameraError,

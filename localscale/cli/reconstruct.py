@@ -1,7 +1,7 @@
 """``localscale reconstruct IMAGES -o OUT``: structure from motion with localscale's matching
 (:func:`localscale.sfm.reconstruct`).
 
-Bad input is a :class:`~localscale.errors.LocalScaleError` (``main`` prints one ``error:`` line,
+Bad input is a :class:`~localscale.core.errors.LocalScaleError` (``main`` prints one ``error:`` line,
 exit code 2, nothing written); a run whose model cannot be trusted prints ``warning:`` lines;
 a run that builds no model at all exits with 1.
 """
@@ -171,7 +171,7 @@ def add_reconstruct_parser(sub) -> argparse.ArgumentParser:
 def cmd_reconstruct(args) -> int:
     """Run :func:`localscale.sfm.reconstruct` with the options of ``args``; print the summary table.
     Returns 0, or 1 when no model was built."""
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
     from ..matching import get_correction
     from ..sfm import summary_table
 
@@ -233,7 +233,7 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
 
 def _name_values(items: list) -> dict:
     """``["NAME=VALUE", ...]`` as ``{NAME: VALUE}`` (the values stay strings)."""
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
 
     out = {}
     for item in items:

@@ -30,7 +30,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry.cameras import window_pixels
 from ..training.real_pairs import CovisiblePair, point_log_scales
 from .predictors import PairContext, ScaleModels, predict

@@ -45,7 +45,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
+from ..core.outputs import atomic_path
 from ..geometry.cameras import Camera, cut_window
 from ..geometry.two_view import (
     TwoViewConfig,
@@ -54,7 +55,6 @@ from ..geometry.two_view import (
     pose_auc,
     relative_pose_error,
 )
-from ..outputs import atomic_path
 from .pose_data import (
     COLLECTIONS,
     View,

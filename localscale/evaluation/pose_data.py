@@ -33,7 +33,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry.cameras import Camera, read_cameras_txt
 
 COLLECTIONS = ("skull_alansartlog", "temple_sparse_ring_middlebury", "kermit_bundler")

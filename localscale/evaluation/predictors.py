@@ -31,7 +31,7 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 Prediction = Union[float, np.ndarray]
 

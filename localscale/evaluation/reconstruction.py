@@ -49,7 +49,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..outputs import write_text
+from ..core.outputs import write_text
 from .report import git_commit
 
 PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")

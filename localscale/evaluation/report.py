@@ -146,7 +146,7 @@ def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> li
         fig.tight_layout()
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", g.replace("<", "lt").replace(">", "gt"))
         f = out / f"mma_{tag + '_' if tag else ''}{safe}.png"
-        from ..outputs import atomic_path
+        from ..core.outputs import atomic_path
 
         try:
             with atomic_path(f) as tmp:
@@ -191,7 +191,7 @@ def write_outputs(
         }
         for p in pairs
     ]
-    from ..outputs import write_text
+    from ..core.outputs import write_text
 
     buf = io.StringIO(newline="")
     w = csv.DictWriter(buf, fieldnames=list(splits[0]) if splits else ["pair"])

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import CameraError
+from ..core.errors import CameraError
 
 #: focal length over the longer side of the image
 FOCAL_RATIO_RANGE = (0.05, 50.0)

@@ -43,7 +43,7 @@ from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from ..errors import CameraError
+from ..core.errors import CameraError
 
 #: COLMAP model name -> parameter names, in COLMAP's order
 CAMERA_MODELS = {

@@ -39,7 +39,7 @@ from typing import List, Optional, Tuple
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .cameras import as_camera
 from .relative_pose import (
     epipolar_errors,  # noqa: F401  (the protocol's match precision)

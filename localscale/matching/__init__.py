@@ -14,7 +14,7 @@ Example::
     res = match_pair("a.jpg", "b.jpg", "auto", matcher="aliked-lightglue")
 """
 
-from ..lazy import lazy_exports
+from ..core.lazy import lazy_exports
 
 _EXPORTS = {
     ".config": ("MATCHERS", "MatchConfig", "match_config"),

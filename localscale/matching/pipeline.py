@@ -118,7 +118,7 @@ def match_pair(
 
 def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     """The cameras of the full images (``None`` stays ``None``) in the pixels of the working images."""
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
     from ..geometry.camera_checks import check_plausible
     from ..geometry.cameras import as_camera
     from ..io import image_shape
@@ -456,7 +456,7 @@ def _write_match_set(res: MatchResult, image_a, image_b, out: Path) -> None:
     elif res.verification is not None:  # auto, or cameras given: the verified geometry (and pose)
         import json
 
-        from ..outputs import ensure_not_input, write_text
+        from ..core.outputs import ensure_not_input, write_text
 
         geo = ensure_not_input(out / "geometry.json", inputs)
         extra = {"auto": res.meta["auto"]} if "auto" in res.meta else {}

@@ -25,7 +25,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import homography_scale_at, orient_homography
 from ..geometry.two_view import TwoViewConfig, TwoViewGeometry, estimate_two_view_geometry
 

@@ -22,7 +22,7 @@ Example::
     summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
 """
 
-from ..lazy import lazy_exports
+from ..core.lazy import lazy_exports
 
 _EXPORTS = {
     ".images": ("ImageInfo", "find_images", "names_to_pair", "IMAGE_SUFFIXES", "ImageFolderError"),

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 CAMERA_MODES = ("auto", "single", "per_image")
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .weights import WEIGHT_OPTIONS
 
 #: corrections the matching step runs (``gt`` needs a homography, ``refined`` is a two-pass pipeline)
@@ -144,7 +144,7 @@ class ReconstructConfig:
         return {k: getattr(getattr(self, s), k) for k, s in self.names().items()}
 
     def check(self) -> None:
-        """Raise a :class:`~localscale.errors.LocalScaleError` (one line) for a bad option; reads
+        """Raise a :class:`~localscale.core.errors.LocalScaleError` (one line) for a bad option; reads
         no file but the pairs and camera files' existence."""
         _check_features(self.features)
         _check_pairs(self.pairs)

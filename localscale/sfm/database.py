@@ -19,8 +19,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError, OutputError
-from ..outputs import atomic_path
+from ..core.errors import LocalScaleError, OutputError
+from ..core.outputs import atomic_path
 from .cameras import CameraSetup
 from .config import ReconstructConfig
 from .h5io import groups_with, read_group

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 #: the mappers of :func:`run_mapping`
 MAPPERS = ("incremental", "global")

@@ -9,7 +9,7 @@ half of the cameras have a known one, COLMAP's view-graph calibration runs first
 database's cameras and two-view geometries). The models are numbered by size (``0``: the most
 registered images). The mapper writes into temporary folders (``.sparse.tmp-*``, ``.sparse.new-*``,
 unique to the run); ``sparse/`` is replaced by the new one in one step
-(:func:`~localscale.outputs.replace_dir`) only when it has finished. A database of two images, or one
+(:func:`~localscale.core.outputs.replace_dir`) only when it has finished. A database of two images, or one
 where the mapper makes no model (its images connected by single pairs only), gets the best pair's
 two-view model (:mod:`.two_views`).
 
@@ -32,8 +32,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError, OutputError
-from ..outputs import replace_dir
+from ..core.errors import LocalScaleError, OutputError
+from ..core.outputs import replace_dir
 from .config import ReconstructConfig
 from .mapper_options import (
     MAPPING_TRIALS,

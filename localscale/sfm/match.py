@@ -33,7 +33,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..matching.auto.graph import Relation
 from .config import SFM_CORRECTIONS, ReconstructConfig
 from .extract import FeatureConf

@@ -22,8 +22,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
-from ..outputs import write_text
+from ..core.errors import LocalScaleError
+from ..core.outputs import write_text
 from ..pairs_file import PairsFileError, read_pairs_lines
 from .config import ReconstructConfig
 from .h5io import read_group

@@ -16,7 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Iterator
 
-from ..outputs import write_text
+from ..core.outputs import write_text
 
 _COLLECTED: contextvars.ContextVar = contextvars.ContextVar("sfm_warnings", default=None)
 

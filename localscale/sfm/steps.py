@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .config import ReconstructConfig
 
 #: the flags a step may take: option name -> (flag, type, help)
@@ -73,7 +73,7 @@ def config_of(args: argparse.Namespace) -> ReconstructConfig:
 
 
 def run_step(fn, *args, **kwargs) -> int:
-    """``fn(*args, **kwargs)``; a :class:`~localscale.errors.LocalScaleError` is one ``error:`` line, exit 2."""
+    """``fn(*args, **kwargs)``; a :class:`~localscale.core.errors.LocalScaleError` is one ``error:`` line, exit 2."""
     try:
         fn(*args, **kwargs)
     except LocalScaleError as e:
