@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 
 from .core.errors import LocalScaleError
+from .io.preprocess import letterbox, to_tensor
 from .models.base import EncodedImage, ScaleModel
-from .preprocess import letterbox, to_tensor
 
 
 class FeatureCache:

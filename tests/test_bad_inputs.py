@@ -1184,7 +1184,7 @@ def test_decompression_bomb_is_refused_before_decoding(env, name, monkeypatch):
     import resource
 
     decoded = []
-    monkeypatch.setattr(lio.cv2, "imdecode", lambda *a, **k: decoded.append(1))
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: decoded.append(1))
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     with pytest.raises(LocalScaleError, match="larger than the limit") as e:
         lio.load_image(env["in"] / name)

@@ -182,7 +182,6 @@ import warnings  # noqa: E402
 import cv2  # noqa: E402
 from PIL import Image, ImageOps  # noqa: E402
 
-import localscale.io as lio  # noqa: E402
 from localscale.core.errors import HomographyError, ImageError  # noqa: E402
 from localscale.io import load_image, read_homography  # noqa: E402
 
@@ -197,7 +196,7 @@ HUGE_HEADERS = {
 def no_decode(monkeypatch):
     """Fail the test if load_image hands the file to the decoder."""
     calls = []
-    monkeypatch.setattr(lio.cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
     return calls
 
 

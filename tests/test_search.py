@@ -147,8 +147,8 @@ def test_quarter_turn_of_b_is_found_and_windows_come_back_in_b_pixels(local, pho
 
 
 def _constant_prediction(scale: float, visible: float, shape_a, shape_b, size: int = 64):
+    from localscale.io.preprocess import make_letterbox
     from localscale.models.local_prediction import LocalScalePrediction
-    from localscale.preprocess import make_letterbox
 
     g = size // 8
     grid = torch.stack([torch.full((g, g), math.log(scale)), torch.ones(g, g), torch.full((g, g), visible)])

@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from .. import scales
 from ..geometry.planar import planarize
 from ..io import ImageLike
-from ..preprocess import Letterbox
+from ..io.preprocess import Letterbox
 from .anchor import Anchor, anchor_of
 from .backbones import check_backbone_name
 from .base import EncodedImage, ScaleModel, upsample_to_original

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from .. import scales
+from ..io.preprocess import Letterbox
 from ..maps import GridMaps
-from ..preprocess import Letterbox
 from .base import as_numpy, upsample_to_original
 
 

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..preprocess import Letterbox, letterbox, to_tensor
+from ..io.preprocess import Letterbox, letterbox, to_tensor
 from ..reliability import pair_statistics
 from .local_prediction import LocalScalePrediction, reliability
 

@@ -1,7 +1,7 @@
 """The pairs step: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
 
 * :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
-* :func:`pairs_from_file`: a pairs file (:mod:`localscale.pairs_file`) of names or of image paths,
+* :func:`pairs_from_file`: a pairs file (:mod:`localscale.io.pairs_file`) of names or of image paths,
   checked against the images;
 * :func:`pairs_from_retrieval`: each image with its ``N`` nearest by a cheap global descriptor,
   the local descriptors of ``features.h5`` aggregated (GeM of the L2-normalised descriptors,
@@ -24,7 +24,7 @@ import numpy as np
 
 from ..core.errors import LocalScaleError
 from ..core.outputs import write_text
-from ..pairs_file import PairsFileError, read_pairs_lines
+from ..io.pairs_file import PairsFileError, read_pairs_lines
 from .config import ReconstructConfig
 from .h5io import read_group
 from .steps import config_of, parser, run_step

@@ -29,7 +29,7 @@ from torch.utils.data import Dataset
 from .. import scales
 from ..core.errors import LocalScaleError
 from ..geometry import turn_matrix
-from ..preprocess import letterbox, to_tensor
+from ..io.preprocess import letterbox, to_tensor
 
 #: ``kind`` of a real pair in the training batches (after :data:`localscale.data.PAIR_KINDS`)
 REAL_KIND = 100

@@ -49,9 +49,9 @@ from typing import Iterator, Union
 import cv2
 import numpy as np
 
-from .core.errors import HomographyError, ImageError
-from .core.quiet import quiet_decoder
-from .image_files import _TIFF_MAGIC, _float_file_to_unit, _header, _read_float_tiff
+from ..core.errors import HomographyError, ImageError
+from ..core.quiet import quiet_decoder
+from .image_files import TIFF_MAGIC, float_file_to_unit, read_float_tiff, read_header
 
 MIN_SIDE = 16
 MAX_PIXELS = 100_000_000
@@ -210,7 +210,7 @@ def header_shape(path: Union[str, os.PathLike]) -> tuple[int, int]:
     not checked further (its kind, its decodability)."""
     _stat_file(Path(path), "image")
     try:
-        header = _header(Path(path))
+        header = read_header(Path(path))
     except OSError as e:
         raise ImageError(f"cannot read {path} ({e.strerror})") from None
     if header is None:
@@ -245,7 +245,7 @@ def check_image_file(path: str | os.PathLike, name: str = "image") -> None:
 def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
     check_image_file(path, name)
     try:
-        header = _header(path)
+        header = read_header(path)
     except OSError as e:
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     if header is None:
@@ -269,7 +269,7 @@ def _load_file(
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     k = reduction_factor(height, width, min_long_side)
     jpeg_reduced = k > 1 and bytes(data[:3]) == b"\xff\xd8\xff"
-    tiff = bytes(data[:4]) in _TIFF_MAGIC
+    tiff = bytes(data[:4]) in TIFF_MAGIC
     flags = cv2.IMREAD_UNCHANGED
     if jpeg_reduced:
         flags = _REDUCED_COLOR[k] | cv2.IMREAD_IGNORE_ORIENTATION
@@ -278,7 +278,7 @@ def _load_file(
     del data
     bgr, oriented = True, tiff and _tiff_decoder_orients()  # as OpenCV's decoders return them
     if arr is None and tiff:
-        arr = _read_float_tiff(path, name)  # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
+        arr = read_float_tiff(path, name)  # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
         bgr, oriented = False, False
     if arr is None:
         raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
@@ -303,7 +303,7 @@ def _load_file(
             stacklevel=3,
         )
     if np.issubdtype(arr.dtype, np.floating):
-        arr = _float_file_to_unit(arr, label)
+        arr = float_file_to_unit(arr, label)
     elif arr.dtype not in (np.uint8, np.uint16):
         raise ImageError(
             f"{name}: its samples are {arr.dtype} (signed or 32-bit integers), whose range is not known: "
