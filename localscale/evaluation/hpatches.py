@@ -73,7 +73,7 @@ from .pairs import (  # noqa: F401
 )
 from .report import (  # noqa: F401
     THRESHOLDS,
-    markdown_table,
+    matching_table,
     perspective_split,
     rotation_split,
     scale_split,
@@ -493,7 +493,7 @@ def run(
         write_outputs(
             res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc, **(extra or {})}
         )
-        table = markdown_table(res["summary"], methods, list(THRESHOLDS), tag)
+        table = matching_table(res["summary"], methods, list(THRESHOLDS), tag)
         print(table)
         tables.append(table)
         docs[tag] = res

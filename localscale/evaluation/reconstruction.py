@@ -279,7 +279,7 @@ def closeup_check(model, closeups: dict) -> tuple:
 
 
 def markdown(rows: list) -> str:
-    from ..sfm.report import markdown_table
+    from ..core.tables import markdown_table
 
     return markdown_table(rows, COLUMNS)
 

@@ -122,13 +122,9 @@ def write_pairs(path, pairs: list) -> Path:
 
 
 def read_pairs(path) -> list:
-    """The pairs of a ``pairs.txt`` written by :func:`write_pairs` (no check against images)."""
-    out = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        parts = shlex.split(line, comments=True)
-        if len(parts) == 2:
-            out.append(tuple(parts))
-    return out
+    """The pairs ``[(A, B), ...]`` of a ``pairs.txt`` written by :func:`write_pairs`, as written (no
+    check against images; :func:`~localscale.io.pairs_file.read_pairs_lines` parses it)."""
+    return [(a, b) for _, a, b in read_pairs_lines(path)]
 
 
 def pairs_of_features(features_path, pairs_path, conf: Optional[ReconstructConfig] = None, images_dir=None):
