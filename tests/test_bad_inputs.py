@@ -940,7 +940,7 @@ def _pairs_setup(env, tmp_path, n=4):
 
 
 def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeypatch, capsys):
-    import localscale.map_files as outputs
+    import localscale.maps.files as outputs
 
     pairs = _pairs_setup(env, tmp_path)
     out = tmp_path / "out"

@@ -12,7 +12,7 @@ from localscale.checkpoint import save_model
 from localscale.cli import main
 from localscale.core.errors import LocalScaleError
 from localscale.core.outputs import ensure_not_input
-from localscale.map_files import write_scale_map
+from localscale.maps.files import write_scale_map
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 

@@ -318,7 +318,7 @@ class TestRayLocalCluster:
     def test_pairs_equal_local_engine_and_feature_cache(self, ray_executor, tiny_pairs, tmp_path):
         from localscale import LocalScaleNet
         from localscale.cache import FeatureCache, predict_pairs
-        from localscale.map_files import write_scale_map
+        from localscale.maps.files import write_scale_map
 
         with get_executor("local") as ex:
             local = dict(predict_pairs_with(ex, tiny_pairs, chunk_pairs=4))

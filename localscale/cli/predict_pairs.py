@@ -9,7 +9,7 @@ from pathlib import Path
 from ..core.errors import LocalScaleError
 from ..core.outputs import make_dir, resolved_path, write_text
 from ..io.pairs_file import read_pairs_file
-from ..map_files import scale_map_paths, write_scale_map
+from ..maps.files import scale_map_paths, write_scale_map
 from .common import _model, check_output_dir, image_labels, short_name
 from .options import executor_from_args
 from .signals import SIGTERM_STATE

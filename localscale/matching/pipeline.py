@@ -443,7 +443,7 @@ def _stamps(out: Path) -> dict:
 
 def _write_match_set(res: MatchResult, image_a, image_b, out: Path) -> None:
     """Matches and their picture; the refined maps, or the verified geometry."""
-    from ..map_files import write_refinement
+    from ..maps.files import write_refinement
 
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
