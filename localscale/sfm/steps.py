@@ -1,5 +1,7 @@
-"""Each step of :mod:`localscale.sfm` run alone, from files (hloc style): a function with paths per
-step, and ``python -m localscale.sfm.<step>`` (its ``main``: these functions behind a small parser).
+"""Each step of :mod:`localscale.sfm` run alone, from files (hloc style): each step module holds a
+function with paths (``extract.extract_folder``, ``pairs.pairs_of_features``, ``match.match_files``,
+``geometry.verify_files``, ``database.database_of_files``, ``mapping.map_files``) and
+``python -m localscale.sfm.<step>`` (its ``main``: that function behind the small parser here).
 
 The steps share only files: ``features.h5`` -> ``pairs.txt`` -> ``matches.h5`` + ``keypoints.h5``
 -> ``geometries.h5`` -> ``database.db`` -> ``sparse/``. Their options come from a
