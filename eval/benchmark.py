@@ -63,7 +63,7 @@ import numpy as np
 import torch
 
 import localscale
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation.report import git_commit
 from localscale.evaluation.timing import interleaved, subprocess_ms, timeit
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, SIFTPatchDescriptor, image_to_gray_tensor

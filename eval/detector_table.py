@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation.hpatches import evaluate, load_hpatches, load_scale_models, make_pairs
 from localscale.evaluation.report import git_commit
 from localscale.features.detector import DETECTORS, get_detector

@@ -4,7 +4,7 @@ The pairs are real: ``(1, k)`` and ``(k, 1)``, ``k = 2..6``, of the planar seque
 ``--data`` (``/work/shared/data/sequences``), interleaved over the sequences; the first ``N`` of
 them for each ``N`` of ``--sizes`` (default 8 and 64). Each run does what ``predict --pairs`` does
 per pair: features of every image once, the head per pair, and the driver writes the maps
-(:func:`localscale.map_files.write_scale_map`) into a fresh folder as each prediction arrives.
+(:func:`localscale.maps.files.write_scale_map`) into a fresh folder as each prediction arrives.
 
 Rows:
 
@@ -53,7 +53,7 @@ def run_cli_loop(pairs, out: Path) -> dict:
 
     from localscale import LocalScaleNet
     from localscale.cache import FeatureCache, predict_pairs
-    from localscale.map_files import write_scale_map
+    from localscale.maps.files import write_scale_map
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
@@ -67,7 +67,7 @@ def run_cli_loop(pairs, out: Path) -> dict:
 
 def run_engine(pairs, out: Path, engine: str, workers: int, threads: int) -> dict:
     from localscale.engine import PairStats, get_executor, predict_pairs_with
-    from localscale.map_files import write_scale_map
+    from localscale.maps.files import write_scale_map
 
     t0 = time.perf_counter()
     stats = PairStats()
@@ -143,7 +143,7 @@ def main(argv=None) -> int:
         )
     print("\n".join(lines))
     if args.json:
-        from localscale.outputs import write_text
+        from localscale.core.outputs import write_text
 
         args.json.parent.mkdir(parents=True, exist_ok=True)
         doc = {

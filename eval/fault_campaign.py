@@ -460,7 +460,7 @@ def main(argv=None) -> int:
     bad = [r["case"] for r in c.rows if not r["ok"]]
     print(f"\n{len(c.rows) - len(bad)}/{len(c.rows)} as expected; tracebacks: {c.tracebacks}")
     if args.json:
-        from localscale.outputs import write_text
+        from localscale.core.outputs import write_text
 
         totals = {"cases": len(c.rows), "as_expected": len(c.rows) - len(bad), "tracebacks": c.tracebacks}
         write_text(args.json, json.dumps({"rows": c.rows, "totals": totals}, indent=2) + "\n")

@@ -23,12 +23,12 @@ import json
 import sys
 from pathlib import Path
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
+from localscale.core.outputs import atomic_path
 from localscale.evaluation import maps3d
 from localscale.evaluation.predictors import prepare
 from localscale.evaluation.records import RecordFile, weights_fingerprint
 from localscale.io import load_image
-from localscale.outputs import atomic_path
 from localscale.training.real_pairs import load_covisible_pairs
 
 

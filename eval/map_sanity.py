@@ -28,13 +28,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from localscale.core.errors import LocalScaleError
+from localscale.core.outputs import atomic_path
 from localscale.data import list_images, split_images
-from localscale.errors import LocalScaleError
 from localscale.evaluation import sanity
 from localscale.evaluation.predictors import prepare
 from localscale.evaluation.records import RecordFile, weights_fingerprint
 from localscale.io import load_image
-from localscale.outputs import atomic_path
 
 DEFAULT_PREDICTORS = (
     "local",

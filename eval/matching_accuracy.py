@@ -25,7 +25,7 @@ from localscale.evaluation.hpatches import (
     load_hpatches,
     load_scale_models,
     make_pairs,
-    markdown_table,
+    matching_table,
 )
 from localscale.evaluation.report import git_commit
 from localscale.evaluation.synthetic import make_sequences
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
             )
             doc["results"][f"{dname}/{d}"] = res
             (out / f"{dname}_{d}.md").write_text(
-                markdown_table(res["summary"], methods, list(THRESHOLDS), f"{dname} / {d}")
+                matching_table(res["summary"], methods, list(THRESHOLDS), f"{dname} / {d}")
             )
             for split in ("all", "easy", "medium", "hard"):
                 s = res["summary"].get(split)

@@ -20,11 +20,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation.pose import PoseRun, run
 from localscale.evaluation.pose_data import COLLECTIONS
+from localscale.geometry.two_view import TwoViewConfig
 from localscale.matching.auto import auto_options
-from localscale.two_view import TwoViewConfig
 
 
 def parser() -> argparse.ArgumentParser:

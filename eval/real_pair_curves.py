@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from localscale.core.outputs import write_text
 from localscale.evaluation.report import git_commit
-from localscale.outputs import write_text
 
 
 def read_run(run: Path, window: int, every: int) -> dict:

@@ -45,8 +45,8 @@ import torch
 from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
+from localscale.core.errors import LocalScaleError
 from localscale.data import list_images, split_images
-from localscale.errors import LocalScaleError
 from localscale.evaluation.report import git_commit
 from localscale.evaluation.scale_maps import (
     STRIDE,
@@ -59,7 +59,7 @@ from localscale.evaluation.scale_real import TITLES, columns, evaluate_real
 from localscale.geometry import (
     HomographyConfig,
 )
-from localscale.planar import planarize
+from localscale.geometry.planar import planarize
 
 
 def print_local_table(title: str, table: dict) -> None:

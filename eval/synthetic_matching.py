@@ -32,8 +32,9 @@ import torch
 from tqdm import tqdm
 
 from localscale import LocalScaleNet, ScaleNet
+from localscale.core.errors import LocalScaleError
+from localscale.core.outputs import write_text
 from localscale.data import list_images, split_images
-from localscale.errors import LocalScaleError
 from localscale.evaluation.report import git_commit
 from localscale.geometry import (
     HomographyConfig,
@@ -50,7 +51,6 @@ from localscale.matching.matcher import get_matcher
 from localscale.matching.metrics import reprojection_errors
 from localscale.matching.pipeline import match_pair
 from localscale.matching.verification import estimate_homography
-from localscale.outputs import write_text
 
 SOLVED_PX = 5.0
 

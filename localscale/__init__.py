@@ -4,7 +4,7 @@ The models (and torch) are imported on first use of a name below, so that ``impo
 and the command line's ``--help`` stay fast.
 """
 
-from .errors import CheckpointError, HomographyError, ImageError, LocalScaleError
+from .core.errors import CheckpointError, HomographyError, ImageError, LocalScaleError
 
 __version__ = "0.1.0"
 # fmt: off

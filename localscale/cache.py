@@ -15,9 +15,9 @@ from typing import Iterable, Iterator
 import torch
 import torch.nn.functional as F
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
+from .io.preprocess import letterbox, to_tensor
 from .models.base import EncodedImage, ScaleModel
-from .preprocess import letterbox, to_tensor
 
 
 class FeatureCache:

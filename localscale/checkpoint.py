@@ -31,8 +31,8 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from .errors import CheckpointError
-from .outputs import atomic_path
+from .core.errors import CheckpointError
+from .core.outputs import atomic_path
 
 FORMAT_VERSION = 1
 
@@ -77,7 +77,7 @@ def save_model(model: nn.Module, path: str | Path, meta: dict | None = None, hal
 
 
 def save_atomic(obj: Any, path: str | Path) -> None:
-    """``torch.save`` through :func:`localscale.outputs.atomic_path`: ``path`` is complete or untouched."""
+    """``torch.save`` through :func:`localscale.core.outputs.atomic_path`: ``path`` is complete or untouched."""
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
 

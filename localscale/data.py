@@ -29,10 +29,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .errors import ImageError
+from .core.errors import ImageError
 from .geometry import HomographyConfig, grid_points, homography_scale_map, project, sample_homography, translation
 from .io import load_image
-from .preprocess import letterbox, make_letterbox, to_tensor
+from .io.preprocess import letterbox, make_letterbox, to_tensor
 
 #: the ``kind`` of an item is an index into this tuple
 PAIR_KINDS = ("homography", "identity", "near-identity", "rotation", "low-overlap", "unrelated")

@@ -1,36 +1,18 @@
-"""Checking a torch device name before anything is placed on it."""
+"""Deprecated: moved to :mod:`localscale.core.devices`. This module re-exports its names and goes in the next
+release."""
 
-from __future__ import annotations
+import warnings
 
-import torch
+from .core.devices import (  # noqa: F401
+    resolve_device,
+)
 
-from .errors import LocalScaleError
+__all__ = [
+    "resolve_device",
+]
 
-
-def resolve_device(device: str | torch.device) -> str:
-    """Check that ``device`` names a torch device this installation can run models on; returns its name.
-
-    Raises :class:`LocalScaleError` (one line) for unknown names (``banana``), for devices this
-    torch build or machine lacks (``cuda`` on a CPU-only torch, ``cuda:3`` on a one-GPU machine)
-    and for device types that hold no data or that the models do not run on (``meta``, ``xla``).
-    """
-    try:
-        d = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise LocalScaleError(f"unknown device {device!r} (use cpu, cuda, cuda:N or mps)") from None
-    if d.type == "cpu":
-        return str(d)
-    if d.type == "cuda":
-        if not torch.cuda.is_available():
-            raise LocalScaleError(
-                f"device {str(device)!r}: no CUDA device available to this torch "
-                f"({torch.__version__}); use the cpu device"
-            )
-        if d.index is not None and d.index >= torch.cuda.device_count():
-            raise LocalScaleError(f"device {str(device)!r}: only {torch.cuda.device_count()} CUDA device(s)")
-        return str(d)
-    if d.type == "mps":
-        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-            raise LocalScaleError(f"device {str(device)!r}: MPS is not available; use the cpu device")
-        return str(d)
-    raise LocalScaleError(f"device {str(device)!r} is not supported (use cpu, cuda, cuda:N or mps)")
+warnings.warn(
+    "localscale.devices is deprecated, use localscale.core.devices; it goes in the next release",
+    DeprecationWarning,
+    stacklevel=2,
+)

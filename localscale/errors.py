@@ -1,21 +1,28 @@
-"""Errors raised for bad input. Each carries a one-line message naming the problem."""
+"""Deprecated: moved to :mod:`localscale.core.errors`. This module re-exports its names and goes in the next
+release."""
 
+import warnings
 
-class LocalScaleError(ValueError):
-    """Base class: bad input given to localscale (image, homography, checkpoint, pairs file)."""
+from .core.errors import (  # noqa: F401
+    CameraError,
+    CheckpointError,
+    HomographyError,
+    ImageError,
+    LocalScaleError,
+    OutputError,
+)
 
+__all__ = [
+    "CameraError",
+    "CheckpointError",
+    "HomographyError",
+    "ImageError",
+    "LocalScaleError",
+    "OutputError",
+]
 
-class ImageError(LocalScaleError):
-    """An image file or array cannot be used."""
-
-
-class HomographyError(LocalScaleError):
-    """A homography file or matrix cannot be used."""
-
-
-class CheckpointError(LocalScaleError):
-    """A checkpoint is missing, truncated or of another architecture."""
-
-
-class OutputError(LocalScaleError):
-    """An output file cannot be written (full disk, no permission, read-only file system)."""
+warnings.warn(
+    "localscale.errors is deprecated, use localscale.core.errors; it goes in the next release",
+    DeprecationWarning,
+    stacklevel=2,
+)

@@ -6,7 +6,7 @@ glob = load_scale_model("global", "ckpt.pt", device)
 
 from __future__ import annotations
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 
 #: the two model kinds: Local-ScaleNet (dense map) and ScaleNet (one global factor)
 MODEL_KINDS = ("local", "global")
@@ -15,8 +15,8 @@ MODEL_KINDS = ("local", "global")
 def load_scale_model(kind: str, weights=None, device: str = "cpu"):
     """``kind`` ``"local"`` (Local-ScaleNet) or ``"global"`` (ScaleNet), from ``weights``
     (checkpoint path; None = the bundled weights) on ``device`` (checked by
-    :func:`localscale.devices.resolve_device`)."""
-    from .devices import resolve_device
+    :func:`localscale.core.devices.resolve_device`)."""
+    from .core.devices import resolve_device
     from .models import LocalScaleNet, ScaleNet
 
     if kind not in MODEL_KINDS:

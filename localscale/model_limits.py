@@ -1,7 +1,7 @@
 """What the scale networks can answer, and the inputs and answers outside it.
 
 Both networks see each image letterboxed into their square frame (``image_size`` pixels,
-:mod:`localscale.preprocess`) and answer with a distribution over the 13 bins ``x0.125 .. x8``;
+:mod:`localscale.io.preprocess`) and answer with a distribution over the 13 bins ``x0.125 .. x8``;
 the resize of each image into the frame is then corrected (``S = S_frame * f_A / f_B``). So:
 
 * an image thinner than one cell of the feature grid in the frame (a 16 x 5000 strip is 1 pixel
@@ -28,7 +28,7 @@ FEATURE_STRIDE = 8
 
 
 def frame_reasons(letterbox, name: str) -> list:
-    """Why the image placed by ``letterbox`` (:class:`~localscale.preprocess.Letterbox`) is too thin
+    """Why the image placed by ``letterbox`` (:class:`~localscale.io.preprocess.Letterbox`) is too thin
     or too small for the network (empty: it is not)."""
     lb = letterbox
     if min(lb.new_height, lb.new_width) < FEATURE_STRIDE:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 
 #: shared 3D points needed for a per-point truth
 MIN_SHARED_POINTS = 9

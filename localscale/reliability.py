@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .errors import LocalScaleError
+from .core.errors import LocalScaleError
 from .io import ImageLike
 from .model_limits import limit_reasons
 
@@ -130,9 +130,7 @@ def check_pair(
 
     Raises :class:`LocalScaleError` when ``model`` is not a :class:`LocalScaleNet` (the global
     ScaleNet predicts no map to check)."""
-    from .models.local import LocalScaleNet
-
-    if not isinstance(model, LocalScaleNet):
+    if getattr(model, "arch", None) != "LocalScaleNet":
         raise LocalScaleError(
             f"check_pair needs a LocalScaleNet (a per-pixel scale map model), got {type(model).__name__}"
         )

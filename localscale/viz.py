@@ -122,28 +122,39 @@ def plot_scale_prediction(
         _points_panel(fig, axes[k], image_a, scale, points, vmax)
         k += 1
     if gt_scale is not None:
-        ig = axes[k].imshow(np.log2(g), cmap=CMAP, vmin=-vmax, vmax=vmax)
-        axes[k].set_title("ground-truth scale S")
-        _factor_colorbar(fig, ig, axes[k], vmax)
-        err = np.abs(np.log2(scale) - np.log2(g))
-        ie = axes[k + 1].imshow(err, cmap="magma", vmin=0, vmax=1.5)
-        axes[k + 1].set_title(f"|log2 error| (mean r {np.nanmean(np.exp2(err)):.2f})")
-        fig.colorbar(ie, ax=axes[k + 1], fraction=0.046, pad=0.02)
+        _truth_panels(fig, axes[k], axes[k + 1], scale, g, vmax)
     for ax in axes:
         ax.set_xticks([])
         ax.set_yticks([])
     if title:
         fig.suptitle(title)
     if path is not None:
-        from .outputs import atomic_path
-
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with atomic_path(path) as tmp:  # complete file or none
-                fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or None)
-        finally:
-            plt.close(fig)
+        _save_figure(fig, path)
     return fig
+
+
+def _truth_panels(fig, ax_truth, ax_error, scale: np.ndarray, g: np.ndarray, vmax: float) -> None:
+    ig = ax_truth.imshow(np.log2(g), cmap=CMAP, vmin=-vmax, vmax=vmax)
+    ax_truth.set_title("ground-truth scale S")
+    _factor_colorbar(fig, ig, ax_truth, vmax)
+    err = np.abs(np.log2(scale) - np.log2(g))
+    ie = ax_error.imshow(err, cmap="magma", vmin=0, vmax=1.5)
+    ax_error.set_title(f"|log2 error| (mean r {np.nanmean(np.exp2(err)):.2f})")
+    fig.colorbar(ie, ax=ax_error, fraction=0.046, pad=0.02)
+
+
+def _save_figure(fig, path) -> None:
+    """``fig`` saved to ``path`` (complete file or none), then closed."""
+    import matplotlib.pyplot as plt
+
+    from .core.outputs import atomic_path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or None)
+    finally:
+        plt.close(fig)
 
 
 def plot_refined_map(

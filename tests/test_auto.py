@@ -232,7 +232,7 @@ def test_a_degenerate_geometry_gives_no_window():
 
 
 def test_a_bad_zoom_model_is_refused():
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match="zoom_model"):
         AutoConfig(zoom_model="plane").check()
@@ -308,7 +308,7 @@ def test_a_strong_zoom_without_a_window_enlarges_the_wide_view_up_to_zoom_max_si
     ],
 )
 def test_auto_options_read_each_field_as_its_type_and_refuse_bad_ones(items, words):
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
     from localscale.matching.auto import auto_options
 
     assert auto_options(["budget=3", "turns=false", "zoom_max_side=none", "window_max_side=2048", "seed=none"]) == {

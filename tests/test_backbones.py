@@ -166,7 +166,7 @@ def test_vgg_checkpoints_load_unchanged(tmp_path):
 def test_unknown_backbone_is_refused():
     with pytest.raises(ValueError, match="unknown backbone 'resnet'"):
         LocalScaleNet(backbone="resnet")
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match="unknown backbone"):
         TrainConfig(backbone="resnet").check()

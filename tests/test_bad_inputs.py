@@ -4,7 +4,7 @@ Each CLI case runs ``localscale.cli.main`` (or the trainer's ``main``) in-proces
 generated inputs and asserts: exit code 2, exactly one stderr line starting with ``error:``
 that names the problem, no traceback, nothing written to the output folder, and every input
 file unchanged (hashed before and after). The API cases assert one-line
-:class:`~localscale.errors.LocalScaleError` messages. The fault tests cover interrupted
+:class:`~localscale.core.errors.LocalScaleError` messages. The fault tests cover interrupted
 writes, NaN gradients and weights, code in checkpoints, decompression bombs and DataLoader
 workers orphaned by ``kill -9``.
 """
@@ -35,7 +35,7 @@ from localscale.checkpoint import checkpoint_dict, save_model
 from localscale.cli import main
 from localscale.cli import train as train_cli
 from localscale.cli.signals import Terminated
-from localscale.errors import CheckpointError, LocalScaleError
+from localscale.core.errors import CheckpointError, LocalScaleError
 from localscale.models import load_model
 from localscale.reliability import check_pair
 
@@ -918,7 +918,7 @@ def test_interrupted_write_leaves_no_partial_file(env, tmp_path, monkeypatch, ca
 
 @pytest.mark.parametrize("exc", [KeyboardInterrupt, OSError])
 def test_atomic_path_keeps_the_old_file_on_failure(tmp_path, exc):
-    from localscale.outputs import atomic_path
+    from localscale.core.outputs import atomic_path
 
     target = tmp_path / "result.json"
     target.write_text("old, complete")
@@ -940,7 +940,7 @@ def _pairs_setup(env, tmp_path, n=4):
 
 
 def test_interrupted_pairs_run_resumes_and_reports_counts(env, tmp_path, monkeypatch, capsys):
-    import localscale.map_files as outputs
+    import localscale.maps.files as outputs
 
     pairs = _pairs_setup(env, tmp_path)
     out = tmp_path / "out"
@@ -1184,7 +1184,7 @@ def test_decompression_bomb_is_refused_before_decoding(env, name, monkeypatch):
     import resource
 
     decoded = []
-    monkeypatch.setattr(lio.cv2, "imdecode", lambda *a, **k: decoded.append(1))
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: decoded.append(1))
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     with pytest.raises(LocalScaleError, match="larger than the limit") as e:
         lio.load_image(env["in"] / name)

@@ -5,7 +5,7 @@ import torch
 
 from localscale import LocalScaleNet
 from localscale.cache import FeatureCache, predict_pairs
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 

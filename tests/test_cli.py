@@ -10,9 +10,9 @@ import localscale.cli as cli
 from localscale import LocalScaleNet, ScaleNet, loading
 from localscale.checkpoint import save_model
 from localscale.cli import main
-from localscale.errors import LocalScaleError
-from localscale.map_files import write_scale_map
-from localscale.outputs import ensure_not_input
+from localscale.core.errors import LocalScaleError
+from localscale.core.outputs import ensure_not_input
+from localscale.maps.files import write_scale_map
 
 TINY = dict(width=0.125, feature_dim=16, image_size=64)
 

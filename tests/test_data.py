@@ -166,7 +166,7 @@ def test_gray_on_one_side_and_degradations(image_dir):
 def test_pair_options_are_range_checked():
     import pytest
 
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
     from localscale.training import TrainConfig
 
     with pytest.raises(LocalScaleError, match="identity-probability"):

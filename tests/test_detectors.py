@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from localscale.cli import main as cli_main
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation import evaluate, load_hpatches, make_pairs, make_sequences
 from localscale.features import DETECTORS, detect, detect_keypoints, get_detector
 from localscale.matching import match_pair

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from localscale.core.errors import CheckpointError, ImageError, LocalScaleError
 from localscale.engine import (
     EngineError,
     LocalExecutor,
@@ -25,7 +26,6 @@ from localscale.engine import (
     predict_pairs_with,
 )
 from localscale.engine.pairs import PairStats
-from localscale.errors import CheckpointError, ImageError, LocalScaleError
 
 try:
     import ray
@@ -318,7 +318,7 @@ class TestRayLocalCluster:
     def test_pairs_equal_local_engine_and_feature_cache(self, ray_executor, tiny_pairs, tmp_path):
         from localscale import LocalScaleNet
         from localscale.cache import FeatureCache, predict_pairs
-        from localscale.map_files import write_scale_map
+        from localscale.maps.files import write_scale_map
 
         with get_executor("local") as ex:
             local = dict(predict_pairs_with(ex, tiny_pairs, chunk_pairs=4))
@@ -485,7 +485,7 @@ def test_local_cluster_listens_on_loopback_only_and_needs_a_token(short_dir, mon
 DRIVER = r"""
 import os, sys, time
 from localscale.engine import get_executor
-from localscale.outputs import write_text
+from localscale.core.outputs import write_text
 
 def work(state, x):
     time.sleep(0.3)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from localscale.errors import CheckpointError, ImageError, LocalScaleError
+from localscale.core.errors import CheckpointError, ImageError, LocalScaleError
 from localscale.features import (
     HardNetDescriptor,
     ScaleCorrectedPatches,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from localscale.cli import main as cli_main
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation import (
     evaluate,
     load_hpatches,
@@ -211,7 +211,7 @@ def test_cropped_sequences_show_real_surroundings(photos, tmp_path):
 
 
 def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
-    from localscale.evaluation.report import markdown_table
+    from localscale.evaluation.report import matching_table
     from localscale.models import LocalScaleNet
 
     torch.manual_seed(0)
@@ -228,6 +228,6 @@ def test_refined_and_opencv_sift_with_homography_accuracy(tiny_root):
         assert len(v["h_auc"]) == 3 and all(0 <= x <= 1 for x in v["h_auc"]) and 0 <= v["h_solved"] <= 1
     sift = evaluate(pairs, ["none"], "sift", progress=False)
     assert sift["summary"]["all"]["none"]["h_auc"][2] > 0
-    assert "H AUC@5" in markdown_table(res["summary"], methods, list(range(1, 11)))
+    assert "H AUC@5" in matching_table(res["summary"], methods, list(range(1, 11)))
     with pytest.raises(LocalScaleError):
         evaluate(pairs, ["refined"], "hardnet")

@@ -11,7 +11,7 @@ import pytest
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from localscale.cli import main  # noqa: E402
-from localscale.errors import ImageError  # noqa: E402
+from localscale.core.errors import ImageError  # noqa: E402
 from localscale.io import load_image  # noqa: E402
 
 PHOTO = os.path.join(os.path.dirname(__file__), "..", "localscale", "assets", "kodim01_a.jpg")

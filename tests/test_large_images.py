@@ -12,10 +12,10 @@ import torch
 from PIL import Image
 
 from localscale.io import image_shape, load_image, load_image_reduced, load_working_image, reduction_factor
+from localscale.io.preprocess import make_letterbox
 from localscale.maps import GridMaps
 from localscale.models import LocalScaleNet
 from localscale.models.base import upsample_to_original
-from localscale.preprocess import make_letterbox
 
 
 @pytest.mark.parametrize("shape", [(301, 457), (457, 301), (40, 5000), (192, 192), (17, 23), (3000, 2000)])

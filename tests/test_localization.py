@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.geometry import turn_matrix
 from localscale.matching.auto import AutoConfig
 from localscale.matching.auto.localization import locate_turn, locate_window

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation import predictors as P
 from localscale.evaluation.sanity import (
     SanityCase,

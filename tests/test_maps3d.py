@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from localscale.cameras import window_pixels
 from localscale.evaluation import maps3d
 from localscale.evaluation import predictors as P
 from localscale.evaluation.records import RecordFile
 from localscale.geometry import homography_scale_at, homography_scale_map
+from localscale.geometry.cameras import window_pixels
 from localscale.training.real_pairs import CovisiblePair, save_covisible_pairs
 
 K = np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]])

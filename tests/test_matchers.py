@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from localscale.cli import ASSETS, main
-from localscale.errors import CheckpointError, LocalScaleError
+from localscale.core.errors import CheckpointError, LocalScaleError
 from localscale.features.pretrained import find_weights, load_weights, package_folder
 from localscale.io import load_image, read_homography
 from localscale.matching.config import MATCHERS, MatchConfig, match_config

@@ -1,7 +1,7 @@
 import numpy as np
 
 from localscale.geometry import homography_scale_map
-from localscale.planar import planarize
+from localscale.geometry.planar import planarize
 
 
 def test_planar_fit_recovers_a_homography_scale_field_from_noisy_samples(rng):

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localscale.cameras import Camera, window_camera
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.evaluation import pose, pose_data
-from localscale.two_view import TwoViewConfig, estimate_two_view_geometry, relative_pose_error
+from localscale.geometry.cameras import Camera, window_camera
+from localscale.geometry.two_view import TwoViewConfig, estimate_two_view_geometry, relative_pose_error
 
 
 def _rot_y(deg):

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from localscale.errors import CheckpointError, LocalScaleError
+from localscale.core.errors import CheckpointError, LocalScaleError
 from localscale.features import HardNetDescriptor, ScaleCorrectedPatches, image_to_gray_tensor
 from localscale.features.descriptors import SlimHardNet
 from localscale.features.detector import HessianDetector

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.training import real_pairs as rp
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 
 from localscale.geometry import homography_scale_map, project
-from localscale.map_files import write_refinement
+from localscale.maps.files import write_refinement
 from localscale.matching.refinement import (
     SOURCE_HOMOGRAPHY,
     SOURCE_MATCHES,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from localscale.cli import ASSETS, main
-from localscale.errors import LocalScaleError
+from localscale.core.errors import LocalScaleError
 from localscale.features.extractors import Extractor, XFeat
 from localscale.features.registry import EXTRACTORS, register
 from localscale.matching import MATCHERS, match_config, match_pair

@@ -10,7 +10,7 @@ import torch
 from localscale import LocalScaleNet, ScaleNet
 from localscale.checkpoint import save_model
 from localscale.models import load_model
-from localscale.models.local import reliability, reliability_features
+from localscale.models.local_prediction import reliability, reliability_features
 from localscale.models.scalenet import GlobalScalePrediction
 from localscale.reliability import PairCheckConfig, auroc, check_pair, fit_calibration, flag_reasons, pair_statistics
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from localscale.checkpoint import FORMAT_VERSION, read_checkpoint, restore_train_state, save_model, train_state
-from localscale.errors import CheckpointError
+from localscale.core.errors import CheckpointError
 from localscale.features.descriptors import HardNetDescriptor
 from localscale.models import LocalScaleNet, load_model
 
@@ -182,8 +182,7 @@ import warnings  # noqa: E402
 import cv2  # noqa: E402
 from PIL import Image, ImageOps  # noqa: E402
 
-import localscale.io as lio  # noqa: E402
-from localscale.errors import HomographyError, ImageError  # noqa: E402
+from localscale.core.errors import HomographyError, ImageError  # noqa: E402
 from localscale.io import load_image, read_homography  # noqa: E402
 
 HUGE_HEADERS = {
@@ -197,7 +196,7 @@ HUGE_HEADERS = {
 def no_decode(monkeypatch):
     """Fail the test if load_image hands the file to the decoder."""
     calls = []
-    monkeypatch.setattr(lio.cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
+    monkeypatch.setattr(cv2, "imdecode", lambda *a, **k: calls.append(a) or None)
     return calls
 
 

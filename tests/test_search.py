@@ -9,7 +9,8 @@ import torch
 
 from localscale import LocalScaleNet
 from localscale.geometry import HomographyConfig, covisible_mask, homography_scale_map, sample_homography, warp_image
-from localscale.search import WindowSearchConfig, grid_windows, mutual_similarity, search_scale_map, unturn_window
+from localscale.models.windows import WindowSearchConfig, grid_windows, mutual_similarity, unturn_window
+from localscale.search import search_scale_map
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +147,8 @@ def test_quarter_turn_of_b_is_found_and_windows_come_back_in_b_pixels(local, pho
 
 
 def _constant_prediction(scale: float, visible: float, shape_a, shape_b, size: int = 64):
-    from localscale.models.local import LocalScalePrediction
-    from localscale.preprocess import make_letterbox
+    from localscale.io.preprocess import make_letterbox
+    from localscale.models.local_prediction import LocalScalePrediction
 
     g = size // 8
     grid = torch.stack([torch.full((g, g), math.log(scale)), torch.ones(g, g), torch.full((g, g), visible)])
@@ -171,7 +172,7 @@ def _constant_prediction(scale: float, visible: float, shape_a, shape_b, size: i
     ],
 )
 def test_plausible_checks_cover_and_consistency(scale_ab, scale_ba, side, expected):
-    from localscale.search import plausible
+    from localscale.models.windows import plausible
 
     cfg = WindowSearchConfig()
     big, window = (400, 400), (100, 100)

@@ -146,7 +146,7 @@ def test_the_mapper_runs_again_while_images_are_left_out(run, tmp_path, monkeypa
 
 
 def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path):
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match="mapper must be one of incremental, global"):
         reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper="glomap", show_progress=False)
@@ -156,7 +156,8 @@ def test_an_unknown_mapper_is_refused_before_anything_is_written(scene, tmp_path
 def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
     """``mapper_options`` set pycolmap's options by dotted name, strings read as the option's type;
     the mapper is given them, and the summary records them."""
-    from localscale.sfm.mapping import mapping_options, run_mapping
+    from localscale.sfm.mapper_options import mapping_options
+    from localscale.sfm.mapping import run_mapping
 
     opts = mapping_options(
         1,
@@ -185,7 +186,7 @@ def test_mapper_options_reach_pycolmap_by_name(run, tmp_path, monkeypatch):
 def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
     """A camera per image keeps the distortion out of the incremental mapper's refinement unless
     the user's options say otherwise; a shared camera keeps pycolmap's defaults."""
-    from localscale.sfm.mapping import PER_IMAGE_CAMERA_OPTIONS, default_overrides
+    from localscale.sfm.mapper_options import PER_IMAGE_CAMERA_OPTIONS, default_overrides
 
     assert default_overrides("incremental", "per_image") == PER_IMAGE_CAMERA_OPTIONS
     assert default_overrides("incremental", "single") == {} and default_overrides("global", "per_image") == {}
@@ -215,7 +216,7 @@ def test_reconstruct_with_mapper_options_records_them(scene, tmp_path):
     ],
 )
 def test_bad_mapper_options_are_refused_before_anything_is_written(scene, tmp_path, options, message):
-    from localscale.errors import LocalScaleError
+    from localscale.core.errors import LocalScaleError
 
     with pytest.raises(LocalScaleError, match=message):
         reconstruct(scene[0], tmp_path / "out", matcher="sift", mapper_options=options, show_progress=False)

@@ -178,7 +178,7 @@ def test_a_file_name_that_is_not_utf8_is_skipped_with_a_warning(five, tmp_path, 
 
 
 def test_temporary_names_are_unique_per_write(tmp_path):
-    from localscale.outputs import temporary_name
+    from localscale.core.outputs import temporary_name
 
     assert temporary_name(tmp_path / "a.h5") != temporary_name(tmp_path / "a.h5")
 

@@ -211,7 +211,7 @@ def test_implausible_cameras_are_refused(views, tmp_path, capsys, what):
     ],
 )
 def test_plausible_cameras_are_accepted(line):
-    from localscale.cameras import as_camera
+    from localscale.geometry.cameras import as_camera
 
     assert as_camera(line).to_line().split()[0] == line.split()[0]
 

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("pycolmap")
 pytest.importorskip("h5py")
 
-from localscale.errors import LocalScaleError  # noqa: E402
+from localscale.core.errors import LocalScaleError  # noqa: E402
 from localscale.sfm import RESULT_OPTIONS, ReconstructConfig, reconstruct  # noqa: E402
 from localscale.sfm.synthetic import write_scene  # noqa: E402
 

@@ -10,8 +10,8 @@ import torch
 
 from localscale import training
 from localscale.checkpoint import read_checkpoint
+from localscale.core.errors import LocalScaleError
 from localscale.data import SyntheticPairs, collate, list_images, split_images
-from localscale.errors import LocalScaleError
 from localscale.models import load_model
 from localscale.training import TrainConfig, TrainingDiverged, train
 

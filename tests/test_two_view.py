@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from localscale.cameras import (
+from localscale.core.errors import LocalScaleError
+from localscale.geometry.cameras import (
     Camera,
     CameraError,
     as_camera,
@@ -23,8 +24,7 @@ from localscale.cameras import (
     window_camera,
     window_pixels,
 )
-from localscale.errors import LocalScaleError
-from localscale.two_view import (
+from localscale.geometry.two_view import (
     CONFIGURATIONS,
     TwoViewConfig,
     TwoViewError,

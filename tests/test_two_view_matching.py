@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from localscale.cameras import Camera
 from localscale.cli import main
+from localscale.geometry.cameras import Camera
 from localscale.matching import VerificationConfig, match_pair, verify_matches
 from localscale.matching.auto import geometry_hypothesis
 from localscale.sfm.synthetic import arc_cameras, random_texture, render_view

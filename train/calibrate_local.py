@@ -6,7 +6,7 @@
 Renders ``--pairs`` pairs from the **held-out** photos (every 10th file, never trained on) with
 the pair options the model was trained with (read from the checkpoint), runs the model, and
 fits ``P(visible and r < 1.25)`` per cell as a logistic regression on
-:func:`localscale.models.local.reliability_features`. The fitted coefficients go into the
+:func:`localscale.models.local_prediction.reliability_features`. The fitted coefficients go into the
 model's config (``calibration``); the model is written to ``--out``. Also prints the pair-level
 statistics of :mod:`localscale.reliability` for pairs with mean r > 2 and < 1.3, to choose
 :class:`~localscale.reliability.PairCheckConfig` thresholds on synthetic data.
@@ -30,7 +30,7 @@ from localscale import scales
 from localscale.checkpoint import read_checkpoint, save_model
 from localscale.data import SyntheticPairs, collate, list_images, split_images
 from localscale.models import load_model
-from localscale.models.local import reliability_features
+from localscale.models.local_prediction import reliability_features
 from localscale.reliability import auroc, fit_calibration, pair_statistics
 from localscale.training import TrainConfig
 

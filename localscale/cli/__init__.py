@@ -14,7 +14,7 @@ Every command takes the same model options: ``--local-weights`` / ``--global-wei
 ``-o`` is always an output folder. Bad input is a one-line ``error: ...`` and exit code 2.
 """
 
-from ..pairs_file import read_pairs_file
+from ..io.pairs_file import read_pairs_file
 from .common import ASSETS, check_output_dir, pair_name
 from .main import build_parser, main
 

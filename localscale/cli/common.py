@@ -7,8 +7,8 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 from .. import loading
-from ..errors import LocalScaleError
-from ..outputs import resolved_path
+from ..core.errors import LocalScaleError
+from ..core.outputs import resolved_path
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"  #: the example pair (examples/ use it too)
 
@@ -20,7 +20,7 @@ def _model(args, kind: str):
 def check_output_dir(path, names=()) -> Path:
     """``-o``: a folder (created later, when writing). Checked before any work: an existing file,
     a folder that cannot be written, or file ``names`` too long for the file system are errors."""
-    from ..outputs import check_writable_dir
+    from ..core.outputs import check_writable_dir
 
     if isinstance(path, (str, bytes)) and not path:  # Path("") would be the current folder
         raise LocalScaleError("-o: empty output folder name (give a folder, e.g. -o out, or -o . for this one)")

@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from .. import loading
-from ..errors import LocalScaleError
-from ..outputs import ensure_not_input, make_dir, write_image, write_text
+from ..core.errors import LocalScaleError
+from ..core.outputs import ensure_not_input, make_dir, write_image, write_text
 from .common import ASSETS, _model, check_output_dir, pair_name
 
 SHOW_MAX_SIDE = 2048

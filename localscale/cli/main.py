@@ -8,7 +8,7 @@ import sys
 import threading
 import warnings
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .figures import cmd_demo, cmd_rectify, cmd_scale, cmd_show
 from .match import cmd_eval_hpatches, cmd_match
 from .options import (

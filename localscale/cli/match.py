@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
+from ..core.outputs import ensure_not_input
 from ..loading import MODEL_KINDS
-from ..outputs import ensure_not_input
 from .common import check_output_dir
 from .options import executor_from_args
 
@@ -34,7 +34,7 @@ def match_options(args) -> dict:
 
 
 def cmd_match(args) -> int:
-    from ..devices import resolve_device
+    from ..core.devices import resolve_device
     from ..matching import get_correction, get_matcher, match_config, run_match
 
     out = check_output_dir(args.output, ["matches.npz", "matches.png"])
@@ -66,7 +66,7 @@ def cmd_match(args) -> int:
 
 def _cameras(args) -> tuple:
     """``(camera of A, camera of B)`` from ``--camera`` / ``--camera-a`` / ``--camera-b`` (None: not given)."""
-    from ..cameras import as_camera
+    from ..geometry.cameras import as_camera
 
     if args.camera is not None and (args.camera_a is not None or args.camera_b is not None):
         raise LocalScaleError("--camera is the camera of both images: give it, or --camera-a / --camera-b, not both")
@@ -147,7 +147,7 @@ def cmd_eval_hpatches(args) -> int:
         + [f"results_{t}.{e}" for t in tags for e in ("json", "md")]
         + [f"mma_{t}_rot30-90.png" for t in tags],
     )
-    from ..devices import resolve_device
+    from ..core.devices import resolve_device
 
     resolve_device(args.device)
     matchers = [get_matcher(c) for c in configs]  # a missing weight file fails before any pair runs

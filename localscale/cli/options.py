@@ -346,8 +346,8 @@ def add_engine_options(p: argparse.ArgumentParser, what: str) -> argparse.Argume
 
 def executor_from_args(args):
     """The Ray executor of ``--engine ray`` (options checked, nothing started), or None for this process."""
+    from ..core.errors import LocalScaleError
     from ..engine import get_executor
-    from ..errors import LocalScaleError
 
     if args.engine == "local":
         if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "ray_address")):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import LocalScaleError
-from ..map_files import scale_map_paths, write_refinement, write_scale_map
+from ..core.errors import LocalScaleError
+from ..maps.files import scale_map_paths, write_refinement, write_scale_map
 from .common import _model, check_output_dir, pair_name
 from .match import extractor_of
 from .predict_pairs import _predict_pairs

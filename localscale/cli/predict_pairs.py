@@ -6,10 +6,10 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import LocalScaleError
-from ..map_files import scale_map_paths, write_scale_map
-from ..outputs import make_dir, resolved_path, write_text
-from ..pairs_file import read_pairs_file
+from ..core.errors import LocalScaleError
+from ..core.outputs import make_dir, resolved_path, write_text
+from ..io.pairs_file import read_pairs_file
+from ..maps.files import scale_map_paths, write_scale_map
 from .common import _model, check_output_dir, image_labels, short_name
 from .options import executor_from_args
 from .signals import SIGTERM_STATE
@@ -242,7 +242,7 @@ class _PairsRun:
         """Write pair ``i``'s prediction (or record its failure); False when the run must stop."""
         from tqdm import tqdm
 
-        from ..errors import OutputError
+        from ..core.errors import OutputError
 
         _, a, b = self.rows[i]
         name = self.names[i]

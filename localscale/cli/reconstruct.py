@@ -1,7 +1,7 @@
 """``localscale reconstruct IMAGES -o OUT``: structure from motion with localscale's matching
 (:func:`localscale.sfm.reconstruct`).
 
-Bad input is a :class:`~localscale.errors.LocalScaleError` (``main`` prints one ``error:`` line,
+Bad input is a :class:`~localscale.core.errors.LocalScaleError` (``main`` prints one ``error:`` line,
 exit code 2, nothing written); a run whose model cannot be trusted prints ``warning:`` lines;
 a run that builds no model at all exits with 1.
 """
@@ -61,8 +61,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
 def _add_feature_options(p: argparse.ArgumentParser) -> None:
     """The options of the features, pairs and correction sections of :class:`~localscale.sfm.ReconstructConfig`."""
     from ..matching import MATCHERS
-    from ..sfm.config import ReconstructConfig
-    from ..sfm.match import SFM_CORRECTIONS
+    from ..sfm.config import SFM_CORRECTIONS, ReconstructConfig
 
     d = ReconstructConfig().flat()
     p.add_argument(
@@ -108,9 +107,9 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
 
 def _add_mapping_options(p: argparse.ArgumentParser) -> None:
     """The options of the mapping section of :class:`~localscale.sfm.ReconstructConfig`."""
+    from ..sfm.cameras import CAMERA_MODES
     from ..sfm.config import ReconstructConfig
-    from ..sfm.database import CAMERA_MODES
-    from ..sfm.mapping import MAPPERS
+    from ..sfm.mapper_options import MAPPERS
 
     d = ReconstructConfig().flat()
     p.add_argument(
@@ -172,7 +171,7 @@ def add_reconstruct_parser(sub) -> argparse.ArgumentParser:
 def cmd_reconstruct(args) -> int:
     """Run :func:`localscale.sfm.reconstruct` with the options of ``args``; print the summary table.
     Returns 0, or 1 when no model was built."""
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
     from ..matching import get_correction
     from ..sfm import summary_table
 
@@ -234,7 +233,7 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
 
 def _name_values(items: list) -> dict:
     """``["NAME=VALUE", ...]`` as ``{NAME: VALUE}`` (the values stay strings)."""
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
 
     out = {}
     for item in items:

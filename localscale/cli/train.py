@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..training import TrainConfig, TrainingDiverged, train
 
 

@@ -7,7 +7,7 @@ by ``state_factory``, a picklable zero-argument callable (e.g. one that loads a 
 reused for all the items that worker runs; ``fn`` is picklable too (a module-level function or a
 small frozen dataclass with ``__call__``).
 
-A :class:`~localscale.errors.LocalScaleError` raised by ``fn`` is bad input for that item: the
+A :class:`~localscale.core.errors.LocalScaleError` raised by ``fn`` is bad input for that item: the
 exception instance is yielded as the item's result (never retried), like the local loop of a
 command does. Any other exception is a bug and ends the run.
 
@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 #: the engines :func:`get_executor` knows
 ENGINES = ("local", "ray")

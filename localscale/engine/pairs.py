@@ -6,7 +6,7 @@ Two maps per chunk of pairs: :class:`EncodeImage` over the chunk's images not en
 encoding is dropped once the last pair that uses it is done, so memory stays bounded by the
 images of about one chunk. Predictions come back to the driver (on the network's processing grid:
 a few hundred KB each) in completion order; the driver writes the files
-(:func:`localscale.map_files.write_scale_map`), exactly as the in-process loop does.
+(:func:`localscale.maps.files.write_scale_map`), exactly as the in-process loop does.
 
     factory = ModelFactory("local", weights=None, device="cpu")
     with get_executor("ray", workers=2) as ex:

@@ -6,7 +6,7 @@ cores than the cluster gave them. The driver keeps at most ``in_flight`` calls q
 actor, yields every result as it arrives (the caller writes it at once) and resubmits the items
 of an actor that died (``kill -9``, out of memory, a lost node) to a fresh actor, up to
 ``max_retries`` times per item; after that the item fails with :class:`WorkerLostError`. An item
-whose work raised a :class:`~localscale.errors.LocalScaleError` comes back as that exception,
+whose work raised a :class:`~localscale.core.errors.LocalScaleError` comes back as that exception,
 never retried.
 
 Without ``address`` a local cluster of ``workers x threads`` CPUs (no more than this machine has)
@@ -26,7 +26,7 @@ import time
 from collections import deque
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .base import RAY_INSTALL_HINT, EngineError, Executor, RunStats, WorkerLostError, progress_bar, state_key
 from .ray_local import callers_sigterm_handler, start_local_cluster
 

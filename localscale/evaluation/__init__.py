@@ -17,7 +17,7 @@ from .hpatches import (
     run,
     scale_split,
 )
-from .report import markdown_table, summarise, write_outputs
+from .report import matching_table, summarise, write_outputs
 from .synthetic import STRONG, make_sequences, random_pair
 
 __all__ = [
@@ -25,7 +25,7 @@ __all__ = [
     "make_pairs",
     "evaluate",
     "summarise",
-    "markdown_table",
+    "matching_table",
     "write_outputs",
     "run",
     "perspective_split",
@@ -38,3 +38,16 @@ __all__ = [
     "random_pair",
     "STRONG",
 ]
+
+
+def __getattr__(name):
+    if name == "markdown_table":  # the old name of matching_table
+        import warnings
+
+        warnings.warn(
+            f"{__name__}.markdown_table is deprecated, use matching_table; it goes in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return matching_table
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

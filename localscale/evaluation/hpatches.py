@@ -55,7 +55,7 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..io import load_image
 from ..matching import CORRECTIONS, GATE_WEIGHTINGS  # noqa: F401
 from .pairs import (  # noqa: F401
@@ -73,7 +73,7 @@ from .pairs import (  # noqa: F401
 )
 from .report import (  # noqa: F401
     THRESHOLDS,
-    markdown_table,
+    matching_table,
     perspective_split,
     rotation_split,
     scale_split,
@@ -409,8 +409,8 @@ def load_scale_models(methods: list, local_weights=None, global_weights=None, de
     """Load the models the ``methods`` need (:func:`localscale.loading.load_scale_model`); a method
     whose bundled weights cannot be loaded is removed from ``methods`` (in place) with a note.
     Returns ``({"local"|"global": model}, notes)``."""
-    from ..devices import resolve_device
-    from ..errors import CheckpointError
+    from ..core.devices import resolve_device
+    from ..core.errors import CheckpointError
     from ..loading import load_scale_model
     from ..matching import get_correction
 
@@ -493,11 +493,11 @@ def run(
         write_outputs(
             res, pairs, methods, out, tag=tag, extra={"notes": notes, "matcher_config": cfg_doc, **(extra or {})}
         )
-        table = markdown_table(res["summary"], methods, list(THRESHOLDS), tag)
+        table = matching_table(res["summary"], methods, list(THRESHOLDS), tag)
         print(table)
         tables.append(table)
         docs[tag] = res
-    from ..outputs import write_text
+    from ..core.outputs import write_text
 
     write_text(out / "results.md", "\n".join(tables))
     return docs

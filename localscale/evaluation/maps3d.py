@@ -30,8 +30,8 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
-from ..cameras import window_pixels
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
+from ..geometry.cameras import window_pixels
 from ..training.real_pairs import CovisiblePair, point_log_scales
 from .predictors import PairContext, ScaleModels, predict
 from .records import RecordFile

@@ -19,7 +19,7 @@ from typing import Iterable, Optional, Sequence
 import cv2
 import numpy as np
 
-from ..errors import HomographyError, LocalScaleError
+from ..core.errors import HomographyError, LocalScaleError
 from ..geometry import covisible_mask, global_scale, homography_rotation, orient_homography, perspective_spread
 from ..io import read_homography
 from .report import perspective_split, rotation_split, scale_split

@@ -2,11 +2,11 @@
 
 The SuperGlue/LightGlue protocol the ScaleNet paper uses: for each image pair with a known
 relative pose, match, estimate the essential matrix from the matches with the known intrinsics
-(:func:`localscale.two_view.estimate_two_view_geometry`: MAGSAC, cheirality, refinement),
+(:func:`localscale.geometry.two_view.estimate_two_view_geometry`: MAGSAC, cheirality, refinement),
 error = max(rotation error, translation-direction error) in degrees (180 when no pose), and report
 the AUC at 5/10/20 degrees and the share of pairs within 10 degrees. Each pair's record (and the
 summary's median) also counts the returned matches that the true pose explains (``correct``:
-:func:`localscale.two_view.epipolar_errors` below :data:`EPIPOLAR_THRESHOLD` in normalised coordinates,
+:func:`localscale.geometry.two_view.epipolar_errors` below :data:`EPIPOLAR_THRESHOLD` in normalised coordinates,
 SuperGlue's precision), which tells wrong matches from a pose the right matches do not pin down.
 The collections, pairs and zoom windows: :mod:`localscale.evaluation.pose_data`.
 
@@ -45,10 +45,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..cameras import Camera, cut_window
-from ..errors import LocalScaleError
-from ..outputs import atomic_path
-from ..two_view import (
+from ..core.errors import LocalScaleError
+from ..core.outputs import atomic_path
+from ..geometry.cameras import Camera, cut_window
+from ..geometry.two_view import (
     TwoViewConfig,
     epipolar_errors,
     estimate_two_view_geometry,

@@ -19,7 +19,7 @@ of the smaller track set; without tracks (temple), optical axes within ``max_axi
 Each plain pair (A, B) also gives a zoom pair (A, B'): B' is a window of B showing 1/z of its width
 (z log-uniform in the zoom range), centred on a co-visible 3D point's projection (temple: the point
 the optical axes meet), resized to B's size and turned by a random quarter turn (1-3); its camera
-and pose come from :func:`localscale.cameras.window_camera`.
+and pose come from :func:`localscale.geometry.cameras.window_camera`.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..cameras import Camera, read_cameras_txt
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
+from ..geometry.cameras import Camera, read_cameras_txt
 
 COLLECTIONS = ("skull_alansartlog", "temple_sparse_ring_middlebury", "kermit_bundler")
 

@@ -9,7 +9,7 @@ Built in (:data:`PREDICTORS`):
 
 * ``local``: Local-ScaleNet's one-pass map (``LocalScaleNet.predict(anchor=False)``, soft read-out);
 * ``anchored``: the map ``LocalScaleNet.predict`` and ``localscale predict`` give by default, the
-  local pass anchored on ScaleNet's scale and quarter turn (:mod:`localscale.anchoring`);
+  local pass anchored on ScaleNet's scale and quarter turn (:mod:`localscale.models.anchoring`);
 * ``scalenet``: ScaleNet's consistency-checked factor, one number;
 * ``one``: the constant 1 (the ``none`` correction);
 * ``correction:NAME``: the map A gets from the correction method ``NAME`` of
@@ -33,7 +33,7 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 Prediction = Union[float, np.ndarray]
 

@@ -6,7 +6,7 @@ Collections: folders of a root (``/work/shared/data/collections``, see its READM
 two), a window showing ``1/z`` of its width and height (``z`` log-uniform in ``zoom``, default
 2.5-5), centred at a random point of the photo's central half, resized to the photo's size (the
 window's camera is the photo's with a larger focal length and a shifted principal point,
-:func:`localscale.cameras.cut_window`) and turned by a random quarter turn (1-3). They are written
+:func:`localscale.geometry.cameras.cut_window`) and turned by a random quarter turn (1-3). They are written
 to ``OUT/_closeup_images/<name>`` (the photos linked beside them), described in
 ``OUT/_closeup_images/<name>.json`` (source, window, zoom, turn). A close-up has the camera
 centre of its source photo, so the distance between the two centres in the model (over the median
@@ -49,7 +49,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..outputs import write_text
+from ..core.outputs import write_text
 from .report import git_commit
 
 PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
@@ -79,7 +79,7 @@ def make_closeups(images_dir: Path, out_dir: Path, zoom: tuple, seed: int) -> di
     returns ``{close-up name: {"source", "window", "zoom", "turn"}}`` (also ``<out_dir>.json``)."""
     import cv2
 
-    from ..cameras import Camera, cut_window
+    from ..geometry.cameras import Camera, cut_window
 
     meta_path = out_dir.with_name(out_dir.name + ".json")
     inside = out_dir / "closeups.json"  # where an earlier version kept it (then read as a non-image)
@@ -279,7 +279,7 @@ def closeup_check(model, closeups: dict) -> tuple:
 
 
 def markdown(rows: list) -> str:
-    from ..sfm.report import markdown_table
+    from ..core.tables import markdown_table
 
     return markdown_table(rows, COLUMNS)
 

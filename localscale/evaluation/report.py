@@ -93,7 +93,7 @@ def summarise(records: list[dict], pairs: list, methods, thresholds) -> dict:
 SPLIT_ORDER = ("all", "easy", "medium", "hard", "scale<2x", "scale2-4x", "scale>4x", "rot<30", "rot30-90", "rot>90")
 
 
-def markdown_table(summary: dict, methods, thresholds, title: str = "") -> str:
+def matching_table(summary: dict, methods, thresholds, title: str = "") -> str:
     """One table: a row per split and method (MMA@1/3/5/10, matches, correct at 3 px, features,
     homography AUC@3/5/10 px, share solved, seconds per pair)."""
     ti = [thresholds.index(t) for t in (1, 3, 5, 10) if t in thresholds]
@@ -146,7 +146,7 @@ def plot_mma(summary: dict, methods, thresholds, out: Path, tag: str = "") -> li
         fig.tight_layout()
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", g.replace("<", "lt").replace(">", "gt"))
         f = out / f"mma_{tag + '_' if tag else ''}{safe}.png"
-        from ..outputs import atomic_path
+        from ..core.outputs import atomic_path
 
         try:
             with atomic_path(f) as tmp:
@@ -191,7 +191,7 @@ def write_outputs(
         }
         for p in pairs
     ]
-    from ..outputs import write_text
+    from ..core.outputs import write_text
 
     buf = io.StringIO(newline="")
     w = csv.DictWriter(buf, fieldnames=list(splits[0]) if splits else ["pair"])
@@ -213,7 +213,20 @@ def write_outputs(
     }
     name = f"results{'_' + tag if tag else ''}"
     write_text(out / f"{name}.json", json.dumps(_plain(doc), indent=1, allow_nan=False))
-    md = markdown_table(result["summary"], methods, list(thresholds), tag)
+    md = matching_table(result["summary"], methods, list(thresholds), tag)
     write_text(out / f"{name}.md", md)
     plot_mma(result["summary"], methods, list(thresholds), out, tag)
     return doc
+
+
+def __getattr__(name):
+    if name == "markdown_table":  # the old name of matching_table
+        import warnings
+
+        warnings.warn(
+            f"{__name__}.markdown_table is deprecated, use matching_table; it goes in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return matching_table
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -30,7 +30,7 @@ from typing import Iterable, Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import covisible_mask, homography_scale_map, turn_matrix
 from .predictors import PairContext, ScaleModels, predict
 from .records import RecordFile

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import covisible_mask, homography_scale_map
 from ..io import load_image
 from .scale_maps import STRIDE, pixel_errors, real_pairs

@@ -9,7 +9,7 @@ taken from here they still work, with a :class:`DeprecationWarning`.
 import importlib
 import warnings
 
-from ..lazy import lazy_exports
+from ..core.lazy import lazy_exports
 
 _EXPORTS = {
     ".descriptors": ("HardNetDescriptor", "PatchDescriptor", "SIFTPatchDescriptor", "get_descriptor"),

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from kornia.feature import HardNet, SIFTDescriptor
 
 from ..checkpoint import check_format, check_state_dict, safe_load, save_atomic
-from ..errors import CheckpointError, LocalScaleError
+from ..core.errors import CheckpointError, LocalScaleError
 from .quantization import (
     calibrate_int8,
     check_int8_ranges,

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from kornia.feature import hessian_response
 from kornia.filters import gaussian_blur2d
 
-from ..errors import ImageError, LocalScaleError
+from ..core.errors import ImageError, LocalScaleError
 from ..io import load_image
 
 

@@ -47,7 +47,7 @@ import torch
 import torch.nn as nn
 from kornia.feature import get_laf_center, get_laf_orientation, get_laf_scale, laf_from_center_scale_ori, scale_laf
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .patches import ScaleMapLike, extract_patches, make_lafs, patch_radii, sample_scale_map
 
 MR_SIZE = 0.5  #: default LAF scale per unit of OpenCV ``size`` (patch side = ``size``)

@@ -49,7 +49,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from kornia.feature import LAFOrienter, extract_patches_from_pyramid, laf_from_center_scale_ori
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 MIN_SCALE = 0.125
 MAX_SCALE = 8.0

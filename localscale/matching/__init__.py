@@ -3,7 +3,7 @@ refinement, correction methods, ``auto`` and the pipeline that runs them.
 
 One module per concept: :mod:`.config` (:class:`MatchConfig`, :data:`MATCHERS`), :mod:`.matcher`
 (:class:`Matcher`), :mod:`.nearest_neighbour`, :mod:`.lightglue`, :mod:`.rectification`,
-:mod:`.correction`, :mod:`.verification` (with :mod:`localscale.two_view`), :mod:`.refinement`,
+:mod:`.correction`, :mod:`.verification` (with :mod:`localscale.geometry.two_view`), :mod:`.refinement`,
 :mod:`.auto` (the hypothesis loop, its hypotheses, localisation, turns and the pair graph),
 :mod:`.metrics`, :mod:`.result`, :mod:`.viz` and :mod:`.pipeline` (:func:`match_pair`).
 The submodules (torch, kornia, OpenCV) are imported on first use of a name below.
@@ -14,7 +14,7 @@ Example::
     res = match_pair("a.jpg", "b.jpg", "auto", matcher="aliked-lightglue")
 """
 
-from ..lazy import lazy_exports
+from ..core.lazy import lazy_exports
 
 _EXPORTS = {
     ".config": ("MATCHERS", "MatchConfig", "match_config"),

@@ -31,8 +31,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Optional
 
-from ..checks import check_int, check_number
-from ..errors import LocalScaleError
+from ..core.checks import check_int, check_number
+from ..core.errors import LocalScaleError
 from ..features.extractors import get_extractor, named_matchers
 from .auto.config import AutoConfig
 from .correction import CorrectionGate

@@ -45,7 +45,7 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import homography_scale_map
 from ..io import read_homography
 

@@ -6,7 +6,7 @@ from typing import Optional
 
 import torch
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..features.extractors import get_extractor
 from ..features.pretrained import find_weights, load_weights
 

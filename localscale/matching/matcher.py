@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..devices import resolve_device
-from ..errors import LocalScaleError
+from ..core.devices import resolve_device
+from ..core.errors import LocalScaleError
 from ..features.extractors import Features
 from .config import MatchConfig, match_config
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches

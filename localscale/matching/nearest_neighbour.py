@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from kornia.feature import match_mnn, match_smnn
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 
 
 def match_descriptors(

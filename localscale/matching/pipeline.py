@@ -75,7 +75,7 @@ def match_pair(
         local_model, global_model: the models the correction needs (default: bundled weights).
         matcher: a name of :data:`~.config.MATCHERS`, a :class:`~.config.MatchConfig` or a
             :class:`~.matcher.Matcher`.
-        camera_a, camera_b: the cameras of A and B (:class:`~localscale.cameras.Camera`, a
+        camera_a, camera_b: the cameras of A and B (:class:`~localscale.geometry.cameras.Camera`, a
             ``pycolmap.Camera``, a COLMAP ``cameras.txt`` line or a camera file; their size is that of
             the full images). With cameras the matches are verified by two-view geometry
             (``verification.model="two_view"`` unless another non-homography model is set) and
@@ -118,9 +118,9 @@ def match_pair(
 
 def _working_cameras(cameras: tuple, images: tuple, to_work: tuple) -> tuple:
     """The cameras of the full images (``None`` stays ``None``) in the pixels of the working images."""
-    from ..camera_checks import check_plausible
-    from ..cameras import as_camera
-    from ..errors import LocalScaleError
+    from ..core.errors import LocalScaleError
+    from ..geometry.camera_checks import check_plausible
+    from ..geometry.cameras import as_camera
     from ..io import image_shape
 
     out = []
@@ -443,7 +443,7 @@ def _stamps(out: Path) -> dict:
 
 def _write_match_set(res: MatchResult, image_a, image_b, out: Path) -> None:
     """Matches and their picture; the refined maps, or the verified geometry."""
-    from ..map_files import write_refinement
+    from ..maps.files import write_refinement
 
     save_matches(res, out / "matches.npz")
     draw_matches(image_a, image_b, res, out / "matches.png")
@@ -456,7 +456,7 @@ def _write_match_set(res: MatchResult, image_a, image_b, out: Path) -> None:
     elif res.verification is not None:  # auto, or cameras given: the verified geometry (and pose)
         import json
 
-        from ..outputs import ensure_not_input, write_text
+        from ..core.outputs import ensure_not_input, write_text
 
         geo = ensure_not_input(out / "geometry.json", inputs)
         extra = {"auto": res.meta["auto"]} if "auto" in res.meta else {}

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import covisible_mask, homography_scale_map, orient_homography
 from .nearest_neighbour import match_descriptors, ratio_mutual_matches
 from .verification import VerificationConfig, VerificationResult, verify_matches

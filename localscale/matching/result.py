@@ -8,7 +8,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .metrics import matching_accuracy
 
 
@@ -85,7 +85,7 @@ def save_matches(result: MatchResult, path: Union[str, Path]) -> None:
         data["errors"] = result.errors
     if result.H is not None:
         data["H"] = result.H
-    from ..outputs import atomic_path
+    from ..core.outputs import atomic_path
 
     with atomic_path(path) as tmp:  # complete file or none
         with open(tmp, "wb") as f:

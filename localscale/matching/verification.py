@@ -25,9 +25,9 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import homography_scale_at, orient_homography
-from ..two_view import TwoViewConfig, TwoViewGeometry, estimate_two_view_geometry
+from ..geometry.two_view import TwoViewConfig, TwoViewGeometry, estimate_two_view_geometry
 
 #: what :attr:`VerificationConfig.model` can name
 VERIFICATION_MODELS = ("homography", "fundamental", "auto", "two_view")
@@ -43,9 +43,9 @@ class VerificationConfig:
             the homography's inliers or the homography is not verified, else the homography), or
             ``"two_view"``: the model chosen per pair as COLMAP's two-view geometry chooses it
             (homography for planes and pure rotation, fundamental matrix otherwise, essential
-            matrix when both cameras are known; :func:`~localscale.two_view.estimate_two_view_geometry`
+            matrix when both cameras are known; :func:`~localscale.geometry.two_view.estimate_two_view_geometry`
             with the thresholds of ``two_view``), with the relative pose when both cameras are known.
-        two_view: thresholds of ``"two_view"`` (:class:`~localscale.two_view.TwoViewConfig`, COLMAP's defaults).
+        two_view: thresholds of ``"two_view"`` (:class:`~localscale.geometry.two_view.TwoViewConfig`, COLMAP's defaults).
         auto_fundamental_gain: inlier ratio F / H above which ``"auto"`` prefers F.
         homography_threshold: MAGSAC reprojection threshold (pixels of B) of the homography.
         fundamental_threshold: MAGSAC threshold (pixels, distance to the epipolar line) of ``F``.
@@ -126,7 +126,7 @@ class VerificationResult:
             or ``"none"`` (nothing could be estimated).
         H: ``3 x 3`` homography A -> B (``None`` unless ``model == "homography"``).
         F: ``3 x 3`` fundamental matrix (``x_B^T F x_A = 0``; ``None`` with a homography).
-        two_view: the :class:`~localscale.two_view.TwoViewGeometry` of ``model="two_view"`` (configuration,
+        two_view: the :class:`~localscale.geometry.two_view.TwoViewGeometry` of ``model="two_view"`` (configuration,
             relative pose ``R``, ``t`` when both cameras are known), else ``None``.
         inliers: ``K`` bool mask over the matches.
         verified: all checks passed; reasons: why not (empty when verified).
@@ -353,7 +353,7 @@ def verify_matches(
             agreement check).
         config: thresholds (:class:`VerificationConfig`).
         camera_a, camera_b: the cameras of A and B in the pixels of the points
-            (:class:`~localscale.cameras.Camera` or what :func:`~localscale.cameras.as_camera`
+            (:class:`~localscale.geometry.cameras.Camera` or what :func:`~localscale.geometry.cameras.as_camera`
             reads), used by ``model="two_view"`` (essential matrix and relative pose with both).
     Returns:
         :class:`VerificationResult`.
@@ -445,7 +445,7 @@ def _verify_fundamental(pa, pb, shape_a, shape_b, scale_map, config) -> Verifica
 
 
 def _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, camera_b) -> VerificationResult:
-    """The model COLMAP's two-view geometry chooses (:func:`~localscale.two_view.estimate_two_view_geometry`),
+    """The model COLMAP's two-view geometry chooses (:func:`~localscale.geometry.two_view.estimate_two_view_geometry`),
     then the same decision as the other models: a homography's scales are its own, those of a
     fundamental or essential matrix come from the local affine fits of its inliers that are consistent."""
     g = estimate_two_view_geometry(pa, pb, camera_a, camera_b, config.two_view)
@@ -471,7 +471,7 @@ def _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, came
 
 def _fundamental_from_essential(E, camera_a, camera_b) -> np.ndarray:
     """``K_B^-T E K_A^-1``: the fundamental matrix (pixels) of an essential matrix and the cameras."""
-    from ..cameras import as_camera
+    from ..geometry.cameras import as_camera
 
     Ka, Kb = as_camera(camera_a).K(), as_camera(camera_b).K()
     return np.linalg.inv(Kb).T @ E @ np.linalg.inv(Ka)

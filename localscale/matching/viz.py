@@ -8,7 +8,7 @@ from typing import Optional, Union
 import cv2
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..io import load_working_image
 from .metrics import reprojection_errors
 from .result import MatchResult
@@ -130,6 +130,6 @@ def _write_picture(path: Path, canvas: np.ndarray) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise LocalScaleError(f"cannot create folder {path.parent}: {e.strerror or e}") from None
-    from ..outputs import write_image
+    from ..core.outputs import write_image
 
     write_image(path, canvas[..., ::-1])

@@ -1,5 +1,6 @@
 from .base import EncodedImage, ScaleModel
-from .local import LocalScaleBatch, LocalScaleNet, LocalScaleNetConfig, LocalScalePrediction, predict_scale_map
+from .local import LocalScaleNet, LocalScaleNetConfig, predict_scale_map
+from .local_prediction import LocalScaleBatch, LocalScalePrediction
 from .registry import load_model
 from .scalenet import GlobalScalePrediction, ScaleNet, ScaleNetConfig, estimate_scale
 

@@ -1,5 +1,5 @@
 """What anchors a Local-ScaleNet pass: ScaleNet's global scale and quarter turn of a pair
-(used by :mod:`localscale.anchoring`).
+(used by :mod:`localscale.models.anchoring`).
 
 Example::
 

@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..errors import CheckpointError
+from ..core.errors import CheckpointError
 from ..features.pretrained import WeightFile
 
 #: where weight files bundled with localscale live (searched before the third-party package)

@@ -10,9 +10,9 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..errors import ImageError
+from ..core.errors import ImageError
 from ..io import ImageLike, load_image, load_image_array, load_image_reduced
-from ..preprocess import Letterbox, letterbox, to_tensor
+from ..io.preprocess import Letterbox, letterbox, to_tensor
 from .common import FeatureExtractor, fold_batch_norm
 from .registry import load_model
 

@@ -15,7 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..errors import CheckpointError
+from ..core.errors import CheckpointError
 
 #: VGG16 up to conv4_3 (stride 8); "M" is a 2x2 max-pool.
 VGG16_STRIDE8 = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512)

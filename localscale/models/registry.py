@@ -17,8 +17,8 @@ import torch
 import torch.nn as nn
 
 from ..checkpoint import read_checkpoint
-from ..devices import resolve_device
-from ..errors import CheckpointError
+from ..core.devices import resolve_device
+from ..core.errors import CheckpointError
 from .backbones import check_record
 
 _REGISTRY: dict[str, type] = {}
@@ -36,7 +36,7 @@ def load_model(path: str | Path, arch: str | None = None, device: str | torch.de
 
     Args:
         arch: if given, the checkpoint must be of this architecture.
-        device: checked first (:func:`~localscale.devices.resolve_device`): an unknown or
+        device: checked first (:func:`~localscale.core.devices.resolve_device`): an unknown or
             unavailable device is a :class:`LocalScaleError` before the checkpoint is read.
     """
     device = resolve_device(device)

@@ -22,7 +22,7 @@ Example::
     summary = reconstruct("photos/", "out/", matcher="aliked-lightglue", correction="auto")
 """
 
-from ..lazy import lazy_exports
+from ..core.lazy import lazy_exports
 
 _EXPORTS = {
     ".images": ("ImageInfo", "find_images", "names_to_pair", "IMAGE_SUFFIXES", "ImageFolderError"),
@@ -35,17 +35,10 @@ _EXPORTS = {
         "read_pairs",
         "PairsFileError",
     ),
-    ".match": ("KeypointSet", "match_pairs", "read_all_matches", "SFM_CORRECTIONS"),
+    ".match": ("KeypointSet", "match_pairs", "read_all_matches"),
     ".geometry": ("verify_pairs", "read_geometries", "estimate_pair"),
-    ".database": (
-        "CAMERA_MODES",
-        "CameraSetup",
-        "CameraFileError",
-        "image_cameras",
-        "read_camera_file",
-        "write_database",
-        "read_database",
-    ),
+    ".cameras": ("CAMERA_MODES", "CameraSetup", "CameraFileError", "image_cameras", "read_camera_file"),
+    ".database": ("write_database", "read_database"),
     ".mapping": ("run_mapping", "model_stats", "read_models"),
     ".viz": ("plot_reconstruction",),
     ".reconstruction": ("reconstruct",),
@@ -57,6 +50,7 @@ _EXPORTS = {
         "CorrectionConfig",
         "MappingConfig",
         "RESULT_OPTIONS",
+        "SFM_CORRECTIONS",
     ),
     ".outdir": ("OUTPUTS", "OutputFolderError"),
 }

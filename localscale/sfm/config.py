@@ -28,8 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .weights import WEIGHT_OPTIONS
+
+#: corrections the matching step runs (``gt`` needs a homography, ``refined`` is a two-pass pipeline)
+SFM_CORRECTIONS = ("none", "auto", "global", "local", "fused", "searched")
 
 _RESULT = {"result": True}
 
@@ -58,7 +61,7 @@ class PairsConfig:
 
 @dataclass
 class CorrectionConfig:
-    """``correction``: :data:`~.match.SFM_CORRECTIONS`; ``auto_graph``: ``auto`` driven by the pair
+    """``correction``: :data:`SFM_CORRECTIONS`; ``auto_graph``: ``auto`` driven by the pair
     graph (:func:`~.match.match_pairs`), False: the whole hypothesis loop per pair."""
 
     correction: str = field(default="none", metadata=_RESULT)
@@ -67,7 +70,7 @@ class CorrectionConfig:
 
 @dataclass
 class MappingConfig:
-    """The cameras (``camera_mode``: :data:`~.database.CAMERA_MODES`; ``camera_file``: a COLMAP
+    """The cameras (``camera_mode``: :data:`~.cameras.CAMERA_MODES`; ``camera_file``: a COLMAP
     ``cameras.txt`` with the one camera of all images), the keypoint merge distance (full-image
     pixels) and the mapper (:func:`~.mapping.run_mapping`: ``mapper``, ``mapping_trials``,
     ``mapper_options`` by pycolmap name)."""
@@ -141,7 +144,7 @@ class ReconstructConfig:
         return {k: getattr(getattr(self, s), k) for k, s in self.names().items()}
 
     def check(self) -> None:
-        """Raise a :class:`~localscale.errors.LocalScaleError` (one line) for a bad option; reads
+        """Raise a :class:`~localscale.core.errors.LocalScaleError` (one line) for a bad option; reads
         no file but the pairs and camera files' existence."""
         _check_features(self.features)
         _check_pairs(self.pairs)
@@ -208,15 +211,13 @@ def _check_pairs(p: PairsConfig) -> None:
 
 
 def _check_correction(c: CorrectionConfig) -> None:
-    from .match import SFM_CORRECTIONS
-
     if c.correction not in SFM_CORRECTIONS:
         raise LocalScaleError(f"correction must be one of {', '.join(SFM_CORRECTIONS)}, got {c.correction!r}")
 
 
 def _check_mapping(m: MappingConfig) -> None:
-    from .database import CAMERA_MODES, CameraFileError
-    from .mapping import check_mapper, check_trials, mapping_options
+    from .cameras import CAMERA_MODES, CameraFileError
+    from .mapper_options import check_mapper, check_trials, mapping_options
 
     if m.camera_mode not in CAMERA_MODES:
         raise LocalScaleError(f"camera mode must be one of {', '.join(CAMERA_MODES)}, got {m.camera_mode!r}")

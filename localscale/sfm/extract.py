@@ -30,8 +30,10 @@ from typing import Optional
 import numpy as np
 
 from ..matching.matcher import Matcher
+from .config import ReconstructConfig
 from .h5io import H5Writer, groups_with, read_group
 from .progress import progress
+from .steps import config_of, parser, run_step, step_images
 
 
 @dataclass(frozen=True)
@@ -247,10 +249,17 @@ def snap_factor(factor: float, levels_per_octave: int = 2) -> float:
     return float(2.0 ** (round(math.log2(factor) * levels_per_octave) / levels_per_octave))
 
 
-def main(argv=None) -> int:
-    """``python -m localscale.sfm.extract``: this step alone, from files (:func:`~.steps.extract_folder`)."""
-    from .steps import config_of, extract_folder, parser, run_step
+def extract_folder(images_dir, features_path, conf: Optional[ReconstructConfig] = None, device="cpu", **kw):
+    """The extract step from paths: every image of ``images_dir`` into ``features_path``."""
+    conf = conf or ReconstructConfig()
+    images = step_images(images_dir, Path(features_path).parent, conf)
+    Path(features_path).parent.mkdir(parents=True, exist_ok=True)
+    f = conf.features
+    return extract_features(images, features_path, FeatureConf(f.matcher, f.num_keypoints, f.max_side), device, **kw)
 
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.extract``: this step alone, from files (:func:`extract_folder`)."""
     p = parser("extract", __doc__, ("matcher", "max_side", "num_keypoints"))
     p.add_argument("images", help="folder of images (searched recursively)")
     p.add_argument("features", help="features.h5 to write (images already in it are skipped)")

@@ -1,7 +1,7 @@
 """The geometry step: the verified two-view geometry of every matched pair (``geometries.h5``).
 
 Each pair's matches (``keypoints.h5`` / ``matches.h5``) and the two cameras
-(:func:`~.database.image_cameras`) go to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
+(:func:`~.cameras.image_cameras`) go to :func:`pycolmap.estimate_two_view_geometry` (COLMAP's own
 verification: E, F and H by RANSAC, the configuration that explains the matches, its inliers).
 A pair with fewer than ``min_inliers`` inliers, or a degenerate configuration, is kept with no
 inlier matches (COLMAP's mapper then ignores it).
@@ -18,13 +18,16 @@ import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from .config import ReconstructConfig
 from .h5io import H5FileError, H5Writer, groups_with, open_h5, read_group
 from .images import names_to_pair
 from .match import read_all_matches
 from .progress import progress
+from .steps import cameras_of, config_of, parser, run_step, step_images
 
 #: configurations whose inliers are kept (COLMAP's names)
 VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
@@ -192,10 +195,17 @@ def read_geometries(geometries_path) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m localscale.sfm.geometry``: this step alone, from files (:func:`~.steps.verify_files`)."""
-    from .steps import config_of, parser, run_step, verify_files
+def verify_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
+    """The geometry step from the files of ``out_dir``: ``keypoints.h5`` and ``matches.h5`` -> ``geometries.h5``."""
+    out, conf = Path(out_dir), conf or ReconstructConfig()
+    images = step_images(images_dir, out, conf)
+    return verify_pairs(
+        images, out / "keypoints.h5", out / "matches.h5", cameras_of(images, conf), out / "geometries.h5", **kw
+    )
 
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.geometry``: this step alone, from files (:func:`verify_files`)."""
     p = parser("geometry", __doc__, ("camera_mode", "camera_file"))
     p.add_argument("images", help="folder of images (their cameras)")
     p.add_argument("out", help="folder with keypoints.h5 and matches.h5; geometries.h5 is written there")

@@ -28,8 +28,8 @@ from typing import Iterator, Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
-from ..outputs import atomic_path
+from ..core.errors import LocalScaleError
+from ..core.outputs import atomic_path
 
 
 class H5FileError(LocalScaleError):

@@ -25,8 +25,8 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from ..errors import ImageError, LocalScaleError
-from ..outputs import resolved_path
+from ..core.errors import ImageError, LocalScaleError
+from ..core.outputs import resolved_path
 from .report import warn
 
 #: extensions read as images (any case)

@@ -33,8 +33,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..matching.auto.graph import Relation
+from .config import SFM_CORRECTIONS, ReconstructConfig
 from .extract import FeatureConf
 from .h5io import H5FileError, H5Writer, groups_with, matches0_from_matches, read_group
 from .images import names_to_pair
@@ -42,9 +43,7 @@ from .keypoints import KeypointSet, one_to_one
 from .pair_runner import MatchPair, PairRunnerFactory
 from .progress import progress
 from .report import warn
-
-#: corrections the matching step runs (``gt`` needs a homography, ``refined`` is a two-pass pipeline)
-SFM_CORRECTIONS = ("none", "auto", "global", "local", "fused", "searched")
+from .steps import config_of, parser, run_step, step_images
 
 
 @dataclass
@@ -123,8 +122,6 @@ def match_pairs(
     on its workers (each with its own level cache and the bundled networks); the driver merges the
     keypoints in pair order, so the outputs are those of the local run.
     """
-    from .config import ReconstructConfig
-
     conf = conf or ReconstructConfig()
     f, correction = conf.features, conf.correction.correction
     fconf = FeatureConf(f.matcher, f.num_keypoints, f.max_side)
@@ -353,10 +350,20 @@ def read_all_matches(matches_path) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m localscale.sfm.match``: this step alone, from files (:func:`~.steps.match_files`)."""
-    from .steps import config_of, match_files, parser, run_step
+def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, device="cpu", **kw):
+    """The match step from the files of ``out_dir``: ``features.h5`` and ``pairs.txt`` ->
+    ``matches.h5`` and ``keypoints.h5`` (``kw``: :func:`~.match.match_pairs`'s)."""
+    from .pairs import read_pairs
 
+    out = Path(out_dir)
+    conf = conf or ReconstructConfig()
+    pairs = read_pairs(out / "pairs.txt")
+    images = step_images(images_dir, out, conf, {n for p in pairs for n in p})
+    return match_pairs(images, pairs, out / "features.h5", out / "matches.h5", out / "keypoints.h5", conf, device, **kw)
+
+
+def main(argv=None) -> int:
+    """``python -m localscale.sfm.match``: this step alone, from files (:func:`match_files`)."""
     p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
     p.add_argument("images", help="folder of images")
     p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")

@@ -10,8 +10,8 @@ user's files and the folder's state safe.
   before its first write to its end (:func:`output_lock`); another run on the folder is refused.
 * **The summary describes the folder.** ``summary.json`` and ``reconstruction.png`` are removed
   before any step changes the files they describe (:func:`begin_writing`), and written last.
-* **Temporaries.** Files are written under names unique to the run (:func:`localscale.outputs.temporary_name`)
-  and renamed; ``sparse/`` is built beside it and swapped in (:func:`localscale.outputs.replace_dir`).
+* **Temporaries.** Files are written under names unique to the run (:func:`localscale.core.outputs.temporary_name`)
+  and renamed; ``sparse/`` is built beside it and swapped in (:func:`localscale.core.outputs.replace_dir`).
   The temporaries a killed run left are removed by the next run that writes the folder.
 """
 
@@ -22,8 +22,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from ..errors import LocalScaleError
-from ..outputs import make_dir, resolved_path, stale_temporaries
+from ..core.errors import LocalScaleError
+from ..core.outputs import make_dir, resolved_path, stale_temporaries
 
 #: the files and folders a run writes into its output folder
 OUTPUTS = (
@@ -42,7 +42,7 @@ OUTPUTS = (
 SUMMARY_FILES = ("summary.json", "reconstruction.png")
 #: the lock file a run holds (:func:`output_lock`)
 LOCK_NAME = ".lock"
-#: the prefixes of the temporary folders of ``sparse/`` (:func:`~.mapping.run_mapping`, :func:`~localscale.outputs.replace_dir`)
+#: the prefixes of the temporary folders of ``sparse/`` (:func:`~.mapping.run_mapping`, :func:`~localscale.core.outputs.replace_dir`)
 SPARSE_TEMPORARIES = (".sparse.tmp", ".sparse.new", ".sparse.old")
 
 

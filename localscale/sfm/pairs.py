@@ -1,7 +1,7 @@
 """The pairs step: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
 
 * :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
-* :func:`pairs_from_file`: a pairs file (:mod:`localscale.pairs_file`) of names or of image paths,
+* :func:`pairs_from_file`: a pairs file (:mod:`localscale.io.pairs_file`) of names or of image paths,
   checked against the images;
 * :func:`pairs_from_retrieval`: each image with its ``N`` nearest by a cheap global descriptor,
   the local descriptors of ``features.h5`` aggregated (GeM of the L2-normalised descriptors,
@@ -18,13 +18,16 @@ from __future__ import annotations
 import itertools
 import shlex
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
-from ..errors import LocalScaleError
-from ..outputs import write_text
-from ..pairs_file import PairsFileError, read_pairs_lines
+from ..core.errors import LocalScaleError
+from ..core.outputs import write_text
+from ..io.pairs_file import PairsFileError, read_pairs_lines
+from .config import ReconstructConfig
 from .h5io import read_group
+from .steps import config_of, parser, run_step
 
 
 def pairs_exhaustive(names: list) -> list:
@@ -119,19 +122,30 @@ def write_pairs(path, pairs: list) -> Path:
 
 
 def read_pairs(path) -> list:
-    """The pairs of a ``pairs.txt`` written by :func:`write_pairs` (no check against images)."""
-    out = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        parts = shlex.split(line, comments=True)
-        if len(parts) == 2:
-            out.append(tuple(parts))
-    return out
+    """The pairs ``[(A, B), ...]`` of a ``pairs.txt`` written by :func:`write_pairs`, as written (no
+    check against images; :func:`~localscale.io.pairs_file.read_pairs_lines` parses it)."""
+    return [(a, b) for _, a, b in read_pairs_lines(path)]
+
+
+def pairs_of_features(features_path, pairs_path, conf: Optional[ReconstructConfig] = None, images_dir=None):
+    """The pairs step from paths: the pairs of the images of ``features_path`` (``conf.pairs``)
+    written to ``pairs_path``."""
+    from .h5io import groups_with
+
+    p = (conf or ReconstructConfig()).pairs
+    names = sorted(groups_with(features_path, "keypoints"))
+    if p.pairs != "exhaustive":
+        pairs = pairs_from_file(p.pairs, names, images_dir)
+    elif p.pairs_nearest:
+        pairs = pairs_from_retrieval(names, features_path, p.pairs_nearest)
+    else:
+        pairs = pairs_exhaustive(names)
+    Path(pairs_path).parent.mkdir(parents=True, exist_ok=True)
+    return write_pairs(pairs_path, pairs)
 
 
 def main(argv=None) -> int:
-    """``python -m localscale.sfm.pairs``: this step alone, from files (:func:`~.steps.pairs_of_features`)."""
-    from .steps import config_of, pairs_of_features, parser, run_step
-
+    """``python -m localscale.sfm.pairs``: this step alone, from files (:func:`pairs_of_features`)."""
     p = parser("pairs", __doc__, ("pairs", "pairs_nearest"))
     p.add_argument("features", help="features.h5 (its images are paired)")
     p.add_argument("output", help="pairs.txt to write")

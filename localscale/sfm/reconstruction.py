@@ -3,7 +3,7 @@
 :func:`reconstruct` runs the steps of :mod:`localscale.sfm` in order, each reading the files of the
 steps before and writing its own into ``out_dir`` (hloc style; each also runs alone), then writes ``summary.json`` (atomically), ``reconstruction.png`` and
 prints a table. Every input is checked before anything is written (bad input raises a
-:class:`~localscale.errors.LocalScaleError`).
+:class:`~localscale.core.errors.LocalScaleError`).
 
 The output folder:
 
@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-from ..errors import LocalScaleError
-from ..outputs import check_writable_dir, resolved_path
+from ..core.errors import LocalScaleError
+from ..core.outputs import check_writable_dir, resolved_path
 from . import outdir
 from .config import RESULT_OPTIONS, ReconstructConfig
 from .outdir import OutputFolderError
@@ -202,7 +202,7 @@ class _Reconstruction:
     def read_inputs(self) -> None:
         """Read and check the pairs and camera files, the output folder (:attr:`state`), the images
         and their cameras; nothing is written yet."""
-        from .database import image_cameras
+        from .cameras import image_cameras
         from .images import find_images
         from .pairs import pairs_from_file
 
@@ -332,7 +332,7 @@ class _Reconstruction:
 
     def map_model(self) -> None:
         """``sparse/``: pycolmap's mapping (the mapping section of :attr:`conf`), with the options of
-        the cameras' mode (:func:`~.mapping.default_overrides`) and ``mapper_options`` over them."""
+        the cameras' mode (:func:`~.mapper_options.default_overrides`) and ``mapper_options`` over them."""
         from .mapping import default_overrides, run_mapping
 
         m = self.conf.mapping

@@ -16,7 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Iterator
 
-from ..outputs import write_text
+from ..core.outputs import write_text
 
 _COLLECTED: contextvars.ContextVar = contextvars.ContextVar("sfm_warnings", default=None)
 
@@ -85,18 +85,3 @@ def write_json(path, data: dict) -> Path:
 def read_json(path) -> dict:
     with open(path, encoding="utf-8") as f:
         return json.load(f)
-
-
-def markdown_table(rows: list, columns: list) -> str:
-    """A markdown table of ``rows`` (dicts) with ``columns`` ``[(key, title), ...]``; floats with 3 digits."""
-
-    def cell(v):
-        if v is None:
-            return "-"
-        if isinstance(v, float):
-            return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
-        return str(v)
-
-    lines = ["| " + " | ".join(t for _, t in columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(cell(r.get(k)) for k, _ in columns) + " |" for r in rows]
-    return "\n".join(lines)

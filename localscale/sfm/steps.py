@@ -1,5 +1,7 @@
-"""Each step of :mod:`localscale.sfm` run alone, from files (hloc style): a function with paths per
-step, and ``python -m localscale.sfm.<step>`` (its ``main``: these functions behind a small parser).
+"""Each step of :mod:`localscale.sfm` run alone, from files (hloc style): each step module holds a
+function with paths (``extract.extract_folder``, ``pairs.pairs_of_features``, ``match.match_files``,
+``geometry.verify_files``, ``database.database_of_files``, ``mapping.map_files``) and
+``python -m localscale.sfm.<step>`` (its ``main``: that function behind the small parser here).
 
 The steps share only files: ``features.h5`` -> ``pairs.txt`` -> ``matches.h5`` + ``keypoints.h5``
 -> ``geometries.h5`` -> ``database.db`` -> ``sparse/``. Their options come from a
@@ -25,7 +27,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .config import ReconstructConfig
 
 #: the flags a step may take: option name -> (flag, type, help)
@@ -73,7 +75,7 @@ def config_of(args: argparse.Namespace) -> ReconstructConfig:
 
 
 def run_step(fn, *args, **kwargs) -> int:
-    """``fn(*args, **kwargs)``; a :class:`~localscale.errors.LocalScaleError` is one ``error:`` line, exit 2."""
+    """``fn(*args, **kwargs)``; a :class:`~localscale.core.errors.LocalScaleError` is one ``error:`` line, exit 2."""
     try:
         fn(*args, **kwargs)
     except LocalScaleError as e:
@@ -90,90 +92,7 @@ def step_images(images_dir, out_dir, conf: ReconstructConfig, names: Optional[se
     return images if names is None else [im for im in images if im.name in names]
 
 
-def extract_folder(images_dir, features_path, conf: Optional[ReconstructConfig] = None, device="cpu", **kw):
-    """The extract step from paths: every image of ``images_dir`` into ``features_path``."""
-    from .extract import FeatureConf, extract_features
-
-    conf = conf or ReconstructConfig()
-    images = step_images(images_dir, Path(features_path).parent, conf)
-    Path(features_path).parent.mkdir(parents=True, exist_ok=True)
-    f = conf.features
-    return extract_features(images, features_path, FeatureConf(f.matcher, f.num_keypoints, f.max_side), device, **kw)
-
-
-def pairs_of_features(features_path, pairs_path, conf: Optional[ReconstructConfig] = None, images_dir=None):
-    """The pairs step from paths: the pairs of the images of ``features_path`` (``conf.pairs``)
-    written to ``pairs_path``."""
-    from .h5io import groups_with
-    from .pairs import pairs_exhaustive, pairs_from_file, pairs_from_retrieval, write_pairs
-
-    p = (conf or ReconstructConfig()).pairs
-    names = sorted(groups_with(features_path, "keypoints"))
-    if p.pairs != "exhaustive":
-        pairs = pairs_from_file(p.pairs, names, images_dir)
-    elif p.pairs_nearest:
-        pairs = pairs_from_retrieval(names, features_path, p.pairs_nearest)
-    else:
-        pairs = pairs_exhaustive(names)
-    Path(pairs_path).parent.mkdir(parents=True, exist_ok=True)
-    return write_pairs(pairs_path, pairs)
-
-
-def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, device="cpu", **kw):
-    """The match step from the files of ``out_dir``: ``features.h5`` and ``pairs.txt`` ->
-    ``matches.h5`` and ``keypoints.h5`` (``kw``: :func:`~.match.match_pairs`'s)."""
-    from .match import match_pairs
-    from .pairs import read_pairs
-
-    out = Path(out_dir)
-    conf = conf or ReconstructConfig()
-    pairs = read_pairs(out / "pairs.txt")
-    images = step_images(images_dir, out, conf, {n for p in pairs for n in p})
-    return match_pairs(images, pairs, out / "features.h5", out / "matches.h5", out / "keypoints.h5", conf, device, **kw)
-
-
 def cameras_of(images, conf: ReconstructConfig):
-    from .database import image_cameras
+    from .cameras import image_cameras
 
     return image_cameras(images, conf.mapping.camera_mode, conf.mapping.camera_file)
-
-
-def verify_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
-    """The geometry step from the files of ``out_dir``: ``keypoints.h5`` and ``matches.h5`` -> ``geometries.h5``."""
-    from .geometry import verify_pairs
-
-    out, conf = Path(out_dir), conf or ReconstructConfig()
-    images = step_images(images_dir, out, conf)
-    return verify_pairs(
-        images, out / "keypoints.h5", out / "matches.h5", cameras_of(images, conf), out / "geometries.h5", **kw
-    )
-
-
-def database_of_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None):
-    """The database step from the files of ``out_dir``: the h5 files -> ``database.db``."""
-    from .database import write_database
-
-    out, conf = Path(out_dir), conf or ReconstructConfig()
-    images = step_images(images_dir, out, conf)
-    files = (out / "keypoints.h5", out / "matches.h5", out / "geometries.h5")
-    return write_database(out / "database.db", images, cameras_of(images, conf), *files)
-
-
-def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
-    """The mapping step from ``out_dir/database.db`` -> ``out_dir/sparse`` (``conf.mapping``; the
-    defaults of the database's cameras, one or one per image, under its ``mapper_options``)."""
-    from .database import read_database
-    from .mapping import default_overrides, run_mapping
-
-    out, m = Path(out_dir), (conf or ReconstructConfig()).mapping
-    mode = "single" if len(read_database(out / "database.db").cameras) == 1 else "per_image"
-    overrides = {**default_overrides(m.mapper, mode), **m.mapper_options}
-    return run_mapping(
-        out / "database.db",
-        images_dir,
-        out / "sparse",
-        mapper=m.mapper,
-        trials=m.mapping_trials,
-        overrides=overrides,
-        **kw,
-    )

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .report import markdown_table, no_model_reason, warn
+from ..core.tables import markdown_table
+from .report import no_model_reason, warn
 
 
 def build_summary(images, pair_list, mstats, gstats, mapping, cameras, options, seconds, state) -> dict:

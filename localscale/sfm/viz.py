@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..outputs import atomic_path
+from ..core.outputs import atomic_path
 
 
 def _top_view_axes(rec) -> np.ndarray:

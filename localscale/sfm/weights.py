@@ -68,7 +68,7 @@ def matcher_weight_files(matcher: str) -> list:
 def weight_options(correction: str, matcher: str, local_model=None, global_model=None) -> dict:
     """:data:`WEIGHT_OPTIONS` of a run (module docstring). A matcher weight file that is not installed
     is left out here; the extractor says so when it loads."""
-    from ..errors import CheckpointError
+    from ..core.errors import CheckpointError
     from ..matching import get_correction
 
     used = get_correction(correction).models

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..core.errors import LocalScaleError
 from ..data import PairConfig
-from ..errors import LocalScaleError
 from ..geometry import HomographyConfig
 from ..models import LocalScaleNet, LocalScaleNetConfig, ScaleNet, ScaleNetConfig
 
@@ -89,7 +89,7 @@ class TrainConfig:
             raise LocalScaleError(f"feature-dim must be >= 1, got {self.feature_dim}")
         if self.model not in ("local", "global"):
             raise LocalScaleError(f"unknown model {self.model!r} (use 'local' or 'global')")
-        from ..devices import resolve_device
+        from ..core.devices import resolve_device
 
         resolve_device(self.device)  # cuda on a CPU-only torch, cuda:N beyond the GPUs, unknown names
         from ..models.backbones import BACKBONE_NAMES

@@ -24,9 +24,9 @@ from ..checkpoint import (
     save_model,
     train_state,
 )
+from ..core.errors import LocalScaleError
+from ..core.outputs import check_writable_dir
 from ..data import SyntheticPairs, collate, list_images, split_images
-from ..errors import LocalScaleError
-from ..outputs import check_writable_dir
 from .config import NEW_LAYER_PREFIXES, TrainConfig, TrainingDiverged
 from .steps import (
     _grads_finite,

@@ -27,9 +27,9 @@ import torch
 from torch.utils.data import Dataset
 
 from .. import scales
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from ..geometry import turn_matrix
-from ..preprocess import letterbox, to_tensor
+from ..io.preprocess import letterbox, to_tensor
 
 #: ``kind`` of a real pair in the training batches (after :data:`localscale.data.PAIR_KINDS`)
 REAL_KIND = 100
@@ -74,7 +74,7 @@ def covisible_pairs(reconstruction, images_dir, min_points: int = 50, collection
 
 def save_covisible_pairs(path, pairs: list[CovisiblePair]) -> None:
     """Write ``pairs`` to one ``.npz`` file (atomically)."""
-    from ..outputs import atomic_path
+    from ..core.outputs import atomic_path
 
     counts = np.array([len(p.xy_a) for p in pairs], np.int64)
     with atomic_path(Path(path)) as tmp:

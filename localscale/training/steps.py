@@ -16,7 +16,7 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from .. import scales
-from ..errors import LocalScaleError
+from ..core.errors import LocalScaleError
 from .config import NEW_LAYER_PREFIXES, TrainConfig
 
 

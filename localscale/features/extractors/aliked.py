@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ...errors import LocalScaleError
+from ...core.errors import LocalScaleError
 from ..pretrained import WeightFile, find_weights, load_weights
 from ..registry import register
 from .base import Extractor, outputs

@@ -25,9 +25,9 @@ import cv2
 import numpy as np
 import torch
 
-from ...checks import check_int
-from ...devices import resolve_device
-from ...errors import LocalScaleError
+from ...core.checks import check_int
+from ...core.devices import resolve_device
+from ...core.errors import LocalScaleError
 from ..pretrained import WeightFile
 
 

@@ -8,8 +8,8 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
-from ...checks import check_number
-from ...errors import LocalScaleError
+from ...core.checks import check_number
+from ...core.errors import LocalScaleError
 from ..descriptors import PRECISIONS, HardNetDescriptor, PatchDescriptor, get_descriptor
 from ..detector import HessianDetector, get_detector, image_to_gray_tensor
 from ..patches import ScaleCorrectedPatches, patch_radii

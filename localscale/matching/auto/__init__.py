@@ -18,7 +18,7 @@ Example::
     out.verified, out.chosen.describe(), out.matches
 """
 
-from ...lazy import lazy_exports
+from ...core.lazy import lazy_exports
 
 _EXPORTS = {
     ".config": ("AutoConfig", "auto_options"),

@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
-from ...errors import LocalScaleError
+from ...core.errors import LocalScaleError
 
 
 def _is_int_at_least(value, low: int) -> bool:

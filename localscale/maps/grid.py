@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .preprocess import Letterbox
+from ..io.preprocess import Letterbox
 
 #: elements per band (rows x width) of the band-wise read-out
 BAND_ELEMENTS = 1 << 21

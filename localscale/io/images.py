@@ -40,8 +40,6 @@ import errno
 import functools
 import os
 import stat
-import tempfile
-import threading
 import warnings
 from contextlib import contextmanager
 from io import BytesIO
@@ -51,8 +49,9 @@ from typing import Iterator, Union
 import cv2
 import numpy as np
 
-from .errors import HomographyError, ImageError
-from .image_files import _TIFF_MAGIC, _float_file_to_unit, _header, _read_float_tiff
+from ..core.errors import HomographyError, ImageError
+from ..core.quiet import quiet_decoder
+from .image_files import TIFF_MAGIC, float_file_to_unit, read_float_tiff, read_header
 
 MIN_SIDE = 16
 MAX_PIXELS = 100_000_000
@@ -76,61 +75,6 @@ def accepting_damaged(accept: bool = True) -> Iterator[None]:
 #: decoder messages that mean image data is missing (libjpeg's JWRN_JPEG_EOF and JWRN_HIT_MARKER:
 #: the rest of the image is filled in grey); other messages (extraneous bytes) stay warnings
 _DAMAGED_MESSAGES = ("premature end",)
-
-
-_quiet_lock = threading.Lock()
-_quiet_depth = 0
-_quiet_saved: dict = {}
-
-
-@contextmanager
-def _quiet_decoder() -> Iterator[list]:
-    """Silence OpenCV's log and send what the C decoders print on stderr (fd 2) to a temporary
-    file while a decode runs; yields a list that receives the captured lines afterwards.
-
-    Nested and concurrent uses share one redirection (the first to enter sets it up, the last
-    to leave restores stderr), so decodes in several threads stay concurrent."""
-    global _quiet_depth
-    captured: list = []
-    with _quiet_lock:
-        if _quiet_depth == 0:
-            _quiet_saved.clear()
-            try:
-                _quiet_saved["level"] = cv2.utils.logging.getLogLevel()
-                cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-            except Exception:  # pragma: no cover - OpenCV without the logging module
-                pass
-            try:
-                sink = tempfile.TemporaryFile()
-                _quiet_saved["fd"] = os.dup(2)
-                _quiet_saved["sink"] = sink
-                os.dup2(sink.fileno(), 2)
-            except OSError:  # no usable fd 2: leave stderr alone
-                _quiet_saved.pop("fd", None)
-        _quiet_depth += 1
-    try:
-        yield captured
-    finally:
-        with _quiet_lock:
-            _quiet_depth -= 1
-            sink = _quiet_saved.get("sink")
-            if _quiet_depth == 0:
-                if "fd" in _quiet_saved:
-                    os.dup2(_quiet_saved["fd"], 2)
-                    os.close(_quiet_saved["fd"])
-                if "level" in _quiet_saved:
-                    cv2.utils.logging.setLogLevel(_quiet_saved["level"])
-                _quiet_saved.clear()
-            if sink is not None:
-                try:
-                    sink.seek(0)
-                    captured.extend(
-                        line for line in sink.read().decode("utf-8", "replace").splitlines() if line.strip()
-                    )
-                except (OSError, ValueError):  # pragma: no cover
-                    pass
-                if _quiet_depth == 0:
-                    sink.close()
 
 
 def _apply_orientation(arr: np.ndarray, orientation: int) -> np.ndarray:
@@ -161,7 +105,7 @@ def _tiff_decoder_orients() -> bool:
 
         buf = BytesIO()
         Image.fromarray(np.zeros((2, 4), np.uint8)).save(buf, "TIFF", tiffinfo={0x0112: 6})
-        with _quiet_decoder():
+        with quiet_decoder():
             arr = cv2.imdecode(np.frombuffer(buf.getvalue(), np.uint8), cv2.IMREAD_UNCHANGED)
     except Exception:  # pragma: no cover - no PIL TIFF writer: OpenCV >= 5 behaviour
         return True
@@ -261,12 +205,12 @@ def image_shape(image: ImageLike, name: str = "image") -> tuple[int, int]:
 
 def header_shape(path: Union[str, os.PathLike]) -> tuple[int, int]:
     """``(height, width)`` from the file header (upright, EXIF orientation applied); raises
-    :class:`~localscale.errors.ImageError` for a file that cannot be used (missing, unreadable header,
+    :class:`~localscale.core.errors.ImageError` for a file that cannot be used (missing, unreadable header,
     smaller than :data:`MIN_SIDE` or above :data:`MAX_PIXELS`). Unlike :func:`image_shape`, the file is
     not checked further (its kind, its decodability)."""
     _stat_file(Path(path), "image")
     try:
-        header = _header(Path(path))
+        header = read_header(Path(path))
     except OSError as e:
         raise ImageError(f"cannot read {path} ({e.strerror})") from None
     if header is None:
@@ -301,7 +245,7 @@ def check_image_file(path: str | os.PathLike, name: str = "image") -> None:
 def _checked_header(path: Path, name: str) -> tuple[tuple[int, int], int]:
     check_image_file(path, name)
     try:
-        header = _header(path)
+        header = read_header(path)
     except OSError as e:
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     if header is None:
@@ -325,16 +269,16 @@ def _load_file(
         raise ImageError(f"{name}: cannot read {path} ({e.strerror})") from None
     k = reduction_factor(height, width, min_long_side)
     jpeg_reduced = k > 1 and bytes(data[:3]) == b"\xff\xd8\xff"
-    tiff = bytes(data[:4]) in _TIFF_MAGIC
+    tiff = bytes(data[:4]) in TIFF_MAGIC
     flags = cv2.IMREAD_UNCHANGED
     if jpeg_reduced:
         flags = _REDUCED_COLOR[k] | cv2.IMREAD_IGNORE_ORIENTATION
-    with _quiet_decoder() as messages:
+    with quiet_decoder() as messages:
         arr = cv2.imdecode(data, flags)
     del data
     bgr, oriented = True, tiff and _tiff_decoder_orients()  # as OpenCV's decoders return them
     if arr is None and tiff:
-        arr = _read_float_tiff(path, name)  # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
+        arr = read_float_tiff(path, name)  # OpenCV reads no float16 TIFF: None if the file is not a float TIFF
         bgr, oriented = False, False
     if arr is None:
         raise ImageError(f"{name}: cannot decode image (corrupt or unsupported format): {path}")
@@ -359,7 +303,7 @@ def _load_file(
             stacklevel=3,
         )
     if np.issubdtype(arr.dtype, np.floating):
-        arr = _float_file_to_unit(arr, label)
+        arr = float_file_to_unit(arr, label)
     elif arr.dtype not in (np.uint8, np.uint16):
         raise ImageError(
             f"{name}: its samples are {arr.dtype} (signed or 32-bit integers), whose range is not known: "
