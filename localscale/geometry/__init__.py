@@ -7,42 +7,30 @@ the two-view geometry (essential matrix, homography or rotation) and relative po
 * :mod:`.cameras`: pinhole cameras with COLMAP's models; :mod:`.camera_checks`: plausible intrinsics.
 * :mod:`.two_view`: two-view geometry of a match set; :mod:`.relative_pose`: pose, triangulation
   angles and pose error.
+
+The submodules (NumPy, OpenCV, torch) are imported on first use of a name.
 """
 
-from .homography import (
-    HomographyConfig,
-    central_crop,
-    covisible_mask,
-    global_scale,
-    grid_points,
-    homography_rotation,
-    homography_rotation_at,
-    homography_scale_at,
-    homography_scale_map,
-    orient_homography,
-    perspective_spread,
-    project,
-    sample_homography,
-    translation,
-    turn_matrix,
-    warp_image,
-)
+from ..core.lazy import lazy_exports
 
-__all__ = [
-    "HomographyConfig",
-    "central_crop",
-    "covisible_mask",
-    "global_scale",
-    "grid_points",
-    "homography_rotation",
-    "homography_rotation_at",
-    "homography_scale_at",
-    "homography_scale_map",
-    "orient_homography",
-    "perspective_spread",
-    "project",
-    "sample_homography",
-    "translation",
-    "turn_matrix",
-    "warp_image",
-]
+_EXPORTS = {
+    ".homography": (
+        "HomographyConfig",
+        "central_crop",
+        "covisible_mask",
+        "global_scale",
+        "grid_points",
+        "homography_rotation",
+        "homography_rotation_at",
+        "homography_scale_at",
+        "homography_scale_map",
+        "orient_homography",
+        "perspective_spread",
+        "project",
+        "sample_homography",
+        "translation",
+        "turn_matrix",
+        "warp_image",
+    )
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -2,6 +2,7 @@
 bounded memory (:mod:`.grid`, :class:`GridMaps`), and written as files (:mod:`.files`: ``.npy``,
 float TIFF, colour PNG, ``geometry.json``)."""
 
-from .grid import BAND_ELEMENTS, GridMaps
+from ..core.lazy import lazy_exports
 
-__all__ = ["BAND_ELEMENTS", "GridMaps"]
+_EXPORTS = {".grid": ("BAND_ELEMENTS", "GridMaps")}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
