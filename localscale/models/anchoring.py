@@ -17,7 +17,7 @@ number, with its quarter turns, is robust there. The anchored pass (:func:`ancho
    (the entropy confidence for an uncalibrated model).
 
 Window maps are in the pixels of the original images, so no rescaling is needed to compose them.
-How the defaults were chosen: ``docs/DECISIONS.md`` ("Anchored local maps").
+How the defaults were chosen: ``docs/decisions/anchored-local-maps.md``.
 
 Example::
 
