@@ -272,6 +272,13 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not 0 < args.crop <= 1:
         p.error(f"--crop must be in (0, 1], got {args.crop}")
+    missing = [
+        f
+        for f in (args.real if args.mode == "real" else []) + [args.photos, args.sequences]
+        if f and not Path(f).is_dir()
+    ]
+    if missing:
+        p.error(f"folder not found: {missing[0]}")
     try:
         res = {"local": run_local, "global": run_global, "real": run_real}[args.mode](args)
     except LocalScaleError as e:
