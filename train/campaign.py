@@ -5,6 +5,7 @@ copy of its checkpoint and logs in ``train/campaign/local/``.
     python train/campaign.py unpack   # committed copy -> runs/ (only when it is ahead of runs/)
     python train/campaign.py pack     # runs/ -> committed copy (weights fp32, Adam moments bf16)
     python train/campaign.py status   # steps, training hours, validation curve (table, JSON, PNG)
+    python train/campaign.py validate W [W ...]   # the campaign's validation pairs scored by other weights
 
 The packed checkpoint keeps the weights in fp32 and stores Adam's two moments in bf16 (about 15 MB
 instead of 23 MB); ``torch.optim.Adam.load_state_dict`` casts them back to fp32 on resume, so a resume
@@ -174,15 +175,42 @@ def _plot(curve: list[dict], val: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def validate_weights(weights: list[str]) -> dict:
+    """The campaign's held-out validation pairs (as the trainer scores them) for each weights file:
+    an inference checkpoint (e.g. the shipped ``local_scalenet.pt``) or a training ``last.pt``."""
+    import contextlib
+
+    from localscale.cli.train import parse_args
+    from localscale.data import collate
+    from localscale.training.loop import _datasets, build_model
+    from localscale.training.steps import validate
+
+    command = (ROOT / "train" / "campaign_local.sh").read_text().split("exec localscale-train", 1)[1]
+    cfg = parse_args(command.replace("\\\n", " ").replace('"$@"', "").split())
+    torch.set_num_threads(1)
+    _, val = _datasets(cfg, 1)
+    batches = [collate([val[i] for i in range(j, min(j + 16, len(val)))]) for j in range(0, len(val), 16)]
+    out = {}
+    for w in weights:
+        cfg.init_weights = w
+        model = build_model(cfg, verbose=False)
+        out[w] = validate(model, batches, "local", torch.device("cpu"), contextlib.nullcontext)
+        print(f"{w}: mean r {out[w]['mean_r']:.3f}, median r {out[w]['median_r']:.3f}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("command", choices=["pack", "unpack", "status"])
+    p.add_argument("command", choices=["pack", "unpack", "status", "validate"])
+    p.add_argument("weights", nargs="*", help="validate: weights files")
     p.add_argument("--out", type=Path, default=None, help="status: folder for campaign.json and campaign.png")
     a = p.parse_args(argv)
     if a.command == "pack":
         pack()
     elif a.command == "unpack":
         unpack()
+    elif a.command == "validate":
+        validate_weights(a.weights)
     else:
         status(a.out)
     return 0
