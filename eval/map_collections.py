@@ -19,15 +19,14 @@ and options resumes); the table is printed and written to ``<out>.md``, the summ
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from localscale.core.errors import LocalScaleError
-from localscale.core.outputs import atomic_path
 from localscale.evaluation import maps3d
 from localscale.evaluation.predictors import prepare
 from localscale.evaluation.records import RecordFile, weights_fingerprint
+from localscale.evaluation.report import one_line_errors, write_table_and_json
 from localscale.io import load_image
 from localscale.training.real_pairs import load_covisible_pairs
 
@@ -106,21 +105,13 @@ def main(argv=None) -> int:
     if summary["skipped"]:
         print(f"warning: {summary['skipped']} pair(s) had too few labelled points and are left out", file=sys.stderr)
     doc = {"labels": str(args.labels), "predictors": predictors, "max_pairs": args.max_pairs} | run | summary
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(args.out.with_suffix(".md")) as tmp:
-        tmp.write_text(table)
-    with atomic_path(args.out) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1))
+    write_table_and_json(args.out, table, doc)
     return 0
 
 
 def cli(argv=None) -> int:
     """:func:`main` with bad input reported as one ``error:`` line and exit code 2."""
-    try:
-        return main(argv)
-    except (LocalScaleError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return one_line_errors(main, argv)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ printed and written to ``<out>.md``, the summary to ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -29,11 +28,11 @@ import cv2
 import numpy as np
 
 from localscale.core.errors import LocalScaleError
-from localscale.core.outputs import atomic_path
 from localscale.data import list_images, split_images
 from localscale.evaluation import sanity
 from localscale.evaluation.predictors import prepare
 from localscale.evaluation.records import RecordFile, weights_fingerprint
+from localscale.evaluation.report import one_line_errors, write_table_and_json
 from localscale.io import load_image
 
 DEFAULT_PREDICTORS = (
@@ -127,21 +126,13 @@ def main(argv=None) -> int:
     print(table)
     doc = {"photos": [str(p) for p in photos], "predictors": predictors} | models.describe() | summary
     doc["system"], doc["tolerance"] = args.system, args.tolerance
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(args.out.with_suffix(".md")) as tmp:
-        tmp.write_text(table)
-    with atomic_path(args.out) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1))
+    write_table_and_json(args.out, table, doc)
     return 0
 
 
 def cli(argv=None) -> int:
     """:func:`main` with bad input reported as one ``error:`` line and exit code 2."""
-    try:
-        return main(argv)
-    except (LocalScaleError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return one_line_errors(main, argv)
 
 
 if __name__ == "__main__":

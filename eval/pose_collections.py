@@ -20,9 +20,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from localscale.core.errors import LocalScaleError
 from localscale.evaluation.pose import PoseRun, run
 from localscale.evaluation.pose_data import COLLECTIONS
+from localscale.evaluation.report import one_line_errors
 from localscale.geometry.two_view import TwoViewConfig
 from localscale.matching.auto import auto_options
 
@@ -83,11 +83,7 @@ def main(argv=None) -> int:
 
 def cli(argv=None) -> int:
     """:func:`main` with bad input reported as one ``error:`` line and exit code 2."""
-    try:
-        return main(argv)
-    except (LocalScaleError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return one_line_errors(main, argv)
 
 
 if __name__ == "__main__":

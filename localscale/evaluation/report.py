@@ -9,6 +9,7 @@ import json
 import math
 import re
 import subprocess
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -217,6 +218,29 @@ def write_outputs(
     write_text(out / f"{name}.md", md)
     plot_mma(result["summary"], methods, list(thresholds), out, tag)
     return doc
+
+
+def write_table_and_json(out: Path, table: str, doc: dict) -> None:
+    """``out`` (JSON: ``doc`` and the commit, :func:`git_commit`) and the table beside it (``.md``),
+    each written completely or not at all."""
+    from ..core.outputs import atomic_path
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out.with_suffix(".md")) as tmp:
+        tmp.write_text(table)
+    with atomic_path(out) as tmp:
+        tmp.write_text(json.dumps({**doc, "commit": git_commit()}, indent=1))
+
+
+def one_line_errors(main, argv=None) -> int:
+    """``main(argv)`` of an evaluation script, with bad input reported as one ``error:`` line and exit code 2."""
+    from ..core.errors import LocalScaleError
+
+    try:
+        return main(argv)
+    except (LocalScaleError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
 
 
 def __getattr__(name):
