@@ -95,19 +95,28 @@ def confidence(probs: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return 1.0 - entropy(probs, dim) / math.log(NUM_BINS)
 
 
-def kl_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, dim: int = 1) -> torch.Tensor:
+def kl_loss(
+    logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, dim: int = 1, per_pair: bool = False
+) -> torch.Tensor:
     """Mean ``KL(target || softmax(logits))`` over the positions where ``mask`` is true.
 
     Args:
         logits: ``B x 13 x H x W`` (or ``B x 13``).
         target: distributions of the same shape.
         mask: ``B x H x W`` boolean (or ``B``); ``None`` means everywhere.
+        per_pair: the mean of each pair's mean over its masked positions (pairs without any left
+            out), so that a pair with few positions (a strong zoom-in shows little of A) weighs as
+            much as one with many; default: the mean over all masked positions of the batch.
     """
     logp = F.log_softmax(logits.float(), dim=dim)
     kl = (target * (torch.log(target.clamp_min(1e-12)) - logp)).sum(dim)
     if mask is None:
         return kl.mean()
     mask = mask.to(kl.dtype)
+    if per_pair and kl.dim() > 1:
+        count = mask.flatten(1).sum(1)
+        means = (kl * mask).flatten(1).sum(1) / count.clamp_min(1.0)
+        return means[count > 0].mean() if bool((count > 0).any()) else means.sum() * 0.0
     return (kl * mask).sum() / mask.sum().clamp_min(1.0)
 
 

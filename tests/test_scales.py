@@ -76,3 +76,22 @@ def test_confidence_bounds():
     uniform = torch.full((1, 13), 1 / 13)
     assert scales.confidence(one_hot).item() == pytest.approx(1.0)
     assert scales.confidence(uniform).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_kl_loss_per_pair_weighs_each_pair_once():
+    from localscale.scales import kl_loss, scale_to_distribution
+
+    torch.manual_seed(0)
+    logits = torch.zeros(2, 13, 4, 4)
+    target = scale_to_distribution(torch.full((2, 4, 4), 8.0), dim=1)  # far from the uniform prediction
+    target[1] = scale_to_distribution(torch.ones(1, 4, 4), dim=1)[0]
+    logits[1, 6] = 20.0  # pair 1 predicts its truth: KL ~ 0
+    mask = torch.zeros(2, 4, 4, dtype=torch.bool)
+    mask[0, 0, 0] = True  # pair 0: one cell (a strong zoom-in), pair 1: all 16
+    mask[1] = True
+    one = kl_loss(logits[:1], target[:1], mask[:1])
+    pooled, per_pair = kl_loss(logits, target, mask), kl_loss(logits, target, mask, per_pair=True)
+    assert torch.isclose(per_pair, one / 2, rtol=1e-4)  # each pair weighs 1/2
+    assert torch.isclose(pooled, one / 17, rtol=1e-3)  # the one cell weighs 1/17
+    empty = torch.zeros_like(mask)
+    assert kl_loss(logits, target, empty, per_pair=True) == 0

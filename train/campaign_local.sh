@@ -10,6 +10,6 @@ OMP_NUM_THREADS=1 exec localscale-train --model local --data ../shared/data/trai
   --identity-probability 0.1 --full-rotation-probability 0.5 --low-overlap-probability 0.15 \
   --unrelated-probability 0.05 --gray-one-side-probability 0.1 --strong-light-probability 0.2 \
   --degrade-probability 0.15 --swap-probability 0.3 --topk 32 --warp-features --visibility \
-  --batch-size 8 --threads 1 --workers 0 --seed 23 \
+  --loss-per-pair --batch-size 8 --threads 1 --workers 0 --seed 23 \
   --init-weights localscale/weights/local_scalenet.pt \
   --steps 60000 --lr 1e-4 --lr-milestones 45000 55000 --val-every 1000 --ckpt-every 200 "$@"

@@ -53,6 +53,7 @@ class TrainConfig:
     warp_features: bool = False  #: extra cue: B's features soft-warped onto A
     visibility: bool = False  #: local: also predict per-pixel co-visibility (BCE loss)
     visibility_weight: float = 0.5  #: weight of the visibility BCE beside the KL loss
+    loss_per_pair: bool = False  #: local: the KL averaged per pair first (zoom-ins show few cells of A)
     rotation: float = 30.0  #: max |in-plane rotation| in degrees of ordinary pairs
     translation: float = 0.2  #: max shift of A's centre in B, fraction of B's size
     identity_probability: float = 0.0  #: PairConfig: share of exact / near identity pairs

@@ -251,7 +251,7 @@ class _Run:
         """One optimiser step on ``batch``; returns its loss."""
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         with self.amp_ctx():
-            loss = compute_loss(self.model, batch, self.cfg.model, self.cfg.visibility_weight)
+            loss = compute_loss(self.model, batch, self.cfg.model, self.cfg.visibility_weight, self.cfg.loss_per_pair)
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"loss is {loss.item()} at step {self.step + 1}; stopped, {self.kept_checkpoint()}")
         self.opt.zero_grad(set_to_none=True)

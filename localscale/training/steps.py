@@ -47,13 +47,14 @@ def cpu_has_amx() -> bool:
         return False
 
 
-def compute_loss(model, batch: dict, kind: str, visibility_weight: float = 0.5) -> torch.Tensor:
-    """Local: KL on the co-visible cells (+ BCE of the visibility output over A's image region).
+def compute_loss(model, batch: dict, kind: str, visibility_weight: float = 0.5, per_pair: bool = False) -> torch.Tensor:
+    """Local: KL on the co-visible cells (+ BCE of the visibility output over A's image region);
+    ``per_pair``: the KL averaged per pair first (:func:`~localscale.scales.kl_loss`).
     Global: KL of both directions on pairs that share content."""
     if kind == "local":
         logits, vis = model(batch["a"], batch["b"], all_outputs=True)
         target = scales.scale_to_distribution(batch["scale"], dim=1)
-        loss = scales.kl_loss(logits, target, batch["mask"])
+        loss = scales.kl_loss(logits, target, batch["mask"], per_pair=per_pair)
         if vis is not None:
             valid = batch["valid"].float()
             bce = F.binary_cross_entropy_with_logits(vis[:, 0].float(), batch["mask"].float(), reduction="none")
