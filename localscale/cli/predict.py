@@ -122,24 +122,19 @@ def _refine_with_matcher(args, model, out, inputs) -> None:
 
 
 def _refine_hardnet(args, model, pred, back, out, inputs) -> None:
-    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.match_refined_pair`)."""
-    from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import match_refined_pair
+    """``--refine``: the gated maps of A and B matched, verified and refined (:func:`~localscale.matching.pipeline.refine_predictions`)."""
+    from ..matching.pipeline import refine_predictions
+    from ..matching.verification import VerificationConfig
 
     if args.search:  # B's map from its own search, as the searched correction of match does
         from ..search import search_scale_map
 
         back = search_scale_map(model, args.image_b, args.image_a, bf16=args.bf16).prediction
-    first_a, first_b = CorrectionGate().apply_predictions(pred, back)
-    from ..matching.verification import VerificationConfig
-
-    res = match_refined_pair(
+    res = refine_predictions(
         args.image_a,
         args.image_b,
-        first_a,
-        first_b,
-        pred.scale,
-        back.scale,
+        pred,
+        back,
         matcher=args.matcher,
         max_passes=args.refine_passes,
         sift_seed=args.refine_seed == "sift",

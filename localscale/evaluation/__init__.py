@@ -41,13 +41,8 @@ __all__ = [
 
 
 def __getattr__(name):
-    if name == "markdown_table":  # the old name of matching_table
-        import warnings
+    if name == "markdown_table":  # the old name of matching_table: report's deprecation warning
+        from . import report
 
-        warnings.warn(
-            f"{__name__}.markdown_table is deprecated, use matching_table; it goes in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return matching_table
+        return report.__getattr__(name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -132,22 +132,11 @@ def _correction(name: str) -> Predictor:
 
 
 def _refined(ctx: PairContext) -> np.ndarray:
-    from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import match_refined_pair
+    from ..matching.pipeline import refine_predictions
     from ..matching.verification import VerificationConfig
 
     pa, pb = ctx.anchored_predictions()
-    first_a, first_b = CorrectionGate().apply_predictions(pa, pb)
-    res = match_refined_pair(
-        ctx.a,
-        ctx.b,
-        first_a,
-        first_b,
-        pa.scale,
-        pb.scale,
-        sift_seed=True,
-        verification=VerificationConfig(model="two_view"),
-    )
+    res = refine_predictions(ctx.a, ctx.b, pa, pb, sift_seed=True, verification=VerificationConfig(model="two_view"))
     return res.refined_a.scale
 
 

@@ -103,16 +103,14 @@ def _base_row(name, fwd, g, H, shape_b) -> dict:
 def _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed: bool, refine_matcher) -> None:
     """``row["refined"]`` and its verification: the geometry of ``auto`` with ``refine_matcher``,
     or HardNet's refinement passes."""
-    from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import match_pair, match_refined_pair
+    from ..matching.pipeline import match_pair, refine_predictions
 
     if refine_matcher is not None:
         res = match_pair(a, b, "auto", local_model=local, global_model=scalenet, matcher=refine_matcher, refine=True)
         row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
         row["verification"] = _verification(res.verification, auto=res.meta["auto"])
         return
-    first_a, first_b = CorrectionGate().apply_predictions(fwd, bwd)
-    res = match_refined_pair(a, b, first_a, first_b, fwd.scale, bwd.scale, sift_seed=sift_seed)
+    res = refine_predictions(a, b, fwd, bwd, sift_seed=sift_seed)
     row["refined"] = pixel_errors(res.refined_a.scale, H, b.shape[:2])["err"]
     row["verification"] = _verification(
         res.verification, inlier_counts=res.meta["inlier_counts"], seed_inliers=res.meta["seed_inliers"]
@@ -121,8 +119,7 @@ def _refined(row, local, scalenet, a, b, H, fwd, bwd, sift_seed: bool, refine_ma
 
 def _searched(row, local, scalenet, a, b, H, refine: bool, sift_seed: bool) -> None:
     """The window search's columns, and the refinement seeded by the searched maps."""
-    from ..matching.correction import CorrectionGate
-    from ..matching.pipeline import match_refined_pair
+    from ..matching.pipeline import refine_predictions
     from ..search import search_global_scale, search_scale_map
 
     gp, res = search_global_scale(local, scalenet, a, b)
@@ -131,8 +128,7 @@ def _searched(row, local, scalenet, a, b, H, refine: bool, sift_seed: bool) -> N
     row["search_windows"] = {"a": res.window_a, "b": res.window_b, "score": res.score, "base_score": res.base_score}
     if refine:
         back = search_scale_map(local, b, a).prediction
-        first_a, first_b = CorrectionGate().apply_predictions(res.prediction, back)
-        sref = match_refined_pair(a, b, first_a, first_b, res.prediction.scale, back.scale, sift_seed=sift_seed)
+        sref = refine_predictions(a, b, res.prediction, back, sift_seed=sift_seed)
         row["search-refined"] = pixel_errors(sref.refined_a.scale, H, b.shape[:2])["err"]
         row["search_refined_verified"] = bool(sref.verification.verified)
 

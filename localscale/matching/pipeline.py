@@ -372,6 +372,16 @@ def match_refined_pair(
     return res
 
 
+def refine_predictions(image_a, image_b, pred_ab, pred_ba, **options) -> MatchResult:
+    """:func:`match_refined_pair` from two scale predictions (A->B and B->A, e.g. of
+    ``LocalScaleNet.predict``): the first pass uses their maps gated by :class:`CorrectionGate`,
+    the refined maps start from their maps; ``options`` as in :func:`match_refined_pair`."""
+    from .correction import CorrectionGate
+
+    first_a, first_b = CorrectionGate().apply_predictions(pred_ab, pred_ba)
+    return match_refined_pair(image_a, image_b, first_a, first_b, pred_ab.scale, pred_ba.scale, **options)
+
+
 def refine_match(*args, **kwargs) -> MatchResult:
     """Deprecated name of :func:`match_refined_pair`; goes in the next release."""
     import warnings
