@@ -114,3 +114,41 @@ def _camera(tmp_path):
     path = tmp_path / "camera.txt"
     path.write_text("1 PINHOLE 320 240 300 300 160 120\n")
     return path
+
+
+def test_auto_estimates_each_pairs_geometry_once_and_the_geometry_step_takes_it(scene, tmp_path, monkeypatch):
+    """With ``auto``, the pairs kept as they are get their two-view geometry in the match step, from
+    the geometry step's own estimator; the geometry step takes it: one estimate per pair, none by
+    the package's other estimator, and the model is the one a plain geometry step makes."""
+    from localscale.matching import verification
+    from localscale.sfm import geometry
+
+    calls, other = [], []
+    real, real_other = geometry.estimate_pair, verification.estimate_two_view_geometry
+    monkeypatch.setattr(geometry, "estimate_pair", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(
+        verification, "estimate_two_view_geometry", lambda *a, **k: other.append(1) or real_other(*a, **k)
+    )
+    conf = ReconstructConfig.from_flat(matcher="sift", num_keypoints=1024, correction="auto")
+    summary = reconstruct(scene, tmp_path / "auto", conf, **OPTS)
+    g = summary["geometry"]
+    kept = [p for p in summary["matching"]["pairs"] if p["chosen"] == "as they are"]
+    assert summary["pairs"] == 6 and len(kept) == 6 and summary["registered"] == 4
+    assert g["from_matching"] == 6 and g["estimated"] == 0 and len(calls) == 6 and other == []
+    # the stored geometries are those the geometry step estimates from the files
+    again = geometry.verify_files(scene, tmp_path / "auto", conf, show_progress=False)
+    assert again.reused == 6
+    (tmp_path / "auto" / "geometries.h5").unlink()
+    fresh = geometry.verify_files(scene, tmp_path / "auto", conf, show_progress=False)
+    assert fresh.from_matching == 6 and fresh.estimated == 0
+    monkeypatch.setattr(geometry, "read_matched_geometries", lambda path: {})
+    (tmp_path / "auto" / "geometries.h5").unlink()
+    own = geometry.verify_files(scene, tmp_path / "auto", conf, show_progress=False)
+    assert own.estimated == 6 and own.verified == fresh.verified == 6
+    for key, stored in fresh.pairs.items():  # same configuration, inliers within a few (RANSAC on reordered matches)
+        assert own.pairs[key]["config"] == stored["config"]
+        assert abs(own.pairs[key]["inliers"] - stored["inliers"]) <= 0.05 * stored["matches"], (
+            key,
+            own.pairs[key],
+            stored,
+        )

@@ -18,7 +18,10 @@ Built in (:data:`PREDICTORS`):
 * ``refined``: the map ``localscale predict --refine`` writes: the anchored maps of A and B gated,
   hardnet matches verified as COLMAP's two-view geometry chooses (H, F or E), the map refined by the
   geometry (the homography's map, or the dense map of the verified matches), the anchored map where
-  nothing verifies or matches are too sparse; OpenCV SIFT as the seed when the first pass fails.
+  nothing verifies or matches are too sparse; OpenCV SIFT as the seed when the first pass fails;
+* ``refined:MATCHER`` (``aliked-lightglue``, ``disk-lightglue``, ``xfeat-lightglue``): the map
+  ``localscale predict --refine --matcher MATCHER`` writes: the geometry ``auto`` verifies with that
+  matcher (its hypotheses find the window of a close-up and its quarter turn), the map refined from it.
 
 More can be added by name (:func:`register_predictor`), e.g. a system's own map from a function
 ``f(image_a, image_b, local_model=..., global_model=...)`` (:func:`function_predictor`,
@@ -140,6 +143,19 @@ def _refined(ctx: PairContext) -> np.ndarray:
     return res.refined_a.scale
 
 
+def _refined_auto(matcher: str) -> Predictor:
+    def predict(ctx: PairContext) -> np.ndarray:
+        from ..matching.pipeline import match_pair
+
+        m = ctx.models
+        res = match_pair(
+            ctx.a, ctx.b, "auto", local_model=m.local, global_model=m.global_, matcher=matcher, refine=True
+        )
+        return res.refined_a.scale
+
+    return predict
+
+
 register_predictor("local", lambda ctx: ctx.local_predictions()[0].scale)
 register_predictor("anchored", lambda ctx: ctx.anchored_predictions()[0].scale)
 register_predictor("scalenet", lambda ctx: ctx.global_scale())
@@ -147,6 +163,8 @@ register_predictor("one", lambda ctx: 1.0)
 for _name in ("global", "local", "fused", "searched", "gt", "gt_gated"):
     register_predictor(f"correction:{_name}", _correction(_name))
 register_predictor("refined", _refined)
+for _name in ("aliked-lightglue", "disk-lightglue", "xfeat-lightglue"):
+    register_predictor(f"refined:{_name}", _refined_auto(_name))
 
 
 def function_predictor(fn: Callable) -> Predictor:

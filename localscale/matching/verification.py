@@ -343,6 +343,7 @@ def verify_matches(
     config: VerificationConfig = VerificationConfig(),
     camera_a=None,
     camera_b=None,
+    geometry: Optional[TwoViewGeometry] = None,
 ) -> VerificationResult:
     """Estimate the geometry of a match set and decide whether it is verified.
 
@@ -355,6 +356,8 @@ def verify_matches(
         camera_a, camera_b: the cameras of A and B in the pixels of the points
             (:class:`~localscale.geometry.cameras.Camera` or what :func:`~localscale.geometry.cameras.as_camera`
             reads), used by ``model="two_view"`` (essential matrix and relative pose with both).
+        geometry: ``model="two_view"``: the match set's geometry, already estimated (its
+            ``inliers`` over these ``K`` matches, ``H`` and ``F`` in these pixels); only the decision is made.
     Returns:
         :class:`VerificationResult`.
     """
@@ -365,7 +368,7 @@ def verify_matches(
     if len(pa) < 4:
         return _empty(pa, pb, shape_a, shape_b, f"{len(pa)} matches, at least 4 needed")
     if config.model == "two_view":
-        return _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, camera_b)
+        return _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, camera_b, geometry)
     if config.model == "homography":
         return _verify_homography(pa, pb, shape_a, shape_b, scale_map, config)
     fres = _verify_fundamental(pa, pb, shape_a, shape_b, scale_map, config)
@@ -444,11 +447,14 @@ def _verify_fundamental(pa, pb, shape_a, shape_b, scale_map, config) -> Verifica
     return res
 
 
-def _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, camera_b) -> VerificationResult:
+def _verify_two_view(pa, pb, shape_a, shape_b, scale_map, config, camera_a, camera_b, g=None) -> VerificationResult:
     """The model COLMAP's two-view geometry chooses (:func:`~localscale.geometry.two_view.estimate_two_view_geometry`),
     then the same decision as the other models: a homography's scales are its own, those of a
     fundamental or essential matrix come from the local affine fits of its inliers that are consistent."""
-    g = estimate_two_view_geometry(pa, pb, camera_a, camera_b, config.two_view)
+    if g is None:
+        g = estimate_two_view_geometry(pa, pb, camera_a, camera_b, config.two_view)
+    elif len(g.inliers) != len(pa):
+        raise ValueError(f"the given geometry has {len(g.inliers)} inliers' mask for {len(pa)} matches")
     if g.model == "homography" and g.H is not None:
         res = _verify_homography(pa, pb, shape_a, shape_b, scale_map, config, g.H, g.inliers)
     elif g.model in ("fundamental", "essential"):

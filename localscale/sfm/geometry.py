@@ -6,6 +6,13 @@ verification: E, F and H by RANSAC, the configuration that explains the matches,
 A pair with fewer than ``min_inliers`` inliers, or a degenerate configuration, is kept with no
 inlier matches (COLMAP's mapper then ignores it).
 
+Each pair's geometry is estimated once, here (:func:`pair_geometry`). ``auto`` verifies the pairs
+as they are with it in the match step (:func:`two_view_of` turns it into the package's
+:class:`~localscale.geometry.two_view.TwoViewGeometry` for its decision) and stores it beside the
+pair's matches in ``matches.h5``; this step takes a stored geometry whose inputs (:func:`inputs_sha1`)
+are those of the pair's matches instead of estimating it again, and so does a rerun with
+``geometries.h5``'s own.
+
 Example::
 
     cams = image_cameras(images, "auto")
@@ -32,6 +39,23 @@ from .steps import cameras_of, config_of, parser, run_step, step_images
 #: configurations whose inliers are kept (COLMAP's names)
 VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
 
+#: inliers a pair needs (COLMAP's ``min_num_inliers``)
+MIN_INLIERS = 15
+
+#: prefix of the datasets and attributes of a geometry stored beside a pair's matches in ``matches.h5``
+MATCHED_PREFIX = "two_view_"
+
+
+@dataclass
+class PairGeometry:
+    """One pair's estimated two-view geometry: its configuration (COLMAP's name), the datasets of
+    ``geometries.h5`` (``inlier_matches`` ``K' x 2`` indices into the keypoints it was estimated on,
+    ``F``, ``E``, ``H``, ``R``, ``t`` where known) and the sha1 of its inputs (:func:`inputs_sha1`)."""
+
+    config: str
+    data: dict
+    inputs_sha1: str = ""
+
 
 @dataclass
 class GeometryStats:
@@ -42,12 +66,16 @@ class GeometryStats:
     seconds: float = 0.0
     estimator: str = "pycolmap"
     reused: int = 0  # pairs whose stored geometry was kept (same inputs)
+    estimated: int = 0  # pairs estimated in this step
+    from_matching: int = 0  # pairs whose geometry the match step estimated (``auto``: as they are)
 
     def to_dict(self) -> dict:
         return {
             "verified": self.verified,
             "pairs": len(self.pairs),
+            "estimated": self.estimated,
             "reused": self.reused,
+            "from_matching": self.from_matching,
             "estimator": self.estimator,
             "seconds": round(self.seconds, 2),
         }
@@ -94,13 +122,14 @@ def verify_pairs(
     matches_path,
     cameras,
     geometries_path,
-    min_inliers: int = 15,
+    min_inliers: int = MIN_INLIERS,
     show_progress: bool = True,
 ) -> GeometryStats:
-    """Verify every pair of ``matches_path`` and write ``geometries_path`` (atomically). A pair
-    already in ``geometries_path`` whose inputs are the same (:func:`_inputs_sha1`: its matches, their
-    keypoints, the two cameras, ``min_inliers``) keeps its stored geometry: each pair is estimated
-    once, also over reruns (``stats.reused``)."""
+    """Verify every pair of ``matches_path`` and write ``geometries_path`` (atomically). A pair whose
+    inputs (:func:`inputs_sha1`: its matches, their keypoints, the two cameras, ``min_inliers``) are
+    those of a geometry already estimated keeps it: one in ``geometries_path`` (a rerun,
+    ``stats.reused``) or one stored beside its matches by the match step (``stats.from_matching``).
+    The others are estimated (:func:`pair_geometry`, ``stats.estimated``): each pair once."""
     t0 = time.perf_counter()
     stats = GeometryStats()
     names = {im.name for im in images}
@@ -110,19 +139,25 @@ def verify_pairs(
         if n in names
     }
     stored = _stored_inputs(geometries_path)
+    matched = read_matched_geometries(matches_path)
     writer = H5Writer(geometries_path, fresh=True)
     matches = read_all_matches(matches_path)
     for (a, b), (m, _) in progress(list(matches.items()), "verify", unit="pair", disable=not show_progress):
         if a not in kps or b not in kps:
             continue
         key = names_to_pair(a, b)
-        digest = _inputs_sha1(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
+        digest = inputs_sha1(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
         if stored.get(key) == digest:
             data = read_group(geometries_path, key)
             config = str(data.pop("attrs")["config"])
             stats.reused += 1
+        elif key in matched and matched[key].inputs_sha1 == digest:
+            config, data = matched[key].config, matched[key].data
+            stats.from_matching += 1
         else:
-            config, data = _estimated(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
+            g = pair_geometry(kps[a], kps[b], m, cameras.camera(a), cameras.camera(b), min_inliers)
+            config, data = g.config, g.data
+            stats.estimated += 1
         writer.add(key, data, {"config": config, "name0": a, "name1": b, "inputs_sha1": digest})
         inliers = len(data["inlier_matches"])
         stats.pairs[(a, b)] = {"config": config, "inliers": int(inliers), "matches": int(len(m))}
@@ -132,8 +167,10 @@ def verify_pairs(
     return stats
 
 
-def _estimated(points_a, points_b, m, camera_a, camera_b, min_inliers: int) -> tuple:
-    """``(configuration name, datasets of geometries.h5)`` of one pair, estimated (:func:`estimate_pair`)."""
+def pair_geometry(points_a, points_b, m, camera_a, camera_b, min_inliers: int = MIN_INLIERS) -> PairGeometry:
+    """The :class:`PairGeometry` of one pair (:func:`estimate_pair`): ``points_*`` the images'
+    keypoints, ``m`` ``K x 2`` indices into them; fewer than 5 matches are ``DEGENERATE``."""
+    m = np.asarray(m, np.int64).reshape(-1, 2)
     g = None if len(m) < 5 else estimate_pair(points_a, points_b, m, camera_a, camera_b, min_inliers)
     config = "DEGENERATE" if g is None else config_name(g)
     inl = np.zeros((0, 2), np.int32) if g is None else np.asarray(g.inlier_matches, np.int32).reshape(-1, 2)
@@ -145,10 +182,36 @@ def _estimated(points_a, points_b, m, camera_a, camera_b, min_inliers: int) -> t
         pose = getattr(g, "cam2_from_cam1", None)
         if pose is not None and np.linalg.norm(np.asarray(pose.translation)) > 0:
             data.update(R=np.asarray(pose.rotation.matrix(), np.float64), t=np.asarray(pose.translation, np.float64))
-    return config, data
+    digest = inputs_sha1(points_a, points_b, m, camera_a, camera_b, min_inliers)
+    return PairGeometry(config, data, digest)
 
 
-def _inputs_sha1(points_a, points_b, m, camera_a, camera_b, min_inliers: int) -> str:
+def two_view_of(g: PairGeometry, m: np.ndarray, S_a=None, S_b=None):
+    """``g`` (estimated on the matches ``m``, ``K x 2``) as the package's
+    :class:`~localscale.geometry.two_view.TwoViewGeometry`: the model of its configuration, its
+    matrices and pose, and the ``K`` inlier mask over ``m``. ``S_a``, ``S_b``: ``3 x 3`` maps from
+    the pixels ``g`` was estimated in to those of the result (``H`` and ``F`` follow them)."""
+    from ..geometry.two_view import CONFIGURATION_MODEL, TwoViewGeometry
+
+    m = np.asarray(m, np.int64).reshape(-1, 2)
+    inl = np.asarray(g.data["inlier_matches"], np.int64).reshape(-1, 2)
+    width = int(max(m[:, 1].max(initial=0), inl[:, 1].max(initial=0))) + 1
+    mask = np.isin(m[:, 0] * width + m[:, 1], inl[:, 0] * width + inl[:, 1])
+    model = CONFIGURATION_MODEL.get(g.config, "none")
+    d = dict(g.data)
+    if S_a is not None and S_b is not None:
+        ia = np.linalg.inv(np.asarray(S_a, np.float64))
+        if "H" in d:
+            d["H"] = np.asarray(S_b, np.float64) @ d["H"] @ ia
+        if "F" in d:
+            d["F"] = np.linalg.inv(np.asarray(S_b, np.float64)).T @ d["F"] @ ia
+    return TwoViewGeometry(
+        g.config, model, len(m), mask, int(mask.sum()), d.get("H"), d.get("F"), d.get("E"), d.get("R"), d.get("t"),
+        pose_source={"essential": "E", "fundamental": "F", "homography": "H"}.get(model) if "R" in d else None,
+    )  # fmt: skip
+
+
+def inputs_sha1(points_a, points_b, m, camera_a, camera_b, min_inliers: int = MIN_INLIERS) -> str:
     """The sha1 of what a pair's geometry depends on: its matches, their keypoints, the cameras, ``min_inliers``."""
     m = np.ascontiguousarray(m, np.int64).reshape(-1, 2)
     h = hashlib.sha1(m.tobytes())
@@ -170,6 +233,27 @@ def _stored_inputs(geometries_path) -> dict:
             return {k: str(f[k].attrs["inputs_sha1"]) for k in keys if "inputs_sha1" in f[k].attrs}
     except (OSError, H5FileError):
         return {}
+
+
+def matched_datasets(g: PairGeometry) -> tuple:
+    """``(datasets, attributes)`` that store ``g`` beside a pair's matches in ``matches.h5``."""
+    data = {MATCHED_PREFIX + k: v for k, v in g.data.items()}
+    return data, {MATCHED_PREFIX + "config": g.config, MATCHED_PREFIX + "inputs_sha1": g.inputs_sha1}
+
+
+def read_matched_geometries(matches_path) -> dict:
+    """``{pair key: PairGeometry}`` stored beside the matches of ``matches_path`` (:func:`matched_datasets`)."""
+    out = {}
+    if not Path(matches_path).exists():
+        return out
+    tag = MATCHED_PREFIX + "inlier_matches"
+    with open_h5(matches_path) as f:
+        for key in groups_with(matches_path, tag):
+            grp = f[key]
+            data = {k[len(MATCHED_PREFIX) :]: grp[k][()] for k in grp if k.startswith(MATCHED_PREFIX)}
+            at = grp.attrs
+            out[key] = PairGeometry(str(at[MATCHED_PREFIX + "config"]), data, str(at[MATCHED_PREFIX + "inputs_sha1"]))
+    return out
 
 
 def read_geometries(geometries_path) -> dict:

@@ -97,6 +97,11 @@ class H5Writer:
     def add(self, name: str, datasets: dict, attrs: Optional[dict] = None) -> None:
         self.pending[name] = (datasets, attrs or {})
 
+    def extend(self, name: str, datasets: dict, attrs: Optional[dict] = None) -> None:
+        """Add datasets and attributes to the group ``name`` added and not yet flushed."""
+        have, have_attrs = self.pending[name]
+        self.pending[name] = ({**have, **datasets}, {**have_attrs, **(attrs or {})})
+
     def maybe_flush(self) -> bool:
         if self.pending and time.monotonic() - self._last >= self.every_s:
             self.flush()

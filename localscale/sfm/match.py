@@ -20,6 +20,10 @@ in the set is that keypoint; hloc merges the keypoints of dense matchers the sam
 matches of different pairs share keypoints and form tracks. The set starts with ``features.h5``'s
 keypoints (with ``none`` it is exactly them).
 
+With ``auto``, a pair kept as it is comes with its two-view geometry (estimated once, by
+:func:`~.geometry.pair_geometry`, with the images' cameras), stored beside its matches for the
+geometry step.
+
 A pair already in ``matches.h5`` (either order) is skipped: a rerun resumes. ``matches.h5`` and
 ``keypoints.h5`` are flushed together (keypoints first) every ``flush_s`` seconds and at the end.
 """
@@ -43,7 +47,7 @@ from .keypoints import KeypointSet, one_to_one
 from .pair_runner import MatchPair, PairRunnerFactory
 from .progress import progress
 from .report import warn
-from .steps import config_of, parser, run_step, step_images
+from .steps import cameras_of, config_of, parser, run_step, step_images
 
 
 @dataclass
@@ -136,8 +140,9 @@ def match_pairs(
     _check_extracted(features_path, pairs)
     sets = _keypoint_sets(images, features_path, keypoints_path, conf.mapping.merge_px, fresh=overwrite)
     stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
-    output = _MatchOutput(matches_path, keypoints_path, sets, {im.name: im for im in images}, fresh=overwrite)
-    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, method, device, *models)
+    cameras = cameras_of(images, conf) if method.auto else None
+    output = _MatchOutput(matches_path, keypoints_path, sets, {im.name: im for im in images}, overwrite, cameras)
+    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, method, device, *models, cameras)
     runner, run_items = _pair_runs(factory, executor, show_progress) if todo else (None, None)
     if todo and method.auto and conf.correction.auto_graph:
         from ..matching.auto.collection import match_with_graph
@@ -221,6 +226,8 @@ def apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: floa
                 (a, b), r = todo[applied], pending.pop(applied)
                 mm, ss = _index_matches(sets, a, b, r.kp_a, r.kp_b, r.matches, r.scores)
                 stats.pairs.append(output.add(a, b, mm, ss, r.verified, r.chosen, r.seconds, r.relation))
+                if r.geometry is not None:
+                    output.add_geometry(a, b, r, mm)
                 stats.matched += 1
                 stats.feature_sets += r.computed
                 applied += 1
@@ -243,9 +250,9 @@ class _MatchOutput:
     """``matches.h5`` and ``keypoints.h5`` being written: the matches of each pair added, and the
     keypoint sets of the images they touched, flushed together (keypoints first)."""
 
-    def __init__(self, matches_path, keypoints_path, sets: dict, by_name: dict, fresh: bool):
+    def __init__(self, matches_path, keypoints_path, sets: dict, by_name: dict, fresh: bool, cameras=None):
         self.matches_path, self.keypoints_path = matches_path, keypoints_path
-        self.sets, self.by_name = sets, by_name
+        self.sets, self.by_name, self.cameras = sets, by_name, cameras
         self.m_writer = H5Writer(matches_path, fresh=fresh)
         self.k_writer = H5Writer(keypoints_path, fresh=fresh)
         self.changed = set(by_name) if (fresh or not Path(keypoints_path).exists()) else set()
@@ -268,6 +275,35 @@ class _MatchOutput:
             attrs["relation"] = np.array([relation.scale, relation.turn, relation.strength], np.float64)
         self.m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
         return rec
+
+    def add_geometry(self, a: str, b: str, r, mm) -> None:
+        """Store the two-view geometry ``r.geometry`` of the pair's result ``r`` beside its written
+        matches ``mm`` (indices into the keypoint sets; :func:`_index_matches` of ``r``'s): a written
+        match is an inlier when a match of ``r`` that it stands for is one, and the inputs' sha1 is
+        that of the written matches as the geometry step reads them (:func:`~.geometry.inputs_sha1`)."""
+        from .geometry import MIN_INLIERS, inputs_sha1, matched_datasets
+        from .h5io import matches_from_matches0
+
+        g, m = r.geometry, np.asarray(r.matches, np.int64).reshape(-1, 2)
+        if not len(mm):
+            return
+        width = len(self.sets[b]) + 1
+        ia, ib = self.sets[a].index(r.kp_a[m[:, 0]]), self.sets[b].index(r.kp_b[m[:, 1]])
+        rows = {(int(i), int(j)): k for k, (i, j) in enumerate(m)}
+        inl = np.asarray(g.data["inlier_matches"], np.int64).reshape(-1, 2)
+        inlier_rows = [rows[(int(i), int(j))] for i, j in inl if (int(i), int(j)) in rows]
+        written, _ = matches_from_matches0(matches0_from_matches(mm, np.zeros(len(mm)), len(self.sets[a]))[0])
+        codes = written[:, 0] * width + written[:, 1]
+        if not np.isin(codes, ia * width + ib).all():
+            return
+        keep = np.isin(codes, ia[inlier_rows] * width + ib[inlier_rows])
+        inliers = written[keep] if keep.sum() >= MIN_INLIERS else written[:0]
+        digest = inputs_sha1(
+            self.sets[a].keypoints, self.sets[b].keypoints, written, self.cameras.camera(a), self.cameras.camera(b)
+        )
+        data = dict(g.data, inlier_matches=inliers.astype(np.int32).reshape(-1, 2))
+        datasets, attrs = matched_datasets(type(g)(g.config, data, digest))
+        self.m_writer.extend(names_to_pair(a, b), datasets, attrs)
 
     def flush(self) -> None:
         """Write what was added: the changed keypoint sets, then the matches."""

@@ -36,6 +36,7 @@ class PairResult:
     seconds: float = 0.0
     computed: int = 0
     support: int = 0
+    geometry: Any = None
 
 
 def costs_to_scores(costs: np.ndarray, lightglue: bool) -> np.ndarray:
@@ -54,6 +55,9 @@ class PairRunnerFactory:
     device: str = "cpu"
     local_model: Any = None  #: the networks to ship to the workers (None: each loads the bundled weights)
     global_model: Any = None
+    cameras: Any = (
+        None  #: the images' cameras (:func:`~.cameras.image_cameras`): the pairs as they are get their geometry
+    )
 
     def __call__(self):
         by_name = {im.name: im for im in self.images}
@@ -67,6 +71,7 @@ class PairRunnerFactory:
             self.local_model,
             self.global_model,
             len(by_name),
+            self.cameras,
         )
 
 
@@ -90,11 +95,12 @@ class PairRunner:
     ``levels(a, b, ...)``; each returns a :class:`PairResult`."""
 
     def __init__(
-        self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images
-    ):
+        self, by_name, features_path, conf, correction, device, matcher, local_model, global_model, num_images,
+        cameras=None,
+    ):  # fmt: skip
         from ..matching import get_correction
 
-        self.by_name, self.features_path, self.conf = by_name, features_path, conf
+        self.by_name, self.features_path, self.conf, self.cameras = by_name, features_path, conf, cameras
         self.correction = get_correction(correction)
         self.matcher = matcher or build_matcher(conf, device, num_images)
         self.lightglue = self.matcher.config.matching == "lightglue"
@@ -182,7 +188,9 @@ class PairRunner:
 
     def as_they_are(self, a: str, b: str) -> "PairResult":
         """The stored features matched and verified with the two-view geometry (homography for
-        planes, fundamental matrix otherwise); a verified pair gets its relation."""
+        planes, fundamental or essential matrix otherwise); a verified pair gets its relation. With
+        the images' cameras, the geometry is the geometry step's own (:func:`~.geometry.pair_geometry`),
+        kept with the result so that it is estimated once."""
         import dataclasses
 
         from ..matching import verify_matches
@@ -191,15 +199,23 @@ class PairRunner:
         (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
         matches, costs = m.match_features(fa, fb)
         matches = np.asarray(matches, np.int64).reshape(-1, 2)
+        kp_a, kp_b = to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb)
         vconf = dataclasses.replace(m.config.verification, model="two_view", coverage_of="either")
+        geometry = two_view = None
+        if self.cameras is not None:  # estimated in full-image pixels, decided in working pixels
+            from .geometry import pair_geometry, two_view_of
+
+            geometry = pair_geometry(kp_a, kp_b, matches, self.cameras.camera(a), self.cameras.camera(b))
+            two_view = two_view_of(geometry, matches, Sa, Sb)
         pa, pb = fa.keypoints[matches[:, 0]], fb.keypoints[matches[:, 1]]
-        v = verify_matches(pa, pb, fa.image_shape, fb.image_shape, None, vconf)
+        v = verify_matches(pa, pb, fa.image_shape, fb.image_shape, None, vconf, geometry=two_view)
         scores = costs_to_scores(costs, self.lightglue)
         rel, c = relation_of(v, None), m.config.auto
         clear = v.num_inliers >= c.accept_inliers and v.inlier_ratio >= c.accept_ratio
         final = rel is not None and (clear or rel.is_identity(c.geometry_log2))
-        kp_a, kp_b = to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb)
-        return PairResult(kp_a, kp_b, matches, scores, bool(v.verified), "as they are", rel, final=final)
+        out = PairResult(kp_a, kp_b, matches, scores, bool(v.verified), "as they are", rel, final=final)
+        out.geometry = geometry
+        return out
 
     def seed(self, a: str, b: str) -> "PairResult":
         """The seed matcher's (SIFT) run on the images as they are: no matches kept, only the
