@@ -45,7 +45,7 @@ def write_database(
     """
     pycolmap = _pycolmap()
     from .geometry import read_geometries
-    from .match import read_all_matches
+    from .h5io import read_all_matches
 
     database_path = Path(database_path)
     kp_names = set(groups_with(keypoints_path, "keypoints"))

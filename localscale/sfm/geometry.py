@@ -30,9 +30,8 @@ from typing import Optional
 import numpy as np
 
 from .config import ReconstructConfig
-from .h5io import H5FileError, H5Writer, groups_with, open_h5, read_group
+from .h5io import H5FileError, H5Writer, groups_with, open_h5, read_all_matches, read_group
 from .images import names_to_pair
-from .match import read_all_matches
 from .progress import progress
 from .steps import cameras_of, config_of, parser, run_step, step_images
 

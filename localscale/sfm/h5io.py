@@ -150,3 +150,18 @@ def matches0_from_matches(matches: np.ndarray, scores: np.ndarray, num_a: int):
 def iter_pairs(path) -> Iterator[str]:
     """The pair names of ``matches.h5``."""
     yield from groups_with(path, "matches0")
+
+
+def read_all_matches(matches_path) -> dict:
+    """``{(name_a, name_b): (K x 2 matches, K scores)}`` of ``matches.h5`` (indices into
+    ``keypoints.h5``; the names as matched, from the groups' ``name0`` / ``name1``)."""
+    out = {}
+    keys = groups_with(matches_path, "matches0")
+    with open_h5(matches_path) as f:
+        for key in keys:
+            g = f[key]
+            a, b = str(g.attrs.get("name0", "")), str(g.attrs.get("name1", ""))
+            if not a or not b:
+                a, b = key.split("/", 1)  # written by another tool: names without '/'
+            out[(a, b)] = matches_from_matches0(g["matches0"][()], g["matching_scores0"][()])
+    return out

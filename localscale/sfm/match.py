@@ -369,23 +369,6 @@ def _keypoint_sets(images, features_path, keypoints_path, merge_px: float, fresh
     return sets
 
 
-def read_all_matches(matches_path) -> dict:
-    """``{(name_a, name_b): (K x 2 matches, K scores)}`` of ``matches.h5`` (indices into
-    ``keypoints.h5``; the names as matched, from the groups' ``name0`` / ``name1``)."""
-    from .h5io import matches_from_matches0, open_h5
-
-    out = {}
-    keys = groups_with(matches_path, "matches0")
-    with open_h5(matches_path) as f:
-        for key in keys:
-            g = f[key]
-            a, b = str(g.attrs.get("name0", "")), str(g.attrs.get("name1", ""))
-            if not a or not b:
-                a, b = key.split("/", 1)  # written by another tool: names without '/'
-            out[(a, b)] = matches_from_matches0(g["matches0"][()], g["matching_scores0"][()])
-    return out
-
-
 def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, device="cpu", **kw):
     """The match step from the files of ``out_dir``: ``features.h5`` and ``pairs.txt`` ->
     ``matches.h5`` and ``keypoints.h5`` (``kw``: :func:`~.match.match_pairs`'s)."""
