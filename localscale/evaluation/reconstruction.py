@@ -52,6 +52,13 @@ import numpy as np
 from ..core.outputs import write_text
 from .report import git_commit
 
+#: the reference model of a collection (relative to its folder): camera centres by image name
+#: (:func:`localscale.sfm.placement.read_reference_centres`); the others use colmap-sift's own model
+REFERENCES = {
+    "kermit_bundler": "derived/colmap_txt",
+    "skull_alansartlog": "derived/colmap_txt_resized",
+    "temple_sparse_ring_middlebury": "derived/templeSR_par_jpgnames.txt",
+}
 PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
 COLUMNS = [
     ("collection", "collection"),
@@ -59,6 +66,8 @@ COLUMNS = [
     ("registered", "registered"),
     ("closeups_registered", "close-ups reg."),
     ("closeup_centre_error", "close-up centre err"),
+    ("placed_right", "placed right"),
+    ("reference", "reference"),
     ("points", "points"),
     ("observations", "observations"),
     ("mean_track_length", "mean track"),
@@ -321,6 +330,30 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
     )
 
 
+def reference_of(cfg: "ReconstructionRun", collection: str, label: str):
+    """``(what, {name: centre})``: the collection's reference model (:data:`REFERENCES`), else the
+    model of its ``colmap-sift`` run in ``OUT/<label>/colmap-sift`` (None when there is none)."""
+    from ..sfm.mapping import read_models
+    from ..sfm.placement import read_reference_centres
+
+    if collection in REFERENCES:
+        return "given", read_reference_centres(Path(cfg.root) / collection / REFERENCES[collection])
+    pipe = "colmap-sift" if cfg.mapper == "incremental" else f"colmap-sift+{cfg.mapper}"
+    models = read_models(Path(cfg.output) / label / pipe / "sparse")
+    if not models:
+        return None, None
+    return pipe, {im.name: np.asarray(im.projection_center()) for im in models[0].images.values() if im.has_pose}
+
+
+def placed_right(model, images: list, reference, closeups: dict) -> dict:
+    """:func:`localscale.sfm.placement.placement` of a model's registered images (``model``: a
+    ``pycolmap.Reconstruction`` or None) against ``reference`` and the close-ups' sources."""
+    from ..sfm.placement import placement
+
+    centres = {} if model is None else {im.name: im.projection_center() for im in model.images.values() if im.has_pose}
+    return placement(centres, images, reference, {k: v["source"] for k, v in closeups.items()})
+
+
 def result_row(label: str, pipe: str, res: dict, closeups: dict, wall: float, camera_mode: str, threads: int) -> dict:
     """The results row of one pipeline run (``res``: :func:`run_colmap_sift` or :func:`run_ours`)."""
     st = res["stats"] or {
@@ -337,6 +370,13 @@ def result_row(label: str, pipe: str, res: dict, closeups: dict, wall: float, ca
         "registered": f"{st['registered']}/{res['images']}",
         "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
         "closeup_centre_error": centre_err,
+        "placed_right": (
+            f"{res['placement']['placed_right']}/{res['placement']['checked']}"
+            if res.get("placement") and res["placement"]["checked"]
+            else None
+        ),
+        "reference": res.get("reference"),
+        "placement": res.get("placement"),
         "points": st["points"],
         "observations": st["observations"],
         "mean_track_length": st["mean_track_length"],
@@ -377,6 +417,9 @@ def run(cfg: ReconstructionRun) -> list:
                 known = cfg.intrinsics.get(c) if version == "plain" else None
                 res = run_pipeline(cfg, method, images_dir, out / label / pipe, camera_mode, known)
                 wall = time.perf_counter() - t0
+                res["reference"], ref = reference_of(cfg, c, label)
+                names = sorted(p.name for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+                res["placement"] = placed_right(res["model"], names, ref, closeups)
                 row = result_row(label, pipe, res, closeups, wall, camera_mode, cfg.threads)
                 rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
                 save_rows(out, rows)

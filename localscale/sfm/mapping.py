@@ -59,6 +59,8 @@ class MappingResult:
     trials: list = field(default_factory=list)
     #: the options set by name on pycolmap's defaults (:func:`set_options`)
     overrides: dict = field(default_factory=dict)
+    #: what ``check`` did to the largest model (:func:`~.registration_check.check_registrations`)
+    checked: list = field(default_factory=list)
 
 
 #: COLMAP's bounds of plausible intrinsics (its mapper's ``min/max_focal_length_ratio``,
@@ -137,6 +139,7 @@ def run_mapping(
     mapper: str = "incremental",
     trials: int = MAPPING_TRIALS,
     overrides: Optional[dict] = None,
+    check=None,
 ) -> MappingResult:
     """Mapping of ``database_path`` with ``mapper`` (:data:`MAPPERS`); writes ``sparse_dir/<i>``
     (largest model first). ``image_dir`` gives the points their colours (COLMAP reads the images);
@@ -146,7 +149,10 @@ def run_mapping(
     ``trials``: while the largest model leaves images of the database out, the mapper runs again
     with the next random seed (0, 1, ...), at most ``trials`` times in all; the run whose largest
     model registers the most images (then has the most observations) is kept
-    (:attr:`MappingResult.trials`: each run's seed and images registered)."""
+    (:attr:`MappingResult.trials`: each run's seed and images registered).
+
+    ``check``: a function that changes the largest model in place before it is written and returns
+    a list (:attr:`MappingResult.checked`; e.g. :func:`~.registration_check.check_registrations`)."""
 
     check_mapper(mapper)
     check_trials(trials)
@@ -154,7 +160,7 @@ def run_mapping(
     if not database_path.is_file():
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
-    calibrated = None
+    calibrated, checked = None, []
     temporaries = []
     try:
         sparse_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -167,6 +173,8 @@ def run_mapping(
             ordered, runs, overrides = _map(
                 mapper, (database_path, image_dir, tmp), options, num_threads, overrides, trials
             )
+        if check is not None and ordered:
+            checked = list(check(ordered[0]))
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
             d.mkdir()
@@ -180,7 +188,7 @@ def run_mapping(
         for d in temporaries:
             shutil.rmtree(d, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
-    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides)
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides, checked)
 
 
 def _map(mapper: str, paths: tuple, options, num_threads: int, overrides: Optional[dict], trials: int) -> tuple:
