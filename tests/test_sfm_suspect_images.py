@@ -173,3 +173,42 @@ def test_a_bad_suspect_images_value_is_refused_by_the_api(run, tmp_path):
     with pytest.raises(LocalScaleError, match="--suspect-images must be one of"):
         reconstruct(run[0], tmp_path / "out", matcher="sift", suspect_images="drop", show_progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_picture_marks_a_far_camera_instead_of_shrinking_the_others(run, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from localscale.sfm.viz import _set_limits, far_cameras, plot_reconstruction
+
+    ring = np.array([[np.cos(a), np.sin(a)] for a in np.linspace(0, 6, 8)])
+    far = np.vstack([ring, [[7500.0, 0.0]]])
+    assert far_cameras(far).tolist() == [False] * 8 + [True] and not far_cameras(ring).any()
+    fig, ax = plt.subplots()
+    _set_limits(ax, ring)
+    assert ax.get_xlim()[1] < 2 and ax.get_ylim()[1] < 2  # the view holds the ring, not the far camera
+    plt.close(fig)
+    _, out, _, _ = run
+    rec = _model(out)
+    image = next(im for im in rec.images.values() if im.name == "view_1.png")
+    pose = image.cam_from_world()
+    rec.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(pose.rotation, pose.translation + [0.0, 0.0, 1e4])
+    names = sorted(im.name for im in rec.images.values())
+    assert plot_reconstruction(tmp_path / "r.png", rec, names, {}, "far").stat().st_size > 10_000
+
+
+def test_a_closeups_guessed_camera_starts_at_its_zoom_without_distortion():
+    from localscale.geometry.cameras import Camera
+    from localscale.sfm.cameras import CameraSetup
+    from localscale.sfm.registration_check import closeup_focal_priors
+
+    cams = {1: Camera.from_prior(640, 480), 2: Camera.from_prior(640, 480), 3: Camera.from_focal(640, 480, 500.0)}
+    setup = CameraSetup(cams, {"p.jpg": 1, "c.jpg": 2, "e.jpg": 3}, "per_image", "exif")
+    assert closeup_focal_priors(setup, {"c.jpg": ("p.jpg", 4.0), "e.jpg": ("p.jpg", 3.0)}) == ["c.jpg"]
+    c = setup.camera("c.jpg")
+    assert c.model == "SIMPLE_PINHOLE" and c.focal_lengths[0] == pytest.approx(4 * 1.2 * 640)
+    assert setup.camera("e.jpg").focal_lengths[0] == 500.0  # a known focal length stays
+    single = CameraSetup({1: Camera.from_prior(640, 480)}, {"p.jpg": 1, "c.jpg": 1}, "single", "exif")
+    assert closeup_focal_priors(single, {"c.jpg": ("p.jpg", 4.0)}) == []

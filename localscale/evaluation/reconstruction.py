@@ -332,17 +332,25 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
 
 def reference_of(cfg: "ReconstructionRun", collection: str, label: str):
     """``(what, {name: centre})``: the collection's reference model (:data:`REFERENCES`), else the
-    model of its ``colmap-sift`` run in ``OUT/<label>/colmap-sift`` (None when there is none)."""
-    from ..sfm.mapping import read_models
+    model of its ``colmap-sift`` run on the photos alone (``OUT/<collection>/colmap-sift``, with
+    ``--intrinsics`` where given), else on this version (``OUT/<label>/colmap-sift``; None when there is none), less its
+    images with implausible intrinsics (COLMAP leaves them in, thousands of spreads away)."""
+    from ..sfm.mapping import FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM, read_models
     from ..sfm.placement import read_reference_centres
 
     if collection in REFERENCES:
         return "given", read_reference_centres(Path(cfg.root) / collection / REFERENCES[collection])
     pipe = "colmap-sift" if cfg.mapper == "incremental" else f"colmap-sift+{cfg.mapper}"
-    models = read_models(Path(cfg.output) / label / pipe / "sparse")
+    plain = Path(cfg.output) / collection / pipe / "sparse"  # the photos alone (with --intrinsics: fixed)
+    models = read_models(plain) or read_models(Path(cfg.output) / label / pipe / "sparse")
     if not models:
         return None, None
-    return pipe, {im.name: np.asarray(im.projection_center()) for im in models[0].images.values() if im.has_pose}
+    pipe = f"{pipe} ({collection if read_models(plain) else label})"
+    rec = models[0]
+    bogus = lambda im: rec.cameras[im.camera_id].has_bogus_params(*FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM)  # noqa: E731
+    return pipe, {
+        im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose and not bogus(im)
+    }
 
 
 def placed_right(model, images: list, reference, closeups: dict) -> dict:

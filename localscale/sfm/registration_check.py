@@ -3,7 +3,8 @@
 After mapping, an image of the largest model is *suspect* when
 
 * its camera has implausible intrinsics (COLMAP's test: focal length outside 0.1-10 x the longer
-  side, a distortion term beyond 1);
+  side, a distortion term beyond 1; a close-up's focal length may pass 10 x when within
+  :data:`FOCAL_OFF` of its prior: a strong zoom);
 * it is a close-up of a photo (:func:`closeup_sources`) and its centre lies more than
   :data:`CLOSEUP_FAR` x the model's spread from the photo's, or its focal length is more than
   :data:`FOCAL_OFF` times off the close-up's prior (its zoom x the photo's focal length);
@@ -20,8 +21,8 @@ A close-up of a photo: a verified pair whose geometry is a homography of a turni
 ``PLANAR_OR_PANORAMIC`` or ``PANORAMIC``: both views from one place) and whose relation (``auto``'s
 :class:`~localscale.matching.auto.graph.Relation`) shows the image :data:`CLOSEUP_ZOOM` x larger or
 more; its source is the photo of the strongest such pair. Such a close-up is a zoom or a window cut
-from the photo: its focal length is about zoom x the photo's (:func:`closeup_focal_priors` sets that as
-the initial focal length of a guessed camera of its own).
+from the photo: its focal length is about zoom x the photo's (:func:`closeup_focal_priors` makes its
+guessed camera a SIMPLE_PINHOLE starting there).
 """
 
 from __future__ import annotations
@@ -64,9 +65,10 @@ def closeup_sources(pair_records, geometry_pairs: dict) -> dict:
 
 
 def closeup_focal_priors(cameras, closeups: dict) -> list:
-    """Set the initial focal length of each close-up's own guessed camera (``cameras``: a
-    :class:`~.cameras.CameraSetup` with a camera per image) to zoom x its source photo's; returns
-    the names changed. A camera from EXIF or a file, or one the close-up shares, is left as it is."""
+    """Make each close-up's own guessed camera (``cameras``: a :class:`~.cameras.CameraSetup` with a
+    camera per image) a SIMPLE_PINHOLE at zoom x its source photo's focal length (a window of the
+    photo's middle has little distortion, and a narrow view lets a distortion term trade with the
+    focal length); returns the names changed. A camera from EXIF or a file, or one the close-up shares, is left as it is."""
     if cameras.mode != "per_image" or cameras.source != "exif":
         return []
     changed = []
@@ -76,9 +78,9 @@ def closeup_focal_priors(cameras, closeups: dict) -> list:
         cam, photo = cameras.camera(name), cameras.camera(source)
         if cam.has_prior_focal_length or cam.model not in ("SIMPLE_RADIAL", "SIMPLE_PINHOLE", "RADIAL"):
             continue
-        params = list(cam.params)
-        params[0] = float(zoom * photo.focal_lengths[0])
-        cameras.cameras[cameras.of_image[name]] = type(cam)(cam.model, cam.width, cam.height, params, False)
+        cx, cy = cam.principal_point
+        params = [float(zoom * photo.focal_lengths[0]), cx, cy]
+        cameras.cameras[cameras.of_image[name]] = type(cam)("SIMPLE_PINHOLE", cam.width, cam.height, params, False)
         changed.append(name)
     return changed
 
@@ -90,6 +92,29 @@ def _centres(rec) -> dict:
 def _spread(centres: dict) -> float:
     c = np.array(list(centres.values())).reshape(-1, 3)
     return float(np.median(np.linalg.norm(c - np.median(c, 0), axis=1))) if len(c) > 2 else 0.0
+
+
+def _plausible(cam, focal_prior=None) -> bool:
+    """COLMAP's test of plausible intrinsics; with a close-up's ``focal_prior``, its focal length may
+    pass COLMAP's 10 x the image size (a strong zoom) when within :data:`FOCAL_OFF` of the prior."""
+    if not cam.has_bogus_params(*FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM):
+        return True
+    if focal_prior is None or any(abs(cam.params[i]) > MAX_EXTRA_PARAM for i in cam.extra_params_idxs()):
+        return False
+    ratio = cam.mean_focal_length() / focal_prior
+    return ratio > 0 and max(ratio, 1 / ratio) <= FOCAL_OFF
+
+
+def plausible_closeups(rec, closeups: dict) -> set:
+    """The registered close-ups of ``rec`` whose intrinsics are plausible for their zoom (:func:`_plausible`)."""
+    by_name = {im.name: im.image_id for im in rec.images.values()}
+    centres = _centres(rec)
+    out = set()
+    for im in rec.images.values():
+        prior = _closeup_prior(rec, im.name, closeups, by_name, centres) if im.has_pose else None
+        if prior is not None and _plausible(rec.cameras[im.camera_id], prior[1]):
+            out.add(im.name)
+    return out
 
 
 def _covisible(rec, image) -> set:
@@ -104,7 +129,7 @@ def _covisible(rec, image) -> set:
 def _why_suspect(rec, image, closeup, centres: dict, scale: float):
     """The reason ``image`` of ``rec`` is suspect, or None. ``closeup``: ``(source id, focal prior)`` or None."""
     cam = rec.cameras[image.camera_id]
-    if cam.has_bogus_params(*FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM):
+    if not _plausible(cam, None if closeup is None else closeup[1]):
         return f"implausible intrinsics (focal length {cam.mean_focal_length():.0f} px, {cam.width}x{cam.height})"
     c = centres[image.image_id]
     if closeup is not None and closeup[0] in centres and scale > 0:

@@ -56,15 +56,19 @@ def build_summary(images, pair_list, mstats, gstats, mapping, cameras, options, 
 def placement_summary(mapping, names: list, closeups: dict, reference, focal_priors: list) -> dict:
     """The summary's close-ups (``{close-up: {"photo", "zoom"}}``, :mod:`.registration_check`), the
     close-ups whose camera started from the zoom's focal length, what the registration check did
-    (``suspect_images``: ``[{"image", "reason", "action"}]``, ``left_out_images``) and ``placement``
+    (``suspect_images``: ``[{"image", "reason", "action"}]``, ``left_out_images``), ``placement``
     (:func:`.placement.placement` of the largest model against ``reference`` and the close-ups' photos;
-    None when neither gives a reference)."""
+    None when neither gives a reference) and ``implausible_cameras`` (COLMAP's test, less the close-ups
+    whose focal length fits their zoom, :func:`.registration_check.plausible_closeups`)."""
     from .mapping import camera_centers
     from .placement import placement
+    from .registration_check import plausible_closeups
 
-    centres = {}
+    centres, zooms = {}, set()
     if mapping.models:
         centres = dict(zip(*camera_centers(mapping.models[0])))
+        zooms = plausible_closeups(mapping.models[0], closeups)
+    implausible = mapping.stats[0].get("bogus_cameras", []) if mapping.stats else []
     sources = {k: v[0] for k, v in closeups.items()}
     placed = placement(centres, names, reference, sources) if reference is not None or sources else None
     return {
@@ -73,6 +77,7 @@ def placement_summary(mapping, names: list, closeups: dict, reference, focal_pri
         "suspect_images": list(mapping.checked),
         "left_out_images": sorted(r["image"] for r in mapping.checked if r["action"] == "left out"),
         "placement": placed if placed is None or placed["checked"] else None,
+        "implausible_cameras": [n for n in implausible if n not in zooms],
     }
 
 
