@@ -11,7 +11,10 @@ to ``OUT/_closeup_images/<name>`` (the photos linked beside them), described in
 ``OUT/_closeup_images/<name>.json`` (source, window, zoom, turn). A close-up has the camera
 centre of its source photo, so the distance between the two centres in the model (over the median
 distance of the cameras to their centroid) says whether a registered close-up sits where it
-should (column ``close-up centre err``).
+should (column ``close-up centre err``). Column ``placed right``: the images a model places right
+(:mod:`localscale.sfm.placement`: photos within 5% of the spread of the reference's centre, close-ups
+within 50% of their photo's) against the collection's reference (:data:`REFERENCES`; else COLMAP SIFT's
+model, :func:`reference_of`); each row's ``placement`` has every image's error.
 
 Pipelines (``pipelines``), each mapped with ``mapper`` (COLMAP's ``incremental`` mapper, or its
 ``global`` one, GLOMAP: rows named ``PIPELINE+global``):
