@@ -45,16 +45,10 @@ VARIANTS = (
 
 
 def closeups_of_run(run_dir: Path) -> dict:
-    """``{close-up: (photo, zoom)}`` found in a run's matches and geometries (:func:`closeup_sources`)."""
-    from localscale.sfm.geometry import config_name, read_geometries
-    from localscale.sfm.match import _done_pairs
-    from localscale.sfm.registration_check import closeup_sources
+    """``{close-up: (photo, zoom)}`` found in a run's matches and geometries."""
+    from localscale.sfm.registration_check import closeups_from_files
 
-    geo = {
-        k: {"config": config_name(g), "inliers": len(g.inlier_matches)}
-        for k, g in read_geometries(run_dir / "geometries.h5").items()
-    }
-    return closeup_sources(list(_done_pairs(run_dir / "matches.h5").values()), geo)
+    return closeups_from_files(run_dir / "matches.h5", run_dir / "geometries.h5")
 
 
 def map_variant(run_dir: Path, images_dir: Path, variant: str, threads: int):

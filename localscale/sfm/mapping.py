@@ -258,12 +258,23 @@ def camera_centers(rec) -> tuple:
 
 def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
     """The mapping step from ``out_dir/database.db`` -> ``out_dir/sparse`` (``conf.mapping``; the
-    defaults of the database's cameras, one or one per image, under its ``mapper_options``)."""
+    defaults of the database's cameras, one or one per image, under its ``mapper_options``; the
+    suspect images as ``suspect_images`` says, the close-ups from ``matches.h5`` and ``geometries.h5``)."""
     from .database import read_database
+    from .registration_check import check_registrations, closeups_from_files
 
     out, m = Path(out_dir), (conf or ReconstructConfig()).mapping
-    mode = "single" if len(read_database(out / "database.db").cameras) == 1 else "per_image"
+    db = read_database(out / "database.db")
+    mode = "single" if len(db.cameras) == 1 else "per_image"
     overrides = {**default_overrides(m.mapper, mode), **m.mapper_options}
+    check = None
+    if m.suspect_images != "keep":
+        closeups = closeups_from_files(out / "matches.h5", out / "geometries.h5")
+        guessed = {
+            name: float(db.cameras[cid].mean_focal_length()) for name, cid in _camera_ids(out / "database.db").items()
+        }
+        reregister = m.suspect_images == "reregister"
+        check = lambda rec: check_registrations(rec, guessed, closeups, reregister)  # noqa: E731
     return run_mapping(
         out / "database.db",
         images_dir,
@@ -271,8 +282,20 @@ def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **k
         mapper=m.mapper,
         trials=m.mapping_trials,
         overrides=overrides,
+        check=check,
         **kw,
     )
+
+
+def _camera_ids(database_path) -> dict:
+    """``{image name: camera id}`` of a COLMAP database."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        return {im.name: im.camera_id for im in db.read_all_images()}
+    finally:
+        db.close()
 
 
 def main(argv=None) -> int:

@@ -64,6 +64,18 @@ def closeup_sources(pair_records, geometry_pairs: dict) -> dict:
     return {k: (v[0], v[1]) for k, v in sorted(best.items())}
 
 
+def closeups_from_files(matches_path, geometries_path) -> dict:
+    """:func:`closeup_sources` of a run's ``matches.h5`` (the pairs' relations) and ``geometries.h5``."""
+    from .geometry import config_name, read_geometries
+    from .match import _done_pairs
+
+    geo = {
+        k: {"config": config_name(g), "inliers": len(g.inlier_matches)}
+        for k, g in read_geometries(geometries_path).items()
+    }
+    return closeup_sources(list(_done_pairs(matches_path).values()), geo)
+
+
 def closeup_focal_priors(cameras, closeups: dict) -> list:
     """Make each close-up's own guessed camera (``cameras``: a :class:`~.cameras.CameraSetup` with a
     camera per image) a SIMPLE_PINHOLE at zoom x its source photo's focal length (a window of the
