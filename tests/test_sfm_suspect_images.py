@@ -154,6 +154,7 @@ def test_closeups_are_found_by_zoom_and_a_turning_camera():
     [
         (["--suspect-images", "drop"], "--suspect-images: invalid choice"),
         (["--reference-model", "no/such/model"], "reference model not found"),
+        (["--final-distortion", "all"], "--final-distortion: invalid choice"),
     ],
 )
 def test_bad_new_options_are_one_error_line(run, tmp_path, args, message):
@@ -167,12 +168,42 @@ def test_bad_new_options_are_one_error_line(run, tmp_path, args, message):
     assert not out.exists()
 
 
-def test_a_bad_suspect_images_value_is_refused_by_the_api(run, tmp_path):
+@pytest.mark.parametrize(
+    "option, message",
+    [({"suspect_images": "drop"}, "--suspect-images must be one of"), ({"final_distortion": 1}, "--final-distortion")],
+)
+def test_bad_new_option_values_are_refused_by_the_api(run, tmp_path, option, message):
     from localscale.core.errors import LocalScaleError
 
-    with pytest.raises(LocalScaleError, match="--suspect-images must be one of"):
-        reconstruct(run[0], tmp_path / "out", matcher="sift", suspect_images="drop", show_progress=False)
+    with pytest.raises(LocalScaleError, match=message):
+        reconstruct(run[0], tmp_path / "out", matcher="sift", show_progress=False, **option)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_final_bundle_adjustment_refines_the_photos_distortion_not_the_closeups(run, tmp_path):
+    """A final bundle adjustment refines every camera's distortion but those of the images kept
+    (close-ups), and the model stays right; ``final_distortion="photos"`` runs it in ``reconstruct``."""
+    import shutil
+
+    from localscale.sfm.refine import refine_distortion
+
+    folder, out, _, _ = run
+    again = tmp_path / "out"
+    shutil.copytree(out, again)
+    common = dict(matcher="sift", num_keypoints=2048, camera_mode="per_image", num_threads=1, show_progress=False)
+    summary = reconstruct(folder, again, final_distortion="photos", **common)
+    assert summary["run"] == "resume" and summary["registered"] == 6
+    assert summary["distortion_refined"] == [f"view_{i}.png" for i in range(6)]
+    assert summary["options"]["final_distortion"] == "photos"
+    rec = _model(out)
+    keep = "view_0.png"
+    before = {im.name: np.array(rec.cameras[im.camera_id].params) for im in rec.images.values()}
+    refined = refine_distortion(rec, keep={keep}, num_threads=1)
+    assert refined == sorted(n for n in before if n != keep)
+    after = {im.name: np.array(rec.cameras[im.camera_id].params) for im in rec.images.values()}
+    assert np.array_equal(after[keep], before[keep])
+    assert all(after[n][3] != 0.0 for n in refined)  # k1 was 0 (fixed while mapping), now refined
+    assert model_stats(rec)["bogus_cameras"] == [] and model_stats(rec)["mean_reprojection_error"] < 1.5
 
 
 def test_the_picture_marks_a_far_camera_instead_of_shrinking_the_others(run, tmp_path):

@@ -108,7 +108,7 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
 def _add_mapping_options(p: argparse.ArgumentParser) -> None:
     """The options of the mapping section of :class:`~localscale.sfm.ReconstructConfig`."""
     from ..sfm.cameras import CAMERA_MODES
-    from ..sfm.config import SUSPECT_IMAGES, ReconstructConfig
+    from ..sfm.config import FINAL_DISTORTION, SUSPECT_IMAGES, ReconstructConfig
     from ..sfm.mapper_options import MAPPERS
 
     d = ReconstructConfig().flat()
@@ -147,6 +147,13 @@ def _add_mapping_options(p: argparse.ArgumentParser) -> None:
         help="a registered image with implausible intrinsics, or far from the images it shares points "
         "with (a close-up: from its photo): registered again with a fixed, plausible focal length or "
         "left out (reregister), left out (leave_out), or kept as the mapper placed it (keep)",
+    )
+    p.add_argument(
+        "--final-distortion",
+        default=d["final_distortion"],
+        choices=FINAL_DISTORTION,
+        help="with a camera per image: photos = a final bundle adjustment refines the focal length and "
+        "radial distortion of every camera but the close-ups' (found by auto); none = they stay as mapped",
     )
     p.add_argument(
         "--reference-model",
@@ -224,6 +231,7 @@ def config_from_args(args):
             mapping_trials=args.mapping_trials,
             mapper_options=_name_values(args.mapper_option),
             suspect_images=args.suspect_images,
+            final_distortion=args.final_distortion,
         ),
     )
 

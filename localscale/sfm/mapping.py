@@ -259,22 +259,21 @@ def camera_centers(rec) -> tuple:
 def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
     """The mapping step from ``out_dir/database.db`` -> ``out_dir/sparse`` (``conf.mapping``; the
     defaults of the database's cameras, one or one per image, under its ``mapper_options``; the
-    suspect images as ``suspect_images`` says, the close-ups from ``matches.h5`` and ``geometries.h5``)."""
+    final distortion and the suspect images as they say, :func:`~.refine.finish_model`, the close-ups
+    from ``matches.h5`` and ``geometries.h5``)."""
     from .database import read_database
-    from .registration_check import check_registrations, closeups_from_files
+    from .refine import finish_model
+    from .registration_check import closeups_from_files
 
     out, m = Path(out_dir), (conf or ReconstructConfig()).mapping
     db = read_database(out / "database.db")
     mode = "single" if len(db.cameras) == 1 else "per_image"
     overrides = {**default_overrides(m.mapper, mode), **m.mapper_options}
-    check = None
-    if m.suspect_images != "keep":
-        closeups = closeups_from_files(out / "matches.h5", out / "geometries.h5")
-        guessed = {
-            name: float(db.cameras[cid].mean_focal_length()) for name, cid in _camera_ids(out / "database.db").items()
-        }
-        reregister = m.suspect_images == "reregister"
-        check = lambda rec: check_registrations(rec, guessed, closeups, reregister)  # noqa: E731
+    closeups = closeups_from_files(out / "matches.h5", out / "geometries.h5")
+    ids = _camera_ids(out / "database.db")
+    guessed = {name: float(db.cameras[cid].mean_focal_length()) for name, cid in ids.items()}
+    threads = kw.get("num_threads", -1)
+    check = lambda rec: finish_model(rec, m, mode, guessed, closeups, threads)[1]  # noqa: E731
     return run_mapping(
         out / "database.db",
         images_dir,

@@ -364,15 +364,19 @@ class _Reconstruction:
                 mapper=m.mapper,
                 trials=m.mapping_trials,
                 overrides={**default_overrides(m.mapper, self.cameras.mode), **m.mapper_options},
-                check=self._check if m.suspect_images != "keep" else None,
+                check=self._check,
             )
 
     def _check(self, rec) -> list:
-        """:func:`~.registration_check.check_registrations` of the largest model."""
-        from .registration_check import check_registrations
+        """:func:`~.refine.finish_model` of the largest model (the final distortion, the suspect images)."""
+        from .mapping import colmap_log
+        from .refine import finish_model
 
-        reregister = self.conf.mapping.suspect_images == "reregister"
-        return check_registrations(rec, self.guessed_focal, self.closeups, reregister)
+        with colmap_log(self.rt.verbose):
+            self.distortion_refined, checked = finish_model(
+                rec, self.conf.mapping, self.cameras.mode, self.guessed_focal, self.closeups, self.rt.num_threads
+            )
+        return checked
 
     def summarize(self) -> dict:
         """The summary (its warnings flagged), and ``reconstruction.png`` when asked."""
@@ -389,6 +393,7 @@ class _Reconstruction:
         )
         summary["engine"] = {"name": self.executor.name, "workers": self.executor.workers}
         summary.update(placement_summary(self.mapping, self.names, self.closeups, self.reference, self.closeup_priors))
+        summary["distortion_refined"] = getattr(self, "distortion_refined", [])
         flag(summary)
         if self.rt.plot:
             from .viz import plot_reconstruction

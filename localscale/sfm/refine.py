@@ -36,6 +36,7 @@ def refine_distortion(rec, keep=(), num_threads: int = -1) -> list:
     opts = pycolmap.BundleAdjustmentOptions()
     opts.refine_focal_length, opts.refine_principal_point, opts.refine_extra_params = True, False, True
     opts.ceres.solver_options.num_threads = num_threads
+    opts.print_summary = False
     pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
     refined = []
     for im in registered:
@@ -47,3 +48,20 @@ def refine_distortion(rec, keep=(), num_threads: int = -1) -> list:
         else:
             refined.append(im.name)
     return sorted(refined)
+
+
+def finish_model(rec, mapping, camera_mode: str, guessed: dict, closeups: dict, num_threads: int = -1) -> tuple:
+    """What the mapping step does to its largest model ``rec`` (in place) before writing it, as the
+    options ``mapping`` (:class:`~.config.MappingConfig`) say: with a camera per image and the
+    incremental mapper, ``final_distortion="photos"`` refines the photos' distortion
+    (:func:`refine_distortion`, close-ups kept); then the suspect images
+    (:func:`~.registration_check.check_registrations`, ``suspect_images``). Returns ``(names of the
+    images whose camera was refined, the check's reports)``."""
+    from .registration_check import check_registrations
+
+    refined = []
+    if mapping.final_distortion == "photos" and camera_mode == "per_image" and mapping.mapper == "incremental":
+        refined = refine_distortion(rec, set(closeups), num_threads)
+    if mapping.suspect_images == "keep":
+        return refined, []
+    return refined, check_registrations(rec, guessed, closeups, mapping.suspect_images == "reregister")
