@@ -7,7 +7,9 @@ After mapping, an image of the largest model is *suspect* when
   :data:`FOCAL_OFF` of its prior: a strong zoom);
 * it is a close-up of a photo (:func:`closeup_sources`) and its centre lies more than
   :data:`CLOSEUP_FAR` x the model's spread from the photo's, or its focal length is more than
-  :data:`FOCAL_OFF` times off the close-up's prior (its zoom x the photo's focal length);
+  :data:`FOCAL_OFF` times off the close-up's prior (its zoom x the photo's focal length). A close-up
+  between :data:`CLOSEUP_NEAR` and :data:`CLOSEUP_FAR` spreads away is registered again too, but
+  keeps the new pose only when it is nearer the photo, and is never left out;
 * every registered image it shares 3D points with is more than :data:`FAR` x the spread away.
 
 (The spread: the median distance of the registered centres to their median.) A suspect image is
@@ -35,6 +37,9 @@ CLOSEUP_ZOOM = 2.0
 SAME_PLACE_CONFIGS = ("PLANAR_OR_PANORAMIC", "PANORAMIC")
 #: a close-up this many spreads from its photo's centre is misplaced
 CLOSEUP_FAR = 0.5
+#: a close-up this many spreads from its photo's centre is registered again too, and keeps the pose
+#: that is nearer its photo
+CLOSEUP_NEAR = 0.25
 #: a registered image whose nearest co-visible image is this many spreads away is misplaced
 FAR = 3.0
 #: a close-up whose focal length is this many times off its prior is suspect
@@ -151,6 +156,8 @@ def _why_suspect(rec, image, closeup, centres: dict, scale: float):
         ratio = cam.mean_focal_length() / closeup[1]
         if max(ratio, 1 / ratio) > FOCAL_OFF:
             return f"focal length {ratio:.2f} x its zoom over its photo's"
+        if far > CLOSEUP_NEAR:
+            return f"near: {far:.2f} x the cameras' spread from its photo's centre"
     near = [float(np.linalg.norm(c - centres[i])) for i in _covisible(rec, image) if i in centres]
     if near and scale > 0 and min(near) > FAR * scale:
         return f"{min(near) / scale:.1f} x the cameras' spread from every image it shares points with"
@@ -181,10 +188,16 @@ def check_registrations(rec, guessed: dict, closeups: dict, reregister: bool = T
         for image_id, why, closeup in found:
             focal = _focal_for(rec, rec.images[image_id], closeup, guessed)
             kept = reregister and focal is not None and _reregister(rec, image_id, focal, closeup, scale)
+            if not kept and why.startswith("near:"):
+                continue  # within CLOSEUP_FAR and no nearer pose found: kept as it is
             if not kept:
                 rec.deregister_frame(rec.images[image_id].frame_id)
             reports.append(
-                {"image": rec.images[image_id].name, "reason": why, "action": "re-registered" if kept else "left out"}
+                {
+                    "image": rec.images[image_id].name,
+                    "reason": why.removeprefix("near: "),
+                    "action": "re-registered" if kept else "left out",
+                }
             )
     return reports
 
@@ -209,6 +222,15 @@ def _closeup_prior(rec, name: str, closeups: dict, by_name: dict, centres: dict)
     source, zoom = closeups[name]
     photo = rec.images[by_name[source]]
     return photo.image_id, zoom * rec.cameras[photo.camera_id].mean_focal_length()
+
+
+def _nearer(old_pose, rec, image_id: int, closeup) -> bool:
+    """Whether a close-up's new pose puts it nearer its photo's centre than ``old_pose`` (True for other images)."""
+    if closeup is None:
+        return True
+    photo = np.asarray(rec.images[closeup[0]].projection_center())
+    new = np.asarray(rec.images[image_id].projection_center())
+    return float(np.linalg.norm(new - photo)) < float(np.linalg.norm(old_pose.inverse().translation - photo))
 
 
 def _reregister(rec, image_id: int, focal: float, closeup, scale: float) -> bool:
@@ -237,7 +259,8 @@ def _reregister(rec, image_id: int, focal: float, closeup, scale: float) -> bool
     cam.params = params
     rec.frames[image.frame_id].rig_from_world = out["cam_from_world"]
     centres = _centres(rec)
-    if _why_suspect(rec, rec.images[image_id], closeup, centres, scale) is not None:
+    why = _why_suspect(rec, rec.images[image_id], closeup, centres, scale)
+    if (why is not None and not why.startswith("near:")) or not _nearer(old[1], rec, image_id, closeup):
         cam.params = old[0]
         rec.frames[image.frame_id].rig_from_world = old[1]
         return False
