@@ -243,3 +243,16 @@ def test_a_closeups_guessed_camera_starts_at_its_zoom_without_distortion():
     assert setup.camera("e.jpg").focal_lengths[0] == 500.0  # a known focal length stays
     single = CameraSetup({1: Camera.from_prior(640, 480)}, {"p.jpg": 1, "c.jpg": 1}, "single", "exif")
     assert closeup_focal_priors(single, {"c.jpg": ("p.jpg", 4.0)}) == []
+
+
+def test_a_closeup_far_from_its_photo_is_left_out_when_it_cannot_be_placed_there(run):
+    """An image said to be a close-up of another photo (one place, zoom 1) while the model puts them
+    apart: re-registered at the zoom's focal length it stays apart, so it is left out."""
+    _, out, _, _ = run
+    rec = _model(out)
+    focal = {im.name: rec.cameras[im.camera_id].mean_focal_length() for im in rec.images.values()}
+    zoom = focal["view_5.png"] / focal["view_0.png"]
+    reports = check_registrations(rec, {}, {"view_5.png": ("view_0.png", zoom)})
+    assert [(r["image"], r["action"]) for r in reports] == [("view_5.png", "left out")]
+    assert "from its photo's centre" in reports[0]["reason"]
+    assert model_stats(rec)["registered"] == 5
