@@ -108,7 +108,7 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
 def _add_mapping_options(p: argparse.ArgumentParser) -> None:
     """The options of the mapping section of :class:`~localscale.sfm.ReconstructConfig`."""
     from ..sfm.cameras import CAMERA_MODES
-    from ..sfm.config import ReconstructConfig
+    from ..sfm.config import FINAL_DISTORTION, SUSPECT_IMAGES, ReconstructConfig
     from ..sfm.mapper_options import MAPPERS
 
     d = ReconstructConfig().flat()
@@ -139,6 +139,28 @@ def _add_mapping_options(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="runs of the mapper (random seeds 0, 1, ...) while its largest model leaves images out; "
         "the run that registers the most is kept",
+    )
+    p.add_argument(
+        "--suspect-images",
+        default=d["suspect_images"],
+        choices=SUSPECT_IMAGES,
+        help="a registered image with implausible intrinsics, or far from the images it shares points "
+        "with (a close-up: from its photo): registered again with a fixed, plausible focal length or "
+        "left out (reregister), left out (leave_out), or kept as the mapper placed it (keep)",
+    )
+    p.add_argument(
+        "--final-distortion",
+        default=d["final_distortion"],
+        choices=FINAL_DISTORTION,
+        help="with a camera per image: photos = a final bundle adjustment refines the focal length and "
+        "radial distortion of every camera but the close-ups' (found by auto); none = they stay as mapped",
+    )
+    p.add_argument(
+        "--reference-model",
+        default=None,
+        metavar="DIR",
+        help="a reference: a COLMAP model (folder) or a 'name K R t' table; summary.json's placement "
+        "counts the images placed within 5%% of the cameras' spread of it (close-ups: 50%% of their photo's centre)",
     )
     p.add_argument(
         "--mapper-option",
@@ -208,6 +230,8 @@ def config_from_args(args):
             mapper=args.mapper,
             mapping_trials=args.mapping_trials,
             mapper_options=_name_values(args.mapper_option),
+            suspect_images=args.suspect_images,
+            final_distortion=args.final_distortion,
         ),
     )
 
@@ -228,6 +252,7 @@ def _reconstruct_with(args, executor, local_model, global_model) -> dict:
         global_model=global_model,
         engine=executor,
         input_files=tuple(p for p in (args.local_weights, args.global_weights) if p),
+        reference_model=args.reference_model,
     )
 
 

@@ -11,7 +11,10 @@ to ``OUT/_closeup_images/<name>`` (the photos linked beside them), described in
 ``OUT/_closeup_images/<name>.json`` (source, window, zoom, turn). A close-up has the camera
 centre of its source photo, so the distance between the two centres in the model (over the median
 distance of the cameras to their centroid) says whether a registered close-up sits where it
-should (column ``close-up centre err``).
+should (column ``close-up centre err``). Column ``placed right``: the images a model places right
+(:mod:`localscale.sfm.placement`: photos within 5% of the spread of the reference's centre, close-ups
+within 50% of their photo's) against the collection's reference (:data:`REFERENCES`; else COLMAP SIFT's
+model, :func:`reference_of`); each row's ``placement`` has every image's error.
 
 Pipelines (``pipelines``), each mapped with ``mapper`` (COLMAP's ``incremental`` mapper, or its
 ``global`` one, GLOMAP: rows named ``PIPELINE+global``):
@@ -52,6 +55,13 @@ import numpy as np
 from ..core.outputs import write_text
 from .report import git_commit
 
+#: the reference model of a collection (relative to its folder): camera centres by image name
+#: (:func:`localscale.sfm.placement.read_reference_centres`); the others use colmap-sift's own model
+REFERENCES = {
+    "kermit_bundler": "derived/colmap_txt",
+    "skull_alansartlog": "derived/colmap_txt_resized",
+    "temple_sparse_ring_middlebury": "derived/templeSR_par_jpgnames.txt",
+}
 PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
 COLUMNS = [
     ("collection", "collection"),
@@ -59,6 +69,8 @@ COLUMNS = [
     ("registered", "registered"),
     ("closeups_registered", "close-ups reg."),
     ("closeup_centre_error", "close-up centre err"),
+    ("placed_right", "placed right"),
+    ("reference", "reference"),
     ("points", "points"),
     ("observations", "observations"),
     ("mean_track_length", "mean track"),
@@ -321,6 +333,38 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
     )
 
 
+def reference_of(cfg: "ReconstructionRun", collection: str, label: str):
+    """``(what, {name: centre})``: the collection's reference model (:data:`REFERENCES`), else the
+    model of its ``colmap-sift`` run on the photos alone (``OUT/<collection>/colmap-sift``, with
+    ``--intrinsics`` where given), else on this version (``OUT/<label>/colmap-sift``; None when there is none), less its
+    images with implausible intrinsics (COLMAP leaves them in, thousands of spreads away)."""
+    from ..sfm.mapping import FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM, read_models
+    from ..sfm.placement import read_reference_centres
+
+    if collection in REFERENCES:
+        return "given", read_reference_centres(Path(cfg.root) / collection / REFERENCES[collection])
+    pipe = "colmap-sift" if cfg.mapper == "incremental" else f"colmap-sift+{cfg.mapper}"
+    plain = Path(cfg.output) / collection / pipe / "sparse"  # the photos alone (with --intrinsics: fixed)
+    models = read_models(plain) or read_models(Path(cfg.output) / label / pipe / "sparse")
+    if not models:
+        return None, None
+    pipe = f"{pipe} ({collection if read_models(plain) else label})"
+    rec = models[0]
+    bogus = lambda im: rec.cameras[im.camera_id].has_bogus_params(*FOCAL_RATIO_RANGE, MAX_EXTRA_PARAM)  # noqa: E731
+    return pipe, {
+        im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose and not bogus(im)
+    }
+
+
+def placed_right(model, images: list, reference, closeups: dict) -> dict:
+    """:func:`localscale.sfm.placement.placement` of a model's registered images (``model``: a
+    ``pycolmap.Reconstruction`` or None) against ``reference`` and the close-ups' sources."""
+    from ..sfm.placement import placement
+
+    centres = {} if model is None else {im.name: im.projection_center() for im in model.images.values() if im.has_pose}
+    return placement(centres, images, reference, {k: v["source"] for k, v in closeups.items()})
+
+
 def result_row(label: str, pipe: str, res: dict, closeups: dict, wall: float, camera_mode: str, threads: int) -> dict:
     """The results row of one pipeline run (``res``: :func:`run_colmap_sift` or :func:`run_ours`)."""
     st = res["stats"] or {
@@ -337,6 +381,13 @@ def result_row(label: str, pipe: str, res: dict, closeups: dict, wall: float, ca
         "registered": f"{st['registered']}/{res['images']}",
         "closeups_registered": f"{n_close}/{len(closeups)}" if closeups else None,
         "closeup_centre_error": centre_err,
+        "placed_right": (
+            f"{res['placement']['placed_right']}/{res['placement']['checked']}"
+            if res.get("placement") and res["placement"]["checked"]
+            else None
+        ),
+        "reference": res.get("reference"),
+        "placement": res.get("placement"),
         "points": st["points"],
         "observations": st["observations"],
         "mean_track_length": st["mean_track_length"],
@@ -377,6 +428,9 @@ def run(cfg: ReconstructionRun) -> list:
                 known = cfg.intrinsics.get(c) if version == "plain" else None
                 res = run_pipeline(cfg, method, images_dir, out / label / pipe, camera_mode, known)
                 wall = time.perf_counter() - t0
+                res["reference"], ref = reference_of(cfg, c, label)
+                names = sorted(p.name for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+                res["placement"] = placed_right(res["model"], names, ref, closeups)
                 row = result_row(label, pipe, res, closeups, wall, camera_mode, cfg.threads)
                 rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
                 save_rows(out, rows)

@@ -35,6 +35,10 @@ from .weights import WEIGHT_OPTIONS
 SFM_CORRECTIONS = ("none", "auto", "global", "local", "fused", "searched")
 
 _RESULT = {"result": True}
+#: what the mapping step does with a registered image whose pose is not to be trusted
+SUSPECT_IMAGES = ("reregister", "leave_out", "keep")
+#: the final bundle adjustment's distortion (:attr:`MappingConfig.final_distortion`)
+FINAL_DISTORTION = ("none", "photos")
 
 
 @dataclass
@@ -81,6 +85,12 @@ class MappingConfig:
     mapper: str = "incremental"
     mapping_trials: int = 3
     mapper_options: dict = field(default_factory=dict)
+    #: registered images whose pose is not to be trusted (:mod:`.registration_check`): registered
+    #: again with a plausible camera or left out (``reregister``), left out (``leave_out``), or kept (``keep``)
+    suspect_images: str = "reregister"
+    #: ``photos``: with a camera per image, a final bundle adjustment refines the focal lengths and
+    #: radial distortion of the photos' cameras (not the close-ups'), :func:`~.refine.refine_distortion`
+    final_distortion: str = "none"
 
     def __post_init__(self):
         self.camera_file = None if self.camera_file is None else str(self.camera_file)
@@ -168,6 +178,8 @@ class ReconstructConfig:
             mapper=m.mapper,
             mapping_trials=m.mapping_trials,
             mapper_options={str(k): v for k, v in sorted(m.mapper_options.items())},
+            suspect_images=m.suspect_images,
+            final_distortion=m.final_distortion,
         )
         return out
 
@@ -225,5 +237,11 @@ def _check_mapping(m: MappingConfig) -> None:
         raise CameraFileError(f"camera file not found: {m.camera_file}")
     check_mapper(m.mapper)
     check_trials(m.mapping_trials)
+    if m.final_distortion not in FINAL_DISTORTION:
+        raise LocalScaleError(
+            f"--final-distortion must be one of {', '.join(FINAL_DISTORTION)}, got {m.final_distortion!r}"
+        )
+    if m.suspect_images not in SUSPECT_IMAGES:
+        raise LocalScaleError(f"--suspect-images must be one of {', '.join(SUSPECT_IMAGES)}, got {m.suspect_images!r}")
     if m.mapper_options:
         mapping_options(mapper=m.mapper, overrides=m.mapper_options)

@@ -59,6 +59,8 @@ class MappingResult:
     trials: list = field(default_factory=list)
     #: the options set by name on pycolmap's defaults (:func:`set_options`)
     overrides: dict = field(default_factory=dict)
+    #: what ``check`` did to the largest model (:func:`~.registration_check.check_registrations`)
+    checked: list = field(default_factory=list)
 
 
 #: COLMAP's bounds of plausible intrinsics (its mapper's ``min/max_focal_length_ratio``,
@@ -137,6 +139,7 @@ def run_mapping(
     mapper: str = "incremental",
     trials: int = MAPPING_TRIALS,
     overrides: Optional[dict] = None,
+    check=None,
 ) -> MappingResult:
     """Mapping of ``database_path`` with ``mapper`` (:data:`MAPPERS`); writes ``sparse_dir/<i>``
     (largest model first). ``image_dir`` gives the points their colours (COLMAP reads the images);
@@ -146,7 +149,10 @@ def run_mapping(
     ``trials``: while the largest model leaves images of the database out, the mapper runs again
     with the next random seed (0, 1, ...), at most ``trials`` times in all; the run whose largest
     model registers the most images (then has the most observations) is kept
-    (:attr:`MappingResult.trials`: each run's seed and images registered)."""
+    (:attr:`MappingResult.trials`: each run's seed and images registered).
+
+    ``check``: a function that changes the largest model in place before it is written and returns
+    a list (:attr:`MappingResult.checked`; e.g. :func:`~.registration_check.check_registrations`)."""
 
     check_mapper(mapper)
     check_trials(trials)
@@ -154,7 +160,7 @@ def run_mapping(
     if not database_path.is_file():
         raise LocalScaleError(f"database not found: {database_path}")
     t0 = time.perf_counter()
-    calibrated = None
+    calibrated, checked = None, []
     temporaries = []
     try:
         sparse_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -167,6 +173,8 @@ def run_mapping(
             ordered, runs, overrides = _map(
                 mapper, (database_path, image_dir, tmp), options, num_threads, overrides, trials
             )
+        if check is not None and ordered:
+            checked = list(check(ordered[0]))
         for i, rec in enumerate(ordered):
             d = final_tmp / str(i)
             d.mkdir()
@@ -180,7 +188,7 @@ def run_mapping(
         for d in temporaries:
             shutil.rmtree(d, ignore_errors=True)
     stats = [model_stats(r) for r in ordered]
-    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides)
+    return MappingResult(ordered, stats, time.perf_counter() - t0, calibrated, runs, overrides, checked)
 
 
 def _map(mapper: str, paths: tuple, options, num_threads: int, overrides: Optional[dict], trials: int) -> tuple:
@@ -250,12 +258,22 @@ def camera_centers(rec) -> tuple:
 
 def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **kw):
     """The mapping step from ``out_dir/database.db`` -> ``out_dir/sparse`` (``conf.mapping``; the
-    defaults of the database's cameras, one or one per image, under its ``mapper_options``)."""
+    defaults of the database's cameras, one or one per image, under its ``mapper_options``; the
+    final distortion and the suspect images as they say, :func:`~.refine.finish_model`, the close-ups
+    from ``matches.h5`` and ``geometries.h5``)."""
     from .database import read_database
+    from .refine import finish_model
+    from .registration_check import closeups_from_files
 
     out, m = Path(out_dir), (conf or ReconstructConfig()).mapping
-    mode = "single" if len(read_database(out / "database.db").cameras) == 1 else "per_image"
+    db = read_database(out / "database.db")
+    mode = "single" if len(db.cameras) == 1 else "per_image"
     overrides = {**default_overrides(m.mapper, mode), **m.mapper_options}
+    closeups = closeups_from_files(out / "matches.h5", out / "geometries.h5")
+    ids = _camera_ids(out / "database.db")
+    guessed = {name: float(db.cameras[cid].mean_focal_length()) for name, cid in ids.items()}
+    threads = kw.get("num_threads", -1)
+    check = lambda rec: finish_model(rec, m, mode, guessed, closeups, threads)[1]  # noqa: E731
     return run_mapping(
         out / "database.db",
         images_dir,
@@ -263,8 +281,20 @@ def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **k
         mapper=m.mapper,
         trials=m.mapping_trials,
         overrides=overrides,
+        check=check,
         **kw,
     )
+
+
+def _camera_ids(database_path) -> dict:
+    """``{image name: camera id}`` of a COLMAP database."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        return {im.name: im.camera_id for im in db.read_all_images()}
+    finally:
+        db.close()
 
 
 def main(argv=None) -> int:

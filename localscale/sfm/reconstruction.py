@@ -39,7 +39,7 @@ from . import outdir
 from .config import RESULT_OPTIONS, ReconstructConfig
 from .outdir import OutputFolderError
 from .report import collecting_warnings, read_json, write_json
-from .summary import build_summary, flag, summary_table  # noqa: F401 (summary_table: re-exported)
+from .summary import build_summary, flag, placement_summary, summary_table  # noqa: F401 (summary_table: re-exported)
 from .weights import weight_options
 
 _flag = flag  # the summary's warnings (:func:`.summary.flag`)
@@ -93,6 +93,7 @@ def reconstruct(
     global_model=None,
     engine=None,
     input_files: tuple = (),
+    reference_model=None,
     **options,
 ) -> dict:
     """Reconstruct the images of ``images_dir`` into ``out_dir``; returns the summary (also
@@ -111,6 +112,8 @@ def reconstruct(
             local Ray cluster with default options) or an :class:`~localscale.engine.Executor`
             (:func:`~localscale.engine.get_executor`; the caller closes it). The outputs are the same.
         input_files: other files the caller read (weights): refused where the run writes (:mod:`.outdir`).
+        reference_model: a reference for ``summary.json``'s ``placement`` (how many images the model
+            places right, :mod:`.placement`): a COLMAP model folder or a ``name K R t`` table.
     """
     t_total = time.perf_counter()
     if isinstance(conf, dict):
@@ -124,7 +127,9 @@ def reconstruct(
         Path(images_dir),
         Path(out_dir),
         conf,
-        _RunTime(device, overwrite, num_threads, show_progress, verbose, plot, engine, tuple(input_files)),
+        _RunTime(
+            device, overwrite, num_threads, show_progress, verbose, plot, engine, tuple(input_files), reference_model
+        ),
         local_model,
         global_model,
     )
@@ -143,6 +148,7 @@ class _RunTime:
     plot: bool = True
     engine: Any = None
     input_files: tuple = ()
+    reference_model: Any = None
 
 
 @dataclass
@@ -214,6 +220,12 @@ class _Reconstruction:
         pairs_file = None if p.pairs == "exhaustive" else p.pairs
         inputs = [("images folder", self.images_dir), ("pairs file", pairs_file), ("camera file", m.camera_file)]
         inputs += [("input file", path) for path in self.rt.input_files]
+        inputs += [("reference model", self.rt.reference_model)] if self.rt.reference_model else []
+        self.reference = None
+        if self.rt.reference_model is not None:
+            from .placement import read_reference_centres
+
+            self.reference = read_reference_centres(self.rt.reference_model)
         outdir.check_inputs_kept(self.out, inputs + [("image", im.path) for im in self.images])
         outdir.check_not_held(self.out)
         self.state = _output_state(self.out, self.options, self.rt.overwrite)
@@ -316,10 +328,16 @@ class _Reconstruction:
             )
 
     def build_database(self) -> None:
-        """``database.db``, COLMAP's, from the h5 files."""
+        """``database.db``, COLMAP's, from the h5 files; a close-up of a photo (found by the matching and
+        geometry steps, :func:`~.registration_check.closeup_sources`) with a guessed camera of its own
+        starts from zoom x the photo's focal length."""
         from .database import write_database
+        from .registration_check import closeup_focal_priors, closeup_sources
 
         out = self.out
+        self.closeups = closeup_sources(self.mstats.pairs, self.gstats.pairs)
+        self.guessed_focal = {n: self.cameras.camera(n).focal_lengths[0] for n in self.names}
+        self.closeup_priors = closeup_focal_priors(self.cameras, self.closeups)
         with self._timed("database"):
             write_database(
                 out / "database.db",
@@ -346,7 +364,19 @@ class _Reconstruction:
                 mapper=m.mapper,
                 trials=m.mapping_trials,
                 overrides={**default_overrides(m.mapper, self.cameras.mode), **m.mapper_options},
+                check=self._check,
             )
+
+    def _check(self, rec) -> list:
+        """:func:`~.refine.finish_model` of the largest model (the final distortion, the suspect images)."""
+        from .mapping import colmap_log
+        from .refine import finish_model
+
+        with colmap_log(self.rt.verbose):
+            self.distortion_refined, checked = finish_model(
+                rec, self.conf.mapping, self.cameras.mode, self.guessed_focal, self.closeups, self.rt.num_threads
+            )
+        return checked
 
     def summarize(self) -> dict:
         """The summary (its warnings flagged), and ``reconstruction.png`` when asked."""
@@ -362,6 +392,8 @@ class _Reconstruction:
             self.state,
         )
         summary["engine"] = {"name": self.executor.name, "workers": self.executor.workers}
+        summary.update(placement_summary(self.mapping, self.names, self.closeups, self.reference, self.closeup_priors))
+        summary["distortion_refined"] = getattr(self, "distortion_refined", [])
         flag(summary)
         if self.rt.plot:
             from .viz import plot_reconstruction

@@ -53,6 +53,56 @@ def build_summary(images, pair_list, mstats, gstats, mapping, cameras, options, 
     }
 
 
+def placement_summary(mapping, names: list, closeups: dict, reference, focal_priors: list) -> dict:
+    """The summary's close-ups (``{close-up: {"photo", "zoom"}}``, :mod:`.registration_check`), the
+    close-ups whose camera started from the zoom's focal length, what the registration check did
+    (``suspect_images``: ``[{"image", "reason", "action"}]``, ``left_out_images``), ``placement``
+    (:func:`.placement.placement` of the largest model against ``reference`` and the close-ups' photos;
+    None when neither gives a reference) and ``implausible_cameras`` (COLMAP's test, less the close-ups
+    whose focal length fits their zoom, :func:`.registration_check.plausible_closeups`)."""
+    from .mapping import camera_centers
+    from .placement import placement
+    from .registration_check import plausible_closeups
+
+    centres, zooms = {}, set()
+    if mapping.models:
+        centres = dict(zip(*camera_centers(mapping.models[0])))
+        zooms = plausible_closeups(mapping.models[0], closeups)
+    implausible = mapping.stats[0].get("bogus_cameras", []) if mapping.stats else []
+    sources = {k: v[0] for k, v in closeups.items()}
+    placed = placement(centres, names, reference, sources) if reference is not None or sources else None
+    return {
+        "closeups": {k: {"photo": v[0], "zoom": round(float(v[1]), 3)} for k, v in closeups.items()},
+        "closeup_focal_priors": list(focal_priors),
+        "suspect_images": list(mapping.checked),
+        "left_out_images": sorted(r["image"] for r in mapping.checked if r["action"] == "left out"),
+        "placement": placed if placed is None or placed["checked"] else None,
+        "implausible_cameras": [n for n in implausible if n not in zooms],
+    }
+
+
+def _flag_checks(summary: dict) -> None:
+    """The ``warning:`` lines of the registration check and of the placement."""
+    for action, what in (
+        ("left out", "left out of the model"),
+        ("re-registered", "registered again with a fixed focal length"),
+    ):
+        hit = [r for r in summary.get("suspect_images", []) if r["action"] == action]
+        if hit:
+            shown = "; ".join(f"{r['image']}: {r['reason']}" for r in hit[:4])
+            warn(
+                f"{len(hit)} registered image(s) {what}, their pose was not to be trusted ({shown}{'; ...' if len(hit) > 4 else ''})"
+            )
+    p = summary.get("placement")
+    if p and p["wrong"]:
+        shown = ", ".join(p["wrong"][:6])
+        ref = "the reference model" if p["reference"] == "model" else "their photos' centres (close-ups)"
+        warn(
+            f"{p['placed_right']} of {p['checked']} images placed right against {ref}; not: {shown}"
+            f"{', ...' if len(p['wrong']) > 6 else ''}"
+        )
+
+
 def flag(summary: dict) -> None:
     """``warning:`` lines for a result that should not be trusted as it is."""
     n, r = summary["images"], summary["registered"]
@@ -76,6 +126,7 @@ def flag(summary: dict) -> None:
             f"{len(summary['implausible_cameras'])} registered image(s) have implausible intrinsics (focal "
             f"length outside 0.1-10 x the image size or distortion > 1): their poses are not to be trusted ({shown})"
         )
+    _flag_checks(summary)
     if summary.get("view_graph_calibrated") is False:
         warn("the view-graph calibration failed: the global mapper ran on guessed focal lengths")
     err = summary["mean_reprojection_error"]

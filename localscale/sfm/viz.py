@@ -4,7 +4,8 @@
 largest model seen from above ("up" is the cameras' mean upward image direction, so it holds for
 any orientation of the model), and (right) the pair graph: every image on a circle, each
 matched pair an edge, green when its two-view geometry verified, red when it did not, registered
-images filled. Written atomically.
+images filled. A camera far from the others (:func:`far_cameras`) is drawn as a mark at the edge of
+the view from above, with its distance in spreads, so that the others stay readable. Written atomically.
 """
 
 from __future__ import annotations
@@ -39,6 +40,49 @@ def _top_view_axes(rec) -> np.ndarray:
     return np.stack([x, y], 1)
 
 
+#: a camera this many times the median distance of the cameras to their median is drawn at the edge
+FAR_CAMERA = 5.0
+
+
+def far_cameras(c2) -> np.ndarray:
+    """A mask of the cameras (N x 2, seen from above) farther than :data:`FAR_CAMERA` x the median
+    distance of the cameras to their median point: drawn at the edge, so that one camera far off
+    does not squeeze the others into a corner."""
+    c2 = np.asarray(c2, np.float64).reshape(-1, 2)
+    if len(c2) < 3:
+        return np.zeros(len(c2), bool)
+    d = np.linalg.norm(c2 - np.median(c2, 0), axis=1)
+    scale = np.median(d)
+    return d > FAR_CAMERA * scale if scale > 0 else np.zeros(len(c2), bool)
+
+
+def _set_limits(ax, xy) -> None:
+    """Equal axes around ``xy`` (the points and the near cameras) with a margin."""
+    if not len(xy):
+        return
+    lo, hi = xy.min(0), xy.max(0)
+    centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-9) * 1.1
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_aspect("equal", adjustable="box")
+
+
+def _mark_far(ax, names: list, far_xy, near_xy) -> None:
+    """Each far camera as an arrow at the edge of the picture, in its direction, with its name and distance."""
+    if not len(names):
+        return
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+    half = (x1 - x0) / 2
+    scale = max(float(np.median(np.linalg.norm(near_xy - np.median(near_xy, 0), axis=1))) if len(near_xy) else 0, 1e-12)
+    for i, (n, xy) in enumerate(zip(names, far_xy)):
+        v = xy - centre
+        edge = centre + v / max(np.abs(v).max(), 1e-12) * half * 0.92
+        label = "far camera (off the picture)" if i == 0 else None
+        ax.scatter([edge[0]], [edge[1]], s=60, c="darkorange", marker="X", label=label, zorder=4)
+        ax.annotate(f"{Path(n).stem} ({np.linalg.norm(v) / scale:.3g} x)", edge, fontsize=6, color="darkorange")
+
+
 def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: str = "") -> Path:
     """Write the figure (module docstring) to ``path``.
 
@@ -68,10 +112,13 @@ def plot_reconstruction(path, rec, image_names: list, pair_status: dict, title: 
         p2 = (pts - mean) @ axes
         c2 = (centres - mean) @ axes
         ax0.scatter(p2[:, 0], p2[:, 1], s=1, c=cols if len(cols) else None)
-        ax0.scatter(c2[:, 0], c2[:, 1], s=30, c="red", marker="^", label="cameras")
-        for n, (x, y) in zip(names, c2):
+        far = far_cameras(c2)
+        near = ~far
+        ax0.scatter(c2[near, 0], c2[near, 1], s=30, c="red", marker="^", label="cameras")
+        for n, (x, y) in zip(np.array(names)[near], c2[near]):
             ax0.annotate(Path(n).stem, (x, y), fontsize=6)
-        ax0.set_aspect("equal", adjustable="datalim")
+        _set_limits(ax0, np.concatenate([p2, c2[near]]))
+        _mark_far(ax0, [n for n, f in zip(names, far) if f], c2[far], c2[near])
         ax0.legend(loc="upper right", fontsize=7)
         ax0.set_title(f"from above: {len(names)} cameras, {rec.num_points3D()} points", fontsize=9)
     else:
