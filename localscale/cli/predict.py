@@ -104,11 +104,11 @@ def _write_prediction(args, pred, check, out, inputs) -> None:
 
 
 def _refine_with_matcher(args, model, out, inputs) -> None:
-    """``--refine --matcher M``: :func:`~localscale.matching.match_pair` with ``auto`` and refinement."""
-    from ..matching.pipeline import match_pair
+    """``--refine --matcher M``: :func:`~localscale.matching.pipeline.refine_by_auto`."""
+    from ..matching.pipeline import refine_by_auto
 
-    options = {"refine": True} | ({"weights": args.matcher_weights} if args.matcher_weights else {})
-    res = match_pair(args.image_a, args.image_b, "auto", None, model, None, args.matcher, **options)
+    options = {"weights": args.matcher_weights} if args.matcher_weights else {}
+    res = refine_by_auto(args.image_a, args.image_b, args.matcher, model, None, **options)
     v = res.verification
     extra = {k: res.meta[k] for k in _REFINE_META} | {"auto": res.meta["auto"]}
     for p in write_refinement(out, pair_name(*inputs) + "_", res.refined_a, None, extra, inputs):

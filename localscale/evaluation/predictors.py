@@ -20,8 +20,9 @@ Built in (:data:`PREDICTORS`):
   geometry (the homography's map, or the dense map of the verified matches), the anchored map where
   nothing verifies or matches are too sparse; OpenCV SIFT as the seed when the first pass fails;
 * ``refined:MATCHER`` (``aliked-lightglue``, ``disk-lightglue``, ``xfeat-lightglue``): the map
-  ``localscale predict --refine --matcher MATCHER`` writes: the geometry ``auto`` verifies with that
-  matcher (its hypotheses find the window of a close-up and its quarter turn), the map refined from it.
+  ``localscale predict --refine --matcher MATCHER`` writes (:func:`~localscale.matching.pipeline.refine_by_auto`):
+  the geometry ``auto`` verifies with that matcher (its hypotheses find the window of a close-up and
+  its quarter turn; H, F or E as COLMAP chooses), the map refined from it.
 
 More can be added by name (:func:`register_predictor`), e.g. a system's own map from a function
 ``f(image_a, image_b, local_model=..., global_model=...)`` (:func:`function_predictor`,
@@ -145,13 +146,9 @@ def _refined(ctx: PairContext) -> np.ndarray:
 
 def _refined_auto(matcher: str) -> Predictor:
     def predict(ctx: PairContext) -> np.ndarray:
-        from ..matching.pipeline import match_pair
+        from ..matching.pipeline import refine_by_auto
 
-        m = ctx.models
-        res = match_pair(
-            ctx.a, ctx.b, "auto", local_model=m.local, global_model=m.global_, matcher=matcher, refine=True
-        )
-        return res.refined_a.scale
+        return refine_by_auto(ctx.a, ctx.b, matcher, ctx.models.local, ctx.models.global_).refined_a.scale
 
     return predict
 

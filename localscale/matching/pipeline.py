@@ -382,6 +382,21 @@ def refine_predictions(image_a, image_b, pred_ab, pred_ba, **options) -> MatchRe
     return match_refined_pair(image_a, image_b, first_a, first_b, pred_ab.scale, pred_ba.scale, **options)
 
 
+def refine_by_auto(
+    image_a, image_b, matcher: str = "aliked-lightglue", local_model=None, global_model=None, **options
+) -> MatchResult:
+    """The maps refined by the geometry ``auto`` verifies with ``matcher`` (what ``localscale predict
+    --refine --matcher M`` writes): :func:`match_pair` with ``correction="auto"`` and ``refine``, the
+    matches verified as COLMAP's two-view geometry chooses (the homography's map where a plane
+    explains them, the dense map of the verified matches of a 3D scene); ``options`` as in
+    :func:`match_pair` (e.g. ``weights``)."""
+    from .config import match_config
+
+    verification = dataclasses.replace(match_config(matcher).verification, model="two_view")
+    options = {"verification": verification} | options
+    return match_pair(image_a, image_b, "auto", None, local_model, global_model, matcher, refine=True, **options)
+
+
 def refine_match(*args, **kwargs) -> MatchResult:
     """Deprecated name of :func:`match_refined_pair`; goes in the next release."""
     import warnings

@@ -3,7 +3,8 @@
 * :func:`refine_scale_map`: the network map replaced, where a verified geometry explains the
   inliers, by the geometry's scale: the analytic map ``sqrt|det J_H(x)|`` of the homography
   over its support (co-visible region of A under ``H`` and the dilated inlier hull), or per-inlier
-  scales of local affine fits interpolated between the inliers (fundamental-matrix case);
+  scales of local affine fits interpolated between the inliers (fundamental-matrix case, where
+  the network map is first shifted to the inliers' median level);
   blended with the network map in ``log2`` with a weight that decays with the distance to the
   support. Unverified: the network map unchanged, source all 0. ``source_layer`` labels each
   pixel by where its scale comes from (0 network, 1 homography, 2 matches).
@@ -92,6 +93,18 @@ def _network_log2(scale_map, shape) -> np.ndarray:
         raise LocalScaleError(f"scale map is {m.shape[1]}x{m.shape[0]}, image is {shape[1]}x{shape[0]}")
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.log2(m)
+
+
+def _anchored_to(net: np.ndarray, points: np.ndarray, log2_scales: np.ndarray) -> np.ndarray:
+    """The network's ``log2`` map shifted so that its median at ``points`` is that of the geometry's
+    ``log2_scales`` there: away from the matches, the map keeps its shape and takes the verified level."""
+    if not len(points):
+        return net
+    h, w = net.shape
+    pi = np.clip(np.round(points).astype(int), 0, [w - 1, h - 1])
+    d = log2_scales - net[pi[:, 1], pi[:, 0]]
+    d = d[np.isfinite(d)]
+    return net + float(np.median(d)) if len(d) else net
 
 
 def _hull_mask(points: np.ndarray, shape, margin_px: float) -> np.ndarray:
@@ -202,6 +215,7 @@ def refine_scale_map(
         known = np.isfinite(ls)  # inliers without a consistent local affine fit have no scale
         geo, _ = _matches_log2_map(inl_a[known], ls[known], shape, config)
         support = _hull_mask(inl_a[known], shape, config.hull_margin * diag)
+        net = _anchored_to(net, inl_a[known], ls[known])
     dist = _distance_to(support)
     weight = np.exp(-dist / (config.decay * diag)).astype(np.float64)
     ok = np.isfinite(geo)
