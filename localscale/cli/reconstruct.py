@@ -100,6 +100,14 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
         "default: every pair)",
     )
     p.add_argument(
+        "--prune-mnn",
+        type=int,
+        default=d["prune_mnn"],
+        metavar="N",
+        help="pairs whose stored descriptors share fewer than N mutual nearest neighbours (ratio 0.9) are "
+        "not matched by LightGlue as they are (default 0: every pair is)",
+    )
+    p.add_argument(
         "--max-side", type=positive_int, default=d["max_side"], help="working resolution (longer side, pixels)"
     )
     p.add_argument("--num-keypoints", type=positive_int, default=d["num_keypoints"], help="keypoints per image at most")
@@ -201,7 +209,7 @@ def config_from_args(args):
     return ReconstructConfig(
         features=FeaturesConfig(args.matcher, args.max_side, args.num_keypoints),
         pairs=PairsConfig(args.pairs, args.pairs_nearest),
-        correction=CorrectionConfig(args.correction, not args.auto_per_pair),
+        correction=CorrectionConfig(args.correction, not args.auto_per_pair, args.prune_mnn),
         mapping=MappingConfig(
             camera_mode=args.camera_mode,
             camera_file=args.camera,

@@ -62,10 +62,13 @@ class PairsConfig:
 @dataclass
 class CorrectionConfig:
     """``correction``: :data:`SFM_CORRECTIONS`; ``auto_graph``: ``auto`` driven by the pair
-    graph (:func:`~.match.match_pairs`), False: the whole hypothesis loop per pair."""
+    graph (:func:`~.match.match_pairs`), False: the whole hypothesis loop per pair; ``prune_mnn``:
+    a pair whose stored descriptors share fewer ratio-tested mutual nearest neighbours is not given
+    to LightGlue as it is (:mod:`~.prune`; 0: every pair is)."""
 
     correction: str = field(default="none", metadata=_RESULT)
     auto_graph: bool = field(default=True, metadata=_RESULT)
+    prune_mnn: int = field(default=0, metadata=_RESULT)
 
 
 @dataclass
@@ -159,6 +162,7 @@ class ReconstructConfig:
         out.update(
             correction=c.correction,
             auto_graph=c.auto_graph if c.correction == "auto" else None,
+            prune_mnn=c.prune_mnn,
             pairs="exhaustive" if p.pairs == "exhaustive" else "file",
             pairs_file_sha1=None if p.pairs == "exhaustive" else _sha1(p.pairs),
             pairs_nearest=p.pairs_nearest,
@@ -213,6 +217,8 @@ def _check_pairs(p: PairsConfig) -> None:
 def _check_correction(c: CorrectionConfig) -> None:
     if c.correction not in SFM_CORRECTIONS:
         raise LocalScaleError(f"correction must be one of {', '.join(SFM_CORRECTIONS)}, got {c.correction!r}")
+    if not _positive_int(c.prune_mnn, 0):
+        raise LocalScaleError(f"--prune-mnn must be an integer >= 0, got {c.prune_mnn!r}")
 
 
 def _check_mapping(m: MappingConfig) -> None:

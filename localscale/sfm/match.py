@@ -137,7 +137,9 @@ def match_pairs(
     sets = _keypoint_sets(images, features_path, keypoints_path, conf.mapping.merge_px, fresh=overwrite)
     stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
     output = _MatchOutput(matches_path, keypoints_path, sets, {im.name: im for im in images}, fresh=overwrite)
-    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, method, device, *models)
+    factory = PairRunnerFactory(
+        tuple(images), str(features_path), fconf, method, device, *models, prune_mnn=conf.correction.prune_mnn
+    )
     runner, run_items = _pair_runs(factory, executor, show_progress) if todo else (None, None)
     if todo and method.auto and conf.correction.auto_graph:
         from ..matching.auto.collection import match_with_graph
@@ -364,7 +366,7 @@ def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, d
 
 def main(argv=None) -> int:
     """``python -m localscale.sfm.match``: this step alone, from files (:func:`match_files`)."""
-    p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
+    p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "prune_mnn", "merge_px"))
     p.add_argument("images", help="folder of images")
     p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")
     p.add_argument("--device", default="cpu", help="torch device")

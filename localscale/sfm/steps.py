@@ -38,6 +38,7 @@ FLAGS = {
     "pairs": ("--pairs", str, "'exhaustive' or a pairs file"),
     "pairs_nearest": ("--pairs-nearest", int, "each image with its N most similar instead of every pair"),
     "correction": ("--correction", str, "none, auto, global, local, fused or searched"),
+    "prune_mnn": ("--prune-mnn", int, "skip LightGlue on pairs with fewer mutual nearest neighbours (0: none)"),
     "merge_px": ("--merge-px", float, "keypoints closer than this (full-image pixels) are one"),
     "camera_mode": ("--camera-mode", str, "auto, single or per_image"),
     "camera_file": ("--camera", str, "a cameras.txt (line) or JSON with the camera of every image"),
