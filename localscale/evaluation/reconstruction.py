@@ -24,7 +24,10 @@ Pipelines (``pipelines``), each mapped with ``mapper`` (COLMAP's ``incremental``
   exhaustive pairs, no correction (what an hloc user runs);
 * ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
 * ``aliked-lg-auto-per-pair``: ``auto`` with the whole hypothesis loop on every pair that does not
-  verify clearly as it is (``auto_graph=False``).
+  verify clearly as it is (``auto_graph=False``);
+* ``-fp32``, ``-prune`` after ``aliked-lg`` / ``aliked-lg-auto``: the same with LightGlue in float32
+  (``lightglue_precision="fp32"``), or with pairs of fewer than 10 mutual nearest neighbours not given
+  to LightGlue as they are (``prune_mnn=10``) (:data:`PIPELINE_OPTIONS`).
 
 Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_image`` on the
 close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
@@ -52,7 +55,18 @@ import numpy as np
 from ..core.outputs import write_text
 from .report import git_commit
 
-PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
+PIPELINES = (
+    "colmap-sift",
+    "aliked-lg",
+    "aliked-lg-auto",
+    "aliked-lg-auto-per-pair",
+    "aliked-lg-fp32",
+    "aliked-lg-auto-fp32",
+    "aliked-lg-prune",
+    "aliked-lg-auto-prune",
+)
+#: ``-SUFFIX`` of a pipeline name: the reconstruction options it changes
+PIPELINE_OPTIONS = {"fp32": {"lightglue_precision": "fp32"}, "prune": {"prune_mnn": 10}}
 COLUMNS = [
     ("collection", "collection"),
     ("pipeline", "pipeline"),
@@ -210,6 +224,7 @@ def run_ours(
     threads: int,
     auto_graph: bool = True,
     mapper: str = "incremental",
+    **options,
 ) -> dict:
     from ..sfm import read_models, reconstruct
 
@@ -226,6 +241,7 @@ def run_ours(
         show_progress=False,
         auto_graph=auto_graph,
         mapper=mapper,
+        **options,
     )
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
@@ -316,8 +332,16 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
     if method == "colmap-sift":
         return run_colmap_sift(images_dir, run_dir, camera_mode, cfg.threads, cfg.mapper, known)
     correction = "auto" if "-auto" in method else "none"
+    options = PIPELINE_OPTIONS.get(method.rsplit("-", 1)[-1], {})
     return run_ours(
-        images_dir, run_dir, correction, camera_mode, cfg.threads, not method.endswith("per-pair"), cfg.mapper
+        images_dir,
+        run_dir,
+        correction,
+        camera_mode,
+        cfg.threads,
+        not method.endswith("per-pair"),
+        cfg.mapper,
+        **options,
     )
 
 

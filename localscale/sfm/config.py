@@ -40,11 +40,14 @@ _RESULT = {"result": True}
 @dataclass
 class FeaturesConfig:
     """The features: a name of :data:`localscale.matching.MATCHERS`, the working resolution (longer
-    side) and keypoints per image (None: the matcher's own)."""
+    side) and keypoints per image (None: the matcher's own), and LightGlue's run-time precision
+    (:data:`~localscale.matching.lightglue.LIGHTGLUE_PRECISIONS`; ``auto``: bfloat16 on a CPU that
+    computes it natively)."""
 
     matcher: str = field(default="aliked-lightglue", metadata=_RESULT)
     max_side: Optional[int] = field(default=1024, metadata=_RESULT)
     num_keypoints: Optional[int] = field(default=2048, metadata=_RESULT)
+    lightglue_precision: str = field(default="auto", metadata=_RESULT)
 
 
 @dataclass
@@ -202,6 +205,12 @@ def _check_features(f: FeaturesConfig) -> None:
         raise LocalScaleError(f"--max-side must be an integer >= 16, got {f.max_side!r}")
     if f.num_keypoints is not None and not _positive_int(f.num_keypoints, 1):
         raise LocalScaleError(f"--num-keypoints must be an integer >= 1, got {f.num_keypoints!r}")
+    from ..matching.lightglue import LIGHTGLUE_PRECISIONS
+
+    if f.lightglue_precision not in LIGHTGLUE_PRECISIONS:
+        raise LocalScaleError(
+            f"--lightglue-precision must be one of {', '.join(LIGHTGLUE_PRECISIONS)}, got {f.lightglue_precision!r}"
+        )
 
 
 def _check_pairs(p: PairsConfig) -> None:

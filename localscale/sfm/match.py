@@ -124,7 +124,7 @@ def match_pairs(
     """
     conf = conf or ReconstructConfig()
     f, correction = conf.features, conf.correction.correction
-    fconf = FeatureConf(f.matcher, f.num_keypoints, f.max_side)
+    fconf = FeatureConf(f.matcher, f.num_keypoints, f.max_side, f.lightglue_precision)
     if correction not in SFM_CORRECTIONS:
         raise LocalScaleError(
             f"correction must be one of {', '.join(SFM_CORRECTIONS)} for reconstruction, got {correction!r}"
@@ -366,7 +366,11 @@ def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, d
 
 def main(argv=None) -> int:
     """``python -m localscale.sfm.match``: this step alone, from files (:func:`match_files`)."""
-    p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "prune_mnn", "merge_px"))
+    p = parser(
+        "match",
+        __doc__,
+        ("matcher", "max_side", "num_keypoints", "lightglue_precision", "correction", "prune_mnn", "merge_px"),
+    )
     p.add_argument("images", help="folder of images")
     p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")
     p.add_argument("--device", default="cpu", help="torch device")

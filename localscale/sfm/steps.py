@@ -35,6 +35,7 @@ FLAGS = {
     "matcher": ("--matcher", str, "features and matching rule (localscale.matching.MATCHERS)"),
     "max_side": ("--max-side", int, "working resolution (longer side, pixels)"),
     "num_keypoints": ("--num-keypoints", int, "keypoints per image at most"),
+    "lightglue_precision": ("--lightglue-precision", str, "LightGlue's precision: auto, fp32, bf16 or int8"),
     "pairs": ("--pairs", str, "'exhaustive' or a pairs file"),
     "pairs_nearest": ("--pairs-nearest", int, "each image with its N most similar instead of every pair"),
     "correction": ("--correction", str, "none, auto, global, local, fused or searched"),
