@@ -64,3 +64,18 @@ def test_bad_speed_options_are_one_line_errors(make, text):
     with pytest.raises(LocalScaleError) as e:
         make()
     assert text in str(e.value) and "\n" not in str(e.value)
+
+
+def test_run_before_the_speed_options_resumes_as_fp32_without_pruning(tmp_path):
+    import json
+
+    from localscale.sfm.outdir import OutputFolderError
+    from localscale.sfm.reconstruction import _output_state
+
+    old = ReconstructConfig().options()
+    del old["lightglue_precision"], old["prune_mnn"]  # a run.json written before these options
+    (tmp_path / "run.json").write_text(json.dumps({"options": old}))
+    (tmp_path / "features.h5").write_bytes(b"")
+    assert _output_state(tmp_path, ReconstructConfig.from_flat(lightglue_precision="fp32").options(), False) == "resume"
+    with pytest.raises(OutputFolderError, match="lightglue_precision: 'fp32' there, 'auto' now"):
+        _output_state(tmp_path, ReconstructConfig().options(), False)
