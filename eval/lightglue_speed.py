@@ -9,7 +9,8 @@ Variants: ``fp32`` (kornia's defaults, adaptive depth 0.95 and width 0.99), ``fp
 (both off), ``fp32-0.9`` (depth / width confidence 0.9 / 0.95), ``int8`` (dynamic int8 quantisation
 of the linear layers, :func:`torch.ao.quantization.quantize_dynamic`), ``bf16`` (kornia's ``mp``, CPU
 autocast), ``bf16-0.9``. ``--matches``: a ``matches.h5`` of an ``auto`` run gives each pair's ``verified`` flag
-(pair kind ``verified`` / ``not verified``), a ``geometries.h5`` the pairs with 15 inliers or more. Every pair of the file gets its MNN count
+(pair kind ``verified`` / ``not verified``), a ``geometries.h5`` the pairs with 15 inliers or more. Each timed pair also gets the seconds of each layer LightGlue ran (the
+last number: all but the layers). Every pair of the file gets its MNN count
 (``--mnn-only`` stops there).
 """
 
@@ -61,6 +62,26 @@ def verified_flags(path, min_inliers: int = 15) -> dict:
     return out
 
 
+def layer_seconds(m: Matcher, fa, fb) -> list:
+    """Seconds of each transformer layer LightGlue ran on the pair (forward hooks), then the rest."""
+    net, marks = m._lightglue, []
+    hooks = [
+        h
+        for layer in net.transformers
+        for h in (
+            layer.register_forward_pre_hook(lambda *_: marks.append(("in", time.perf_counter()))),
+            layer.register_forward_hook(lambda *_: marks.append(("out", time.perf_counter()))),
+        )
+    ]
+    t0 = time.perf_counter()
+    m.match_features(fa, fb)
+    total = time.perf_counter() - t0
+    for h in hooks:
+        h.remove()
+    layers = [b[1] - a[1] for a, b in zip(marks[::2], marks[1::2])]
+    return [round(x, 4) for x in layers] + [round(total - sum(layers), 4)]
+
+
 def run_pair(m: Matcher, fa, fb) -> dict:
     stops = []
     net = m._lightglue
@@ -77,6 +98,7 @@ def main(argv=None) -> int:
     p.add_argument("features")
     p.add_argument("--matches", default=None)
     p.add_argument("--pairs", type=int, default=10, help="pairs timed (the first N of each kind)")
+    # the first variant is the reference of the speed-ups (per pair, median)
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     p.add_argument("--mnn-only", action="store_true")
     p.add_argument("--json", default=None)
@@ -106,18 +128,33 @@ def main(argv=None) -> int:
     timing = {}
     if not a.mnn_only:
         chosen = [r for r in rows if r["verified"]][: a.pairs] + [r for r in rows if r["verified"] is False][: a.pairs]
-        for v in a.variants:
-            m = matcher_of(v)
+        matchers = {v: matcher_of(v) for v in a.variants}
+        for m in matchers.values():
             run_pair(m, feats[chosen[0]["a"]], feats[chosen[0]["b"]])  # warm-up
-            for r in chosen:
+        for r in chosen:  # the variants in turn on each pair: the machine's load falls on all of them
+            for v, m in matchers.items():
                 r[v] = run_pair(m, feats[r["a"]], feats[r["b"]])
+                r[v]["layer_seconds"] = layer_seconds(m, feats[r["a"]], feats[r["b"]])
+        for v in a.variants:
             for kind in (True, False):
-                sel = [r[v] for r in chosen if r["verified"] is kind]
-                if sel:
-                    s = statistics.median(x["seconds"] for x in sel)
-                    mt = statistics.median(x["matches"] for x in sel)
-                    timing[f"{v} verified={kind}"] = {"median_s": round(s, 3), "median_matches": mt, "pairs": len(sel)}
-                    print(f"{v:13s} verified={kind!s:5s}: median {s:.3f} s/pair, median matches {mt}", flush=True)
+                sel = [r for r in chosen if r["verified"] is kind]
+                if not sel:
+                    continue
+                s = statistics.median(r[v]["seconds"] for r in sel)
+                ratio = statistics.median(r[a.variants[0]]["seconds"] / r[v]["seconds"] for r in sel)
+                mt = statistics.median(r[v]["matches"] for r in sel)
+                lay = statistics.median(r[v]["layers"] for r in sel)
+                timing[f"{v} verified={kind}"] = {
+                    "median_s": round(s, 3),
+                    f"speed-up_vs_{a.variants[0]}": round(ratio, 2),
+                    "median_matches": mt,
+                    "median_layers": lay,
+                    "pairs": len(sel),
+                }
+                print(
+                    f"{v:13s} verified={kind!s:5s}: median {s:.3f} s/pair ({ratio:.2f}x), {mt} matches, {lay} layers",
+                    flush=True,
+                )
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({"features": a.features, "timing": timing, "pairs": rows}, indent=1))

@@ -121,6 +121,7 @@ class LibraryMatcher:
         auto=None,
         features=None,
         precision=None,
+        confidences=None,
     ):
         from localscale.matching import AutoConfig, get_matcher
 
@@ -129,6 +130,8 @@ class LibraryMatcher:
             options["num_features"] = features
         if precision:
             options["lightglue_precision"] = precision
+        if confidences:
+            options["depth_confidence"], options["width_confidence"] = confidences
         if given == "two_view":
             from localscale.matching import VerificationConfig
 
@@ -216,7 +219,9 @@ class PointsOracle:
         return out[0], out[1]
 
 
-def make_method(spec: str, max_side: int, models_cache: dict, auto=None, features=None, precision=None):
+def make_method(
+    spec: str, max_side: int, models_cache: dict, auto=None, features=None, precision=None, confidences=None
+):
     if spec == "opencv-sift":
         return SiftMatcher()
     if spec.startswith("points:"):
@@ -237,7 +242,15 @@ def make_method(spec: str, max_side: int, models_cache: dict, auto=None, feature
 
         models_cache["models"] = (LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained())
     return LibraryMatcher(
-        name, correction, max_side, models_cache["models"], *given, auto=auto, features=features, precision=precision
+        name,
+        correction,
+        max_side,
+        models_cache["models"],
+        *given,
+        auto=auto,
+        features=features,
+        precision=precision,
+        confidences=confidences,
     )
 
 
@@ -365,6 +378,7 @@ class PoseRun:
     out: str = "results/pose_collections.json"
     num_features: Optional[int] = None
     lightglue_precision: Optional[str] = None  #: the library matchers' (None: their default)
+    lightglue_confidence: Optional[tuple] = None  #: LightGlue's (depth, width) confidences (None: kornia's)
     auto: dict = field(default_factory=dict)  # AutoConfig fields of the auto methods
     cache: Optional[str] = None  # per-pair JSON lines (default: out with .pairs.jsonl)
 
@@ -377,6 +391,8 @@ class PoseRun:
             options["num_features"] = self.num_features
         if self.lightglue_precision:
             options["lightglue_precision"] = self.lightglue_precision
+        if self.lightglue_confidence:
+            options["lightglue_confidence"] = list(self.lightglue_confidence)
         if self.gt_models:
             options["gt_models"] = self.gt_models
         return options
@@ -518,7 +534,13 @@ def run(cfg: PoseRun, command: str = "") -> dict:
             todo = [j for j in jobs if job_key(j, spec) not in done]
             if todo:
                 method = make_method(
-                    spec, cfg.max_side, models_cache, cfg.auto, cfg.num_features, cfg.lightglue_precision
+                    spec,
+                    cfg.max_side,
+                    models_cache,
+                    cfg.auto,
+                    cfg.num_features,
+                    cfg.lightglue_precision,
+                    cfg.lightglue_confidence,
                 )
                 done.update(evaluate_method(spec, method, todo, cfg, options, log, images))
     wanted = {job_key(j, spec) for j in jobs for spec in cfg.methods}
