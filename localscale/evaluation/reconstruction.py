@@ -33,6 +33,9 @@ Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_ima
 close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
 would be wrong, and a real zoomed photo's EXIF would say so).
 
+``CPU s``: the process's CPU time over the pipeline (all its threads): on a loaded machine a
+steadier measure than the wall-clock stages.
+
 Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/results.json``
 (written atomically after each run); a rerun skips the rows already there (``overwrite`` redoes
 them). The markdown table is printed and written to ``OUT/results.md``.
@@ -82,6 +85,7 @@ COLUMNS = [
     ("verify_s", "verify s"),
     ("map_s", "db + map s"),
     ("total_s", "total s"),
+    ("cpu_s", "CPU s"),
 ]
 
 
@@ -397,11 +401,12 @@ def run(cfg: ReconstructionRun) -> list:
                     print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
                     continue
                 print(f"{label} / {pipe} ...", flush=True)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 known = cfg.intrinsics.get(c) if version == "plain" else None
                 res = run_pipeline(cfg, method, images_dir, out / label / pipe, camera_mode, known)
                 wall = time.perf_counter() - t0
                 row = result_row(label, pipe, res, closeups, wall, camera_mode, cfg.threads)
+                row["cpu_s"] = round(time.process_time() - c0, 1)
                 rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
                 save_rows(out, rows)
                 print(f"{label} / {pipe}: {row['registered']} registered, {wall:.0f} s", flush=True)
