@@ -79,3 +79,14 @@ def test_run_before_the_speed_options_resumes_as_fp32_without_pruning(tmp_path):
     assert _output_state(tmp_path, ReconstructConfig.from_flat(lightglue_precision="fp32").options(), False) == "resume"
     with pytest.raises(OutputFolderError, match="lightglue_precision: 'fp32' there, 'auto' now"):
         _output_state(tmp_path, ReconstructConfig().options(), False)
+
+
+def test_auto_precision_is_bf16_only_on_a_cpu_that_has_it(monkeypatch):
+    import localscale.matching.lightglue as lg
+
+    monkeypatch.setattr(lg, "cpu_has_bf16", lambda: False)
+    assert lg.resolve_precision("auto", "cpu") == "fp32"
+    monkeypatch.setattr(lg, "cpu_has_bf16", lambda: True)
+    assert lg.resolve_precision("auto", "cpu") == "bf16"
+    assert lg.resolve_precision("auto", "cuda") == "fp32"
+    assert lg.resolve_precision("int8", "cpu") == "int8"
