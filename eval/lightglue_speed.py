@@ -86,11 +86,11 @@ def run_pair(m: Matcher, fa, fb) -> dict:
     stops = []
     net = m._lightglue
     hook = net.register_forward_hook(lambda mod, inp, out: stops.append(int(out.get("stop", -1))))
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     matches, _ = m.match_features(fa, fb)
-    seconds = time.perf_counter() - t
+    seconds, cpu = time.perf_counter() - t, time.process_time() - c
     hook.remove()
-    return {"seconds": seconds, "matches": int(len(matches)), "layers": stops[0] if stops else -1}
+    return {"seconds": seconds, "cpu_s": cpu, "matches": int(len(matches)), "layers": stops[0] if stops else -1}
 
 
 def main(argv=None) -> int:
@@ -98,6 +98,7 @@ def main(argv=None) -> int:
     p.add_argument("features")
     p.add_argument("--matches", default=None)
     p.add_argument("--pairs", type=int, default=10, help="pairs timed (the first N of each kind)")
+    p.add_argument("--any-pairs", action="store_true", help="without --matches: time the first N pairs")
     # the first variant is the reference of the speed-ups (per pair, median)
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     p.add_argument("--mnn-only", action="store_true")
@@ -128,6 +129,8 @@ def main(argv=None) -> int:
     timing = {}
     if not a.mnn_only:
         chosen = [r for r in rows if r["verified"]][: a.pairs] + [r for r in rows if r["verified"] is False][: a.pairs]
+        if a.any_pairs and not flags:
+            chosen = rows[: a.pairs]
         matchers = {v: matcher_of(v) for v in a.variants}
         for m in matchers.values():
             run_pair(m, feats[chosen[0]["a"]], feats[chosen[0]["b"]])  # warm-up
@@ -136,7 +139,7 @@ def main(argv=None) -> int:
                 r[v] = run_pair(m, feats[r["a"]], feats[r["b"]])
                 r[v]["layer_seconds"] = layer_seconds(m, feats[r["a"]], feats[r["b"]])
         for v in a.variants:
-            for kind in (True, False):
+            for kind in (True, False, None):
                 sel = [r for r in chosen if r["verified"] is kind]
                 if not sel:
                     continue
@@ -146,6 +149,7 @@ def main(argv=None) -> int:
                 lay = statistics.median(r[v]["layers"] for r in sel)
                 timing[f"{v} verified={kind}"] = {
                     "median_s": round(s, 3),
+                    "median_cpu_s": round(statistics.median(r[v]["cpu_s"] for r in sel), 3),
                     f"speed-up_vs_{a.variants[0]}": round(ratio, 2),
                     "median_matches": mt,
                     "median_layers": lay,
