@@ -52,6 +52,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="results/pose_collections.json")
     p.add_argument("--num-features", type=int, default=None, help="keypoints of the library's matchers (their default)")
+    p.add_argument(
+        "--lightglue-precision",
+        default=None,
+        choices=("auto", "fp32", "bf16", "int8"),
+        help="LightGlue's precision in the library's matchers (default: theirs, auto)",
+    )
+    p.add_argument(
+        "--lightglue-confidence",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("DEPTH", "WIDTH"),
+        help="LightGlue's adaptive depth and width confidences (default: kornia's, 0.95 0.99 for ALIKED)",
+    )
     p.add_argument("--auto", nargs="+", default=[], metavar="FIELD=VALUE", help="AutoConfig fields of the auto methods")
     p.add_argument("--cache", default=None, help="per-pair results (JSON lines; default: OUT with .pairs.jsonl)")
     return p

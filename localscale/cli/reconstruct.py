@@ -61,6 +61,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
 def _add_feature_options(p: argparse.ArgumentParser) -> None:
     """The options of the features, pairs and correction sections of :class:`~localscale.sfm.ReconstructConfig`."""
     from ..matching import MATCHERS
+    from ..matching.lightglue import LIGHTGLUE_PRECISIONS
     from ..sfm.config import SFM_CORRECTIONS, ReconstructConfig
 
     d = ReconstructConfig().flat()
@@ -100,9 +101,24 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
         "default: every pair)",
     )
     p.add_argument(
+        "--prune-mnn",
+        type=int,
+        default=d["prune_mnn"],
+        metavar="N",
+        help="pairs whose stored descriptors share fewer than N mutual nearest neighbours (ratio 0.9) are "
+        "not matched by LightGlue as they are (default 0: every pair is)",
+    )
+    p.add_argument(
         "--max-side", type=positive_int, default=d["max_side"], help="working resolution (longer side, pixels)"
     )
     p.add_argument("--num-keypoints", type=positive_int, default=d["num_keypoints"], help="keypoints per image at most")
+    p.add_argument(
+        "--lightglue-precision",
+        default=d["lightglue_precision"],
+        choices=LIGHTGLUE_PRECISIONS,
+        help="LightGlue's precision: auto (bfloat16 on a CPU that computes it natively, else fp32), fp32, "
+        "bf16 or int8 (dynamic int8 linear layers, CPU)",
+    )
 
 
 def _add_mapping_options(p: argparse.ArgumentParser) -> None:
@@ -221,9 +237,9 @@ def config_from_args(args):
     from ..sfm.config import CorrectionConfig, FeaturesConfig, MappingConfig, PairsConfig, ReconstructConfig
 
     return ReconstructConfig(
-        features=FeaturesConfig(args.matcher, args.max_side, args.num_keypoints),
+        features=FeaturesConfig(args.matcher, args.max_side, args.num_keypoints, args.lightglue_precision),
         pairs=PairsConfig(args.pairs, args.pairs_nearest),
-        correction=CorrectionConfig(args.correction, not args.auto_per_pair),
+        correction=CorrectionConfig(args.correction, not args.auto_per_pair, args.prune_mnn),
         mapping=MappingConfig(
             camera_mode=args.camera_mode,
             camera_file=args.camera,

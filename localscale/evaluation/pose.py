@@ -111,12 +111,27 @@ class LibraryMatcher:
     passed: two-view geometry with the essential matrix) or ``"two_view"`` (no cameras, COLMAP's
     choice of homography or fundamental matrix)."""
 
-    def __init__(self, name: str, correction: str, max_side: int, models, given: str = "", auto=None, features=None):
+    def __init__(
+        self,
+        name: str,
+        correction: str,
+        max_side: int,
+        models,
+        given: str = "",
+        auto=None,
+        features=None,
+        precision=None,
+        confidences=None,
+    ):
         from localscale.matching import AutoConfig, get_matcher
 
         options = {"auto": AutoConfig(**auto)} if auto else {}
         if features:
             options["num_features"] = features
+        if precision:
+            options["lightglue_precision"] = precision
+        if confidences:
+            options["depth_confidence"], options["width_confidence"] = confidences
         if given == "two_view":
             from localscale.matching import VerificationConfig
 
@@ -204,7 +219,9 @@ class PointsOracle:
         return out[0], out[1]
 
 
-def make_method(spec: str, max_side: int, models_cache: dict, auto=None, features=None):
+def make_method(
+    spec: str, max_side: int, models_cache: dict, auto=None, features=None, precision=None, confidences=None
+):
     if spec == "opencv-sift":
         return SiftMatcher()
     if spec.startswith("points:"):
@@ -224,7 +241,17 @@ def make_method(spec: str, max_side: int, models_cache: dict, auto=None, feature
         from localscale import LocalScaleNet, ScaleNet
 
         models_cache["models"] = (LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained())
-    return LibraryMatcher(name, correction, max_side, models_cache["models"], *given, auto=auto, features=features)
+    return LibraryMatcher(
+        name,
+        correction,
+        max_side,
+        models_cache["models"],
+        *given,
+        auto=auto,
+        features=features,
+        precision=precision,
+        confidences=confidences,
+    )
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -350,6 +377,8 @@ class PoseRun:
     seed: int = 0
     out: str = "results/pose_collections.json"
     num_features: Optional[int] = None
+    lightglue_precision: Optional[str] = None  #: the library matchers' (None: their default)
+    lightglue_confidence: Optional[tuple] = None  #: LightGlue's (depth, width) confidences (None: kornia's)
     auto: dict = field(default_factory=dict)  # AutoConfig fields of the auto methods
     cache: Optional[str] = None  # per-pair JSON lines (default: out with .pairs.jsonl)
 
@@ -360,6 +389,10 @@ class PoseRun:
             options["auto"] = self.auto
         if self.num_features:
             options["num_features"] = self.num_features
+        if self.lightglue_precision:
+            options["lightglue_precision"] = self.lightglue_precision
+        if self.lightglue_confidence:
+            options["lightglue_confidence"] = list(self.lightglue_confidence)
         if self.gt_models:
             options["gt_models"] = self.gt_models
         return options
@@ -500,7 +533,15 @@ def run(cfg: PoseRun, command: str = "") -> dict:
         for spec in cfg.methods:
             todo = [j for j in jobs if job_key(j, spec) not in done]
             if todo:
-                method = make_method(spec, cfg.max_side, models_cache, cfg.auto, cfg.num_features)
+                method = make_method(
+                    spec,
+                    cfg.max_side,
+                    models_cache,
+                    cfg.auto,
+                    cfg.num_features,
+                    cfg.lightglue_precision,
+                    cfg.lightglue_confidence,
+                )
                 done.update(evaluate_method(spec, method, todo, cfg, options, log, images))
     wanted = {job_key(j, spec) for j in jobs for spec in cfg.methods}
     rows = summary_rows(cfg, [r for k, r in done.items() if k in wanted])

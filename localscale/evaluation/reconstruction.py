@@ -27,11 +27,17 @@ Pipelines (``pipelines``), each mapped with ``mapper`` (COLMAP's ``incremental``
   exhaustive pairs, no correction (what an hloc user runs);
 * ``aliked-lg-auto``: the same with ``correction="auto"`` (driven by the pair graph);
 * ``aliked-lg-auto-per-pair``: ``auto`` with the whole hypothesis loop on every pair that does not
-  verify clearly as it is (``auto_graph=False``).
+  verify clearly as it is (``auto_graph=False``);
+* ``-fp32``, ``-prune`` after ``aliked-lg`` / ``aliked-lg-auto``: the same with LightGlue in float32
+  (``lightglue_precision="fp32"``), or with pairs of fewer than 10 mutual nearest neighbours not given
+  to LightGlue as they are (``prune_mnn=10``) (:data:`PIPELINE_OPTIONS`).
 
 Cameras: COLMAP's ``auto`` camera mode on the collections as they are; ``per_image`` on the
 close-up versions for every pipeline (a close-up is a zoomed camera: sharing the photos' camera
 would be wrong, and a real zoomed photo's EXIF would say so).
+
+``CPU s``: the process's CPU time over the pipeline (all its threads): on a loaded machine a
+steadier measure than the wall-clock stages.
 
 Every run goes to ``OUT/<collection>/<pipeline>/``; its row is added to ``OUT/results.json``
 (written atomically after each run); a rerun skips the rows already there (``overwrite`` redoes
@@ -62,7 +68,18 @@ REFERENCES = {
     "skull_alansartlog": "derived/colmap_txt_resized",
     "temple_sparse_ring_middlebury": "derived/templeSR_par_jpgnames.txt",
 }
-PIPELINES = ("colmap-sift", "aliked-lg", "aliked-lg-auto", "aliked-lg-auto-per-pair")
+PIPELINES = (
+    "colmap-sift",
+    "aliked-lg",
+    "aliked-lg-auto",
+    "aliked-lg-auto-per-pair",
+    "aliked-lg-fp32",
+    "aliked-lg-auto-fp32",
+    "aliked-lg-prune",
+    "aliked-lg-auto-prune",
+)
+#: ``-SUFFIX`` of a pipeline name: the reconstruction options it changes
+PIPELINE_OPTIONS = {"fp32": {"lightglue_precision": "fp32"}, "prune": {"prune_mnn": 10}}
 COLUMNS = [
     ("collection", "collection"),
     ("pipeline", "pipeline"),
@@ -80,6 +97,7 @@ COLUMNS = [
     ("verify_s", "verify s"),
     ("map_s", "db + map s"),
     ("total_s", "total s"),
+    ("cpu_s", "CPU s"),
 ]
 
 
@@ -222,6 +240,7 @@ def run_ours(
     threads: int,
     auto_graph: bool = True,
     mapper: str = "incremental",
+    **options,
 ) -> dict:
     from ..sfm import read_models, reconstruct
 
@@ -238,6 +257,7 @@ def run_ours(
         show_progress=False,
         auto_graph=auto_graph,
         mapper=mapper,
+        **options,
     )
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
@@ -328,8 +348,16 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
     if method == "colmap-sift":
         return run_colmap_sift(images_dir, run_dir, camera_mode, cfg.threads, cfg.mapper, known)
     correction = "auto" if "-auto" in method else "none"
+    options = PIPELINE_OPTIONS.get(method.rsplit("-", 1)[-1], {})
     return run_ours(
-        images_dir, run_dir, correction, camera_mode, cfg.threads, not method.endswith("per-pair"), cfg.mapper
+        images_dir,
+        run_dir,
+        correction,
+        camera_mode,
+        cfg.threads,
+        not method.endswith("per-pair"),
+        cfg.mapper,
+        **options,
     )
 
 
@@ -424,7 +452,7 @@ def run(cfg: ReconstructionRun) -> list:
                     print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
                     continue
                 print(f"{label} / {pipe} ...", flush=True)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 known = cfg.intrinsics.get(c) if version == "plain" else None
                 res = run_pipeline(cfg, method, images_dir, out / label / pipe, camera_mode, known)
                 wall = time.perf_counter() - t0
@@ -432,6 +460,7 @@ def run(cfg: ReconstructionRun) -> list:
                 names = sorted(p.name for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
                 res["placement"] = placed_right(res["model"], names, ref, closeups)
                 row = result_row(label, pipe, res, closeups, wall, camera_mode, cfg.threads)
+                row["cpu_s"] = round(time.process_time() - c0, 1)
                 rows = [r for r in rows if (r["collection"], r["pipeline"]) != (label, pipe)] + [row]
                 save_rows(out, rows)
                 print(f"{label} / {pipe}: {row['registered']} registered, {wall:.0f} s", flush=True)

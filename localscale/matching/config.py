@@ -36,6 +36,7 @@ from ..core.errors import LocalScaleError
 from ..features.extractors import get_extractor, named_matchers
 from .auto.config import AutoConfig
 from .correction import CorrectionGate
+from .lightglue import LIGHTGLUE_PRECISIONS
 from .verification import VerificationConfig
 
 #: matching rules a :class:`MatchConfig` can name
@@ -56,6 +57,7 @@ class _MatchFields:
     filter_threshold: float = 0.1
     depth_confidence: Optional[float] = None
     width_confidence: Optional[float] = None
+    lightglue_precision: str = "auto"
     gate: CorrectionGate = field(default_factory=CorrectionGate)
     bf16: bool = False
     refine: bool = False
@@ -104,6 +106,9 @@ class MatchConfig(_MatchFields):
         depth_confidence, width_confidence: LightGlue's adaptive depth (early stop) and width (point
             pruning) confidences, -1 turns one off (None: kornia's value for the extractor:
             ALIKED / DISK 0.95 / 0.99, LighterGlue off / 0.95).
+        lightglue_precision: LightGlue's run-time precision (:data:`~.lightglue.LIGHTGLUE_PRECISIONS`):
+            ``auto`` (bfloat16 autocast on a CPU that computes bfloat16 natively, else float32),
+            ``fp32``, ``bf16`` (kornia's mixed precision), ``int8`` (dynamic int8 linear layers, CPU).
         gate: gating of predicted scale maps (:class:`~.correction.CorrectionGate`).
         bf16: run the scale networks under bfloat16 autocast.
         refine, max_passes, sift_seed, verification: verify the matches, refine the maps by the
@@ -184,6 +189,10 @@ class MatchConfig(_MatchFields):
                 except LocalScaleError:
                     raise LocalScaleError(f"{name} must be in (0, 1] or -1 (off), got {v!r}") from None
         check_int(self.max_passes, "max_passes", 1)
+        if self.lightglue_precision not in LIGHTGLUE_PRECISIONS:
+            raise LocalScaleError(
+                f"lightglue_precision must be one of {', '.join(LIGHTGLUE_PRECISIONS)}, got {self.lightglue_precision!r}"
+            )
 
 
 class _NamedMatchers(Mapping):

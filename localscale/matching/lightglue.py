@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Optional
 
 import torch
@@ -46,3 +47,61 @@ def load_lightglue(
         return out
 
     return load_weights(net, find_weights(extractor.lightglue_weights, weights), rename)
+
+
+def quantize_lightglue(net: torch.nn.Module) -> torch.nn.Module:
+    """``net`` with the linear layers of its transformer layers and match assignment in dynamic int8
+    (:func:`torch.ao.quantization.quantize_dynamic`: int8 weights, activations quantised per call);
+    the positional encoding stays float (kornia reads its weight's dtype)."""
+    import warnings
+
+    from torch.ao.quantization import quantize_dynamic
+
+    net.eval()
+    with warnings.catch_warnings():  # torch's notices that eager quantisation is deprecated
+        warnings.simplefilter("ignore")
+        for name in ("transformers", "log_assignment"):
+            setattr(net, name, quantize_dynamic(getattr(net, name), {torch.nn.Linear}, dtype=torch.qint8))
+    return net
+
+
+#: LightGlue's run-time precisions (:class:`~localscale.matching.MatchConfig` ``lightglue_precision``)
+LIGHTGLUE_PRECISIONS = ("auto", "fp32", "bf16", "int8")
+
+
+@lru_cache(maxsize=1)
+def cpu_has_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively: AVX-512 BF16 or AMX in ``/proc/cpuinfo``'s flags
+    (Linux); elsewhere oneDNN's own check (``torch.ops.mkldnn._is_mkldnn_bf16_supported``)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), None)
+        if flags is not None:
+            return "avx512_bf16" in flags or "amx_bf16" in flags
+    except OSError:
+        pass
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def resolve_precision(precision: str, device) -> str:
+    """``auto``: ``bf16`` on a CPU with native bfloat16, else ``fp32``; another value as it is."""
+    if precision != "auto":
+        return precision
+    return "bf16" if torch.device(device).type == "cpu" and cpu_has_bf16() else "fp32"
+
+
+def lightglue_runtime(net: torch.nn.Module, precision: str, device) -> torch.nn.Module:
+    """``net`` set to run in ``precision`` (:data:`LIGHTGLUE_PRECISIONS`, :func:`resolve_precision`):
+    ``bf16``: kornia's mixed precision (``mp``: autocast, bfloat16 on CPU, float16 on CUDA); ``int8``:
+    :func:`quantize_lightglue` (CPU only)."""
+    precision = resolve_precision(precision, device)
+    if precision == "bf16":
+        net.conf.mp = True
+    elif precision == "int8":
+        if torch.device(device).type != "cpu":
+            raise LocalScaleError(f"lightglue_precision 'int8' runs on the CPU only, not on {device}")
+        net = quantize_lightglue(net)
+    return net

@@ -85,11 +85,10 @@ class Matcher:
         self.extractor = c.extractor_class(self.device, weights=c.weights, **c.extractor_conf)
         self._lightglue = None
         if c.matching == "lightglue":
-            from .lightglue import load_lightglue
+            from .lightglue import lightglue_runtime, load_lightglue
 
-            self._lightglue = load_lightglue(
-                c.extractor, c.filter_threshold, c.depth_confidence, c.width_confidence, c.weights
-            ).to(self.device)
+            net = load_lightglue(c.extractor, c.filter_threshold, c.depth_confidence, c.width_confidence, c.weights)
+            self._lightglue = lightglue_runtime(net.to(self.device), c.lightglue_precision, self.device)
 
     @property
     def name(self) -> str:

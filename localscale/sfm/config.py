@@ -44,11 +44,14 @@ FINAL_DISTORTION = ("none", "photos")
 @dataclass
 class FeaturesConfig:
     """The features: a name of :data:`localscale.matching.MATCHERS`, the working resolution (longer
-    side) and keypoints per image (None: the matcher's own)."""
+    side) and keypoints per image (None: the matcher's own), and LightGlue's run-time precision
+    (:data:`~localscale.matching.lightglue.LIGHTGLUE_PRECISIONS`; ``auto``: bfloat16 on a CPU that
+    computes it natively)."""
 
     matcher: str = field(default="aliked-lightglue", metadata=_RESULT)
     max_side: Optional[int] = field(default=1024, metadata=_RESULT)
     num_keypoints: Optional[int] = field(default=2048, metadata=_RESULT)
+    lightglue_precision: str = field(default="auto", metadata=_RESULT)
 
 
 @dataclass
@@ -66,10 +69,13 @@ class PairsConfig:
 @dataclass
 class CorrectionConfig:
     """``correction``: :data:`SFM_CORRECTIONS`; ``auto_graph``: ``auto`` driven by the pair
-    graph (:func:`~.match.match_pairs`), False: the whole hypothesis loop per pair."""
+    graph (:func:`~.match.match_pairs`), False: the whole hypothesis loop per pair; ``prune_mnn``:
+    a pair whose stored descriptors share fewer ratio-tested mutual nearest neighbours is not given
+    to LightGlue as it is (:mod:`~.prune`; 0: every pair is)."""
 
     correction: str = field(default="none", metadata=_RESULT)
     auto_graph: bool = field(default=True, metadata=_RESULT)
+    prune_mnn: int = field(default=0, metadata=_RESULT)
 
 
 @dataclass
@@ -169,6 +175,7 @@ class ReconstructConfig:
         out.update(
             correction=c.correction,
             auto_graph=c.auto_graph if c.correction == "auto" else None,
+            prune_mnn=c.prune_mnn,
             pairs="exhaustive" if p.pairs == "exhaustive" else "file",
             pairs_file_sha1=None if p.pairs == "exhaustive" else _sha1(p.pairs),
             pairs_nearest=p.pairs_nearest,
@@ -210,6 +217,12 @@ def _check_features(f: FeaturesConfig) -> None:
         raise LocalScaleError(f"--max-side must be an integer >= 16, got {f.max_side!r}")
     if f.num_keypoints is not None and not _positive_int(f.num_keypoints, 1):
         raise LocalScaleError(f"--num-keypoints must be an integer >= 1, got {f.num_keypoints!r}")
+    from ..matching.lightglue import LIGHTGLUE_PRECISIONS
+
+    if f.lightglue_precision not in LIGHTGLUE_PRECISIONS:
+        raise LocalScaleError(
+            f"--lightglue-precision must be one of {', '.join(LIGHTGLUE_PRECISIONS)}, got {f.lightglue_precision!r}"
+        )
 
 
 def _check_pairs(p: PairsConfig) -> None:
@@ -225,6 +238,8 @@ def _check_pairs(p: PairsConfig) -> None:
 def _check_correction(c: CorrectionConfig) -> None:
     if c.correction not in SFM_CORRECTIONS:
         raise LocalScaleError(f"correction must be one of {', '.join(SFM_CORRECTIONS)}, got {c.correction!r}")
+    if not _positive_int(c.prune_mnn, 0):
+        raise LocalScaleError(f"--prune-mnn must be an integer >= 0, got {c.prune_mnn!r}")
 
 
 def _check_mapping(m: MappingConfig) -> None:

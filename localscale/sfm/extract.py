@@ -39,11 +39,13 @@ from .steps import config_of, parser, run_step, step_images
 @dataclass(frozen=True)
 class FeatureConf:
     """What the features are: a matcher name of :data:`~localscale.matching.MATCHERS` and its
-    keypoint count and working resolution (None: the matcher's own)."""
+    keypoint count and working resolution (None: the matcher's own), and LightGlue's run-time
+    precision (``MatchConfig.lightglue_precision``; no effect on the extracted features)."""
 
     matcher: str = "aliked-lightglue"
     num_keypoints: Optional[int] = 2048
     max_side: Optional[int] = 1024
+    lightglue_precision: str = "auto"
 
     def options(self) -> dict:
         out = {}
@@ -51,6 +53,7 @@ class FeatureConf:
             out["num_features"] = int(self.num_keypoints)
         if self.max_side is not None:
             out["max_side"] = int(self.max_side)
+        out["lightglue_precision"] = self.lightglue_precision
         return out
 
     def match_config(self):

@@ -128,7 +128,7 @@ def match_pairs(
     """
     conf = conf or ReconstructConfig()
     f, correction = conf.features, conf.correction.correction
-    fconf = FeatureConf(f.matcher, f.num_keypoints, f.max_side)
+    fconf = FeatureConf(f.matcher, f.num_keypoints, f.max_side, f.lightglue_precision)
     if correction not in SFM_CORRECTIONS:
         raise LocalScaleError(
             f"correction must be one of {', '.join(SFM_CORRECTIONS)} for reconstruction, got {correction!r}"
@@ -142,7 +142,10 @@ def match_pairs(
     stats, todo = _split_resumed(pairs, {} if overwrite else _done_pairs(matches_path))
     cameras = cameras_of(images, conf) if method.auto else None
     output = _MatchOutput(matches_path, keypoints_path, sets, {im.name: im for im in images}, overwrite, cameras)
-    factory = PairRunnerFactory(tuple(images), str(features_path), fconf, method, device, *models, cameras)
+    factory = PairRunnerFactory(
+        tuple(images), str(features_path), fconf, method, device, *models, cameras=cameras,
+        prune_mnn=conf.correction.prune_mnn,
+    )  # fmt: skip
     runner, run_items = _pair_runs(factory, executor, show_progress) if todo else (None, None)
     if todo and method.auto and conf.correction.auto_graph:
         from ..matching.auto.collection import match_with_graph
@@ -383,7 +386,11 @@ def match_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, d
 
 def main(argv=None) -> int:
     """``python -m localscale.sfm.match``: this step alone, from files (:func:`match_files`)."""
-    p = parser("match", __doc__, ("matcher", "max_side", "num_keypoints", "correction", "merge_px"))
+    p = parser(
+        "match",
+        __doc__,
+        ("matcher", "max_side", "num_keypoints", "lightglue_precision", "correction", "prune_mnn", "merge_px"),
+    )
     p.add_argument("images", help="folder of images")
     p.add_argument("out", help="folder with features.h5 and pairs.txt; matches.h5 and keypoints.h5 are written there")
     p.add_argument("--device", default="cpu", help="torch device")

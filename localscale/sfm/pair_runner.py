@@ -58,10 +58,11 @@ class PairRunnerFactory:
     cameras: Any = (
         None  #: the images' cameras (:func:`~.cameras.image_cameras`): the pairs as they are get their geometry
     )
+    prune_mnn: int = 0  #: :mod:`.prune`'s threshold of the pairs matched as they are (0: none)
 
     def __call__(self):
         by_name = {im.name: im for im in self.images}
-        return PairRunner(
+        runner = PairRunner(
             by_name,
             self.features_path,
             self.conf,
@@ -73,6 +74,8 @@ class PairRunnerFactory:
             len(by_name),
             self.cameras,
         )
+        runner.prune_mnn = self.prune_mnn
+        return runner
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,7 @@ class PairRunner:
             self.local_model = local_model if local_model is not None else loaded[0]
             self.global_model = global_model if global_model is not None else loaded[1]
         self.seed_matcher = None
+        self.prune_mnn = 0
         seed_name = self.matcher.config.auto.seed
         if self.correction.auto and seed_name is not None and seed_name != self.matcher.config.name:
             from ..matching import match_config
@@ -147,6 +151,14 @@ class PairRunner:
         self._images.move_to_end(name)
         return self._images[name]
 
+    def _match_stored(self, fa, fb):
+        """The stored features matched, or no match when :func:`~.prune.skip_pair` skips the pair."""
+        from .prune import skip_pair
+
+        if self.lightglue and skip_pair(fa.descriptors, fb.descriptors, self.prune_mnn):
+            return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
+        return self.matcher.match_features(fa, fb)
+
     def _prepared(self, a: str, b: str):
         """``(stored features and maps of A, of B, working image and map of A, of B)``; the stored
         features are level 1 of the shared cache."""
@@ -165,7 +177,7 @@ class PairRunner:
         m = self.matcher
         if self.correction.as_is:
             (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
-            matches, costs = m.match_features(fa, fb)
+            matches, costs = self._match_stored(fa, fb)
             return PairResult(
                 to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb), matches, costs_to_scores(costs, self.lightglue)
             )
@@ -197,7 +209,7 @@ class PairRunner:
 
         m = self.matcher
         (fa, Sa), (fb, Sb) = self._stored(a), self._stored(b)
-        matches, costs = m.match_features(fa, fb)
+        matches, costs = self._match_stored(fa, fb)
         matches = np.asarray(matches, np.int64).reshape(-1, 2)
         kp_a, kp_b = to_full(fa.keypoints, Sa), to_full(fb.keypoints, Sb)
         vconf = dataclasses.replace(m.config.verification, model="two_view", coverage_of="either")

@@ -44,6 +44,9 @@ from .weights import weight_options
 
 _flag = flag  # the summary's warnings (:func:`.summary.flag`)
 
+#: what a ``run.json`` written before an option existed ran with
+OPTIONS_BEFORE = {"lightglue_precision": "fp32", "prune_mnn": 0}
+
 
 def _image_stamp(im) -> list:
     st = im.path.stat()
@@ -68,6 +71,7 @@ def _output_state(out: Path, options: dict, overwrite: bool) -> str:
         previous = read_json(run)["options"]
     except (OSError, ValueError, KeyError, TypeError):
         raise OutputFolderError(f"{run} cannot be read: use --overwrite to start again") from None
+    previous = {**OPTIONS_BEFORE, **previous}
     changed = [k for k in RESULT_OPTIONS if previous.get(k) != options.get(k)]
     if changed:
         k = changed[0]
