@@ -176,7 +176,8 @@ def _add_mapping_options(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="a reference: a COLMAP model (folder) or a 'name K R t' table; summary.json's placement "
-        "counts the images placed within 5%% of the cameras' spread of it (close-ups: 50%% of their photo's centre)",
+        "counts the images placed within 5%% of the cameras' spread of it (close-ups: 50%% of their photo's centre; "
+        "default: none, only the close-ups found by the run are checked)",
     )
     p.add_argument(
         "--mapper-option",
