@@ -32,6 +32,7 @@ from pathlib import Path
 
 from localscale.core.tables import markdown_table
 from localscale.evaluation.reconstruction import ReconstructionRun, placed_right, reference_of
+from localscale.sfm.mapping import camera_ids
 
 VARIANTS = (
     "fixed-k",
@@ -62,7 +63,7 @@ def map_variant(run_dir: Path, images_dir: Path, variant: str, threads: int):
     closeups = closeups_of_run(run_dir)
     db = read_database(run_dir / "database.db")
     guessed = {
-        db_name: float(db.cameras[cid].params[0]) for db_name, cid in _camera_of(run_dir / "database.db").items()
+        db_name: float(db.cameras[cid].params[0]) for db_name, cid in camera_ids(run_dir / "database.db").items()
     }
 
     def check(rec):
@@ -91,7 +92,7 @@ def _set_closeup_cameras(database_path, closeups: dict) -> None:
     """Each close-up's own camera: SIMPLE_PINHOLE at zoom x its photo's initial focal length."""
     import pycolmap
 
-    of = _camera_of(database_path)
+    of = camera_ids(database_path)
     d = pycolmap.Database.open(str(database_path))
     try:
         cams = {c.camera_id: c for c in d.read_all_cameras()}
@@ -102,16 +103,6 @@ def _set_closeup_cameras(database_path, closeups: dict) -> None:
                 params=[zoom * photo.params[0], cam.params[1], cam.params[2]], camera_id=cam.camera_id,
             )  # fmt: skip
             d.update_camera(new)
-    finally:
-        d.close()
-
-
-def _camera_of(database_path) -> dict:
-    import pycolmap
-
-    d = pycolmap.Database.open(str(database_path))
-    try:
-        return {im.name: im.camera_id for im in d.read_all_images()}
     finally:
         d.close()
 

@@ -270,7 +270,7 @@ def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **k
     mode = "single" if len(db.cameras) == 1 else "per_image"
     overrides = {**default_overrides(m.mapper, mode), **m.mapper_options}
     closeups = closeups_from_files(out / "matches.h5", out / "geometries.h5")
-    ids = _camera_ids(out / "database.db")
+    ids = camera_ids(out / "database.db")
     guessed = {name: float(db.cameras[cid].mean_focal_length()) for name, cid in ids.items()}
     threads = kw.get("num_threads", -1)
     check = lambda rec: finish_model(rec, m, mode, guessed, closeups, threads)[1]  # noqa: E731
@@ -286,7 +286,7 @@ def map_files(images_dir, out_dir, conf: Optional[ReconstructConfig] = None, **k
     )
 
 
-def _camera_ids(database_path) -> dict:
+def camera_ids(database_path) -> dict:
     """``{image name: camera id}`` of a COLMAP database."""
     import pycolmap
 
