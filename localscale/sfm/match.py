@@ -227,10 +227,10 @@ def apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: floa
             pending[i] = result
             while applied in pending:
                 (a, b), r = todo[applied], pending.pop(applied)
-                mm, ss = _index_matches(sets, a, b, r.kp_a, r.kp_b, r.matches, r.scores)
+                rows, mm, ss = _index_matches(sets, a, b, r.kp_a, r.kp_b, r.matches, r.scores)
                 stats.pairs.append(output.add(a, b, mm, ss, r.verified, r.chosen, r.seconds, r.relation))
                 if r.geometry is not None:
-                    output.add_geometry(a, b, r, mm)
+                    output.add_geometry(a, b, r, rows, mm)
                 stats.matched += 1
                 stats.feature_sets += r.computed
                 applied += 1
@@ -242,11 +242,13 @@ def apply_in_order(results, todo, sets, output, stats: MatchStats, flush_s: floa
 
 
 def _index_matches(sets: dict, a: str, b: str, kp_a, kp_b, m, scores):
-    """The matches ``m`` of keypoints ``kp_a``, ``kp_b`` (full-image pixels) as ``(K x 2 indices into the
-    keypoint sets of A and B (new points added to them), one match per keypoint; K scores)``."""
+    """The matches ``m`` of keypoints ``kp_a``, ``kp_b`` (full-image pixels) in the keypoint sets of A and
+    B (new points added to them): ``((ia, ib) the set indices of each row of m, K x 2 matches with one
+    match per keypoint, K scores)``."""
     ia = sets[a].index(kp_a[m[:, 0]]) if len(m) else np.zeros(0, np.int64)
     ib = sets[b].index(kp_b[m[:, 1]]) if len(m) else np.zeros(0, np.int64)
-    return one_to_one(ia, ib, scores[: len(m)]) if len(m) else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+    mm, ss = one_to_one(ia, ib, scores[: len(m)]) if len(m) else (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+    return (ia, ib), mm, ss
 
 
 class _MatchOutput:
@@ -279,9 +281,9 @@ class _MatchOutput:
         self.m_writer.add(names_to_pair(a, b), {"matches0": m0, "matching_scores0": s0}, attrs)
         return rec
 
-    def add_geometry(self, a: str, b: str, r, mm) -> None:
+    def add_geometry(self, a: str, b: str, r, rows: tuple, mm) -> None:
         """Store the two-view geometry ``r.geometry`` of the pair's result ``r`` beside its written
-        matches ``mm`` (indices into the keypoint sets; :func:`_index_matches` of ``r``'s): a written
+        matches ``mm`` (``rows``, ``mm``: :func:`_index_matches` of ``r``'s matches): a written
         match is an inlier when a match of ``r`` that it stands for is one, and the inputs' sha1 is
         that of the written matches as the geometry step reads them (:func:`~.geometry.inputs_sha1`)."""
         from .geometry import MIN_INLIERS, inputs_sha1, matched_datasets
@@ -291,10 +293,10 @@ class _MatchOutput:
         if not len(mm):
             return
         width = len(self.sets[b]) + 1
-        ia, ib = self.sets[a].index(r.kp_a[m[:, 0]]), self.sets[b].index(r.kp_b[m[:, 1]])
-        rows = {(int(i), int(j)): k for k, (i, j) in enumerate(m)}
+        ia, ib = rows
+        row_of = {(int(i), int(j)): k for k, (i, j) in enumerate(m)}
         inl = np.asarray(g.data["inlier_matches"], np.int64).reshape(-1, 2)
-        inlier_rows = [rows[(int(i), int(j))] for i, j in inl if (int(i), int(j)) in rows]
+        inlier_rows = [row_of[(int(i), int(j))] for i, j in inl if (int(i), int(j)) in row_of]
         written, _ = matches_from_matches0(matches0_from_matches(mm, np.zeros(len(mm)), len(self.sets[a]))[0])
         codes = written[:, 0] * width + written[:, 1]
         if not np.isin(codes, ia * width + ib).all():
