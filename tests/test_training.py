@@ -390,3 +390,23 @@ def test_persistent_non_finite_gradients_stop_the_run(image_dir, tmp_path, monke
     monkeypatch.setattr(training.loop, "_grads_finite", lambda model: False)
     with pytest.raises(TrainingDiverged, match="non-finite gradients"):
         train(tiny_cfg(image_dir, tmp_path / "g", steps=30, ckpt_every=10, val_every=100))
+
+
+def test_bf16_probe_leaves_the_model_as_it_was(image_dir, tmp_path, monkeypatch):
+    """``amp="auto"`` on a CPU times one step each way; the probe keeps the weights and batch-norm
+    statistics and leaves no gradients, and it decides by the timings it measured."""
+    from localscale.training import loop
+
+    cfg = tiny_cfg(image_dir, tmp_path / "run")
+    model = cfg.build_model().train()
+    batch = _fixed_batches(cfg, 16)[0]
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    seconds = {True: 1.0, False: 2.0}
+    clock = iter([0.0, seconds[True]] * 2 + [0.0, seconds[False]] * 2)
+    monkeypatch.setattr(loop.time, "perf_counter", lambda: next(clock))
+    assert loop.cpu_bf16_pays(model, batch, cfg) is True
+    after = model.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert all(p.grad is None for p in model.parameters())
+    clock = iter([0.0, 1.0] * 2 + [0.0, 1.05] * 2)  # bf16 only 5 % faster: not worth it
+    assert loop.cpu_bf16_pays(model, batch, cfg) is False

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 
 from .errors import LocalScaleError
@@ -34,3 +36,20 @@ def resolve_device(device: str | torch.device) -> str:
             raise LocalScaleError(f"device {str(device)!r}: MPS is not available; use the cpu device")
         return str(d)
     raise LocalScaleError(f"device {str(device)!r} is not supported (use cpu, cuda, cuda:N or mps)")
+
+
+@lru_cache(maxsize=1)
+def cpu_has_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively: AVX-512 BF16 or AMX in ``/proc/cpuinfo``'s flags
+    (Linux); elsewhere oneDNN's own check (``torch.ops.mkldnn._is_mkldnn_bf16_supported``)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), None)
+        if flags is not None:
+            return "avx512_bf16" in flags or "amx_bf16" in flags
+    except OSError:
+        pass
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Optional
 
 import torch
 
+from ..core.devices import cpu_has_bf16
 from ..core.errors import LocalScaleError
 from ..features.extractors import get_extractor
 from ..features.pretrained import find_weights, load_weights
@@ -67,23 +67,6 @@ def quantize_lightglue(net: torch.nn.Module) -> torch.nn.Module:
 
 #: LightGlue's run-time precisions (:class:`~localscale.matching.MatchConfig` ``lightglue_precision``)
 LIGHTGLUE_PRECISIONS = ("auto", "fp32", "bf16", "int8")
-
-
-@lru_cache(maxsize=1)
-def cpu_has_bf16() -> bool:
-    """Whether this CPU computes bfloat16 natively: AVX-512 BF16 or AMX in ``/proc/cpuinfo``'s flags
-    (Linux); elsewhere oneDNN's own check (``torch.ops.mkldnn._is_mkldnn_bf16_supported``)."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), None)
-        if flags is not None:
-            return "avx512_bf16" in flags or "amx_bf16" in flags
-    except OSError:
-        pass
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
 
 
 def resolve_precision(precision: str, device) -> str:

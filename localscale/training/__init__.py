@@ -12,7 +12,7 @@ CSV/JSON logs, and a stop on a non-finite loss that keeps the last good checkpoi
 
 from .config import NEW_LAYER_PREFIXES, TrainConfig, TrainingDiverged
 from .loop import build_model, train
-from .steps import _single_threaded_worker, compute_loss, cpu_has_amx, die_with_parent, validate  # noqa: F401
+from .steps import _single_threaded_worker, compute_loss, die_with_parent, validate  # noqa: F401
 
 __all__ = [
     "TrainConfig",
@@ -22,6 +22,5 @@ __all__ = [
     "build_model",
     "compute_loss",
     "validate",
-    "cpu_has_amx",
     "die_with_parent",
 ]

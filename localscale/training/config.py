@@ -41,7 +41,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     amp: str = "auto"  #: "on"/"off"/"auto": fp16 AMP on CUDA, bf16 autocast on CPU
-    #: ("auto" = CUDA, or a CPU with AMX where bf16 is faster)
+    #: ("auto" = CUDA, or a CPU with AVX-512 BF16 or AMX, where bf16 is faster)
     threads: int = 0  #: torch CPU threads (0 = torch default)
     vgg_weights: str = ""  #: optional local torchvision VGG16(-BN) state dict (width 1)
     init_weights: str = ""  #: checkpoint of the same architecture to fine-tune from (new schedule)

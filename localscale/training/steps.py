@@ -35,18 +35,6 @@ def _load_matching(
     return list(missing), list(unexpected)
 
 
-def cpu_has_amx() -> bool:
-    """True on x86 CPUs with AMX tiles (bf16 matmuls are then 2-3x faster than fp32).
-
-    Without AMX (AVX-512 only) bf16 autocast was measured *slower* than fp32 here
-    (0.94 vs 0.75 s/step, quarter width, 192 px, batch 8), so ``amp="auto"`` leaves it off.
-    """
-    try:
-        return "amx_bf16" in Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-
-
 def compute_loss(model, batch: dict, kind: str, visibility_weight: float = 0.5, per_pair: bool = False) -> torch.Tensor:
     """Local: KL on the co-visible cells (+ BCE of the visibility output over A's image region);
     ``per_pair``: the KL averaged per pair first (:func:`~localscale.scales.kl_loss`).
