@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         step, train_cfg = ck["train_state"]["step"], ck["meta"].get("train_config", {})
     else:  # only the exported model came back (e.g. from a remote GPU run)
         meta = read_checkpoint(src)["meta"]
-        step, train_cfg = meta["steps"], meta.get("train_config", {})
+        step, train_cfg = meta.get("steps", meta.get("campaign_step")), meta.get("train_config", {})
     val = [json.loads(line) for line in open(run / "val_log.jsonl")] if (run / "val_log.jsonl").exists() else []
     out_dir = Path(__file__).resolve().parent.parent / "localscale" / "weights"
     weights = out_dir / f"{a.name}.pt"
