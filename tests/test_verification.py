@@ -174,7 +174,7 @@ def test_cli_match_and_predict_refine(tmp_path, capsys):
     assert geo["verified"] and geo["model"] == "homography" and len(geo["H"]) == 3
     assert np.load(tmp_path / "m" / "refined_scale.npy").shape == (427, 640)
     assert "refine:" in capsys.readouterr().out
-    assert main(["predict", str(a), str(b), "-o", str(tmp_path / "p"), "--refine"]) == 0
+    assert main(["predict", str(a), str(b), "-o", str(tmp_path / "p"), "--refine", "--matcher", "hardnet"]) == 0
     assert (tmp_path / "p" / "kodim01_a_kodim01_b_refined_scale.npy").is_file()
     assert json.loads((tmp_path / "p" / "kodim01_a_kodim01_b_geometry.json").read_text())["verified"]
     capsys.readouterr()

@@ -103,12 +103,13 @@ def add_refine_matcher_options(p: argparse.ArgumentParser) -> argparse.ArgumentP
     g = p.add_argument_group("refinement by a matcher")
     g.add_argument(
         "--matcher",
-        default="hardnet",
+        default=None,
         metavar="NAME",
-        help="with --refine: hardnet (default) refines with the patch matcher's passes; any other "
-        "matcher of 'localscale match --help' (e.g. aliked-lightglue) takes the geometry from "
-        "correction auto with that matcher (the images as they are, then the networks' "
-        "hypotheses, verified)",
+        help="with --refine: a matcher of 'localscale match --help'; a learned one (e.g. "
+        "aliked-lightglue) takes the geometry from correction auto with that matcher (the images as "
+        "they are, then the networks' hypotheses, verified), hardnet refines with the patch "
+        "matcher's passes (default: aliked-lightglue when its weights are installed, else hardnet; "
+        "hardnet with --search)",
     )
     g.add_argument(
         "--matcher-weights",

@@ -53,6 +53,11 @@ def _check_pair_options(args) -> None:
         raise LocalScaleError(f"--refine-passes must be >= 1, got {args.refine_passes}")
     from ..matching.config import MATCHERS
 
+    if args.matcher is None:
+        from ..matching.pipeline import default_refine_matcher
+
+        use_default = getattr(args, "refine", False) and not args.search
+        args.matcher = default_refine_matcher(args.matcher_weights) if use_default else "hardnet"
     if args.matcher not in MATCHERS:
         raise LocalScaleError(f"predict: --matcher {args.matcher!r}: not a matcher ({', '.join(MATCHERS)})")
     if not extractor_of(args.matcher).patch_based:

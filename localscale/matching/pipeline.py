@@ -382,6 +382,28 @@ def refine_predictions(image_a, image_b, pred_ab, pred_ba, **options) -> MatchRe
     return match_refined_pair(image_a, image_b, first_a, first_b, pred_ab.scale, pred_ba.scale, **options)
 
 
+#: what :func:`default_refine_matcher` picks when its weight files are installed
+REFINE_MATCHER = "aliked-lightglue"
+
+
+def default_refine_matcher(weights=None) -> str:
+    """The matcher ``predict --refine`` uses unless told: ``aliked-lightglue`` (geometry verified by
+    ``auto``) when its weight files are found (``weights``: a folder; ``None``: the installed weight
+    packages), else ``hardnet`` (the bundled patch matcher)."""
+    from ..core.errors import CheckpointError
+    from ..features.pretrained import find_weights
+    from .config import match_config
+
+    conf = match_config(REFINE_MATCHER)
+    cls = conf.extractor_class
+    try:
+        for f in (*cls.weight_files(conf.extractor_conf), cls.lightglue_weights):
+            find_weights(f, weights)
+    except CheckpointError:
+        return "hardnet"
+    return REFINE_MATCHER
+
+
 def refine_by_auto(
     image_a, image_b, matcher: str = "aliked-lightglue", local_model=None, global_model=None, **options
 ) -> MatchResult:
