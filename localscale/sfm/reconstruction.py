@@ -243,8 +243,9 @@ class _Reconstruction:
 
     def _choose_rule(self) -> None:
         """:attr:`rule`, the :class:`~.pairs.PairsRule` of the run (recorded in its options as
-        ``pairs_rule`` and ``pairs_rule_nearest``): a resumed run keeps the rule it began with,
-        so that images added to the folder do not change the pairs of those there before."""
+        ``pairs_rule`` and ``pairs_rule_nearest``): a resumed run keeps the rule it began with, so
+        that images added to the folder do not switch it between every pair and retrieval (with
+        retrieval, their pairs are the nearest among all the images, as in a new run)."""
         from .pairs import PairsRule, pairs_rule
 
         self.rule = pairs_rule(self.conf.pairs, len(self.names))
