@@ -52,6 +52,25 @@ def test_the_config_is_the_run_json_and_the_keywords_map_into_it(run, scene, tmp
     assert not (tmp_path / "x").exists()
 
 
+def test_auto_pairs_record_their_rule_and_a_resumed_run_keeps_it(run, scene, tmp_path, monkeypatch):
+    from localscale.sfm import pairs
+
+    out, conf, summary = run
+    saved = json.loads((out / "run.json").read_text())["options"]
+    assert (saved["pairs"], saved["pairs_rule"], saved["pairs_rule_nearest"]) == ("auto", "exhaustive", None)
+    assert summary["options"]["pairs_rule"] == "exhaustive" and summary["pairs"] == 6
+    before = (out / "pairs.txt").read_text()
+    monkeypatch.setattr(pairs, "AUTO_EXHAUSTIVE_MAX", 3)  # 4 images: retrieval now
+    monkeypatch.setattr(pairs, "AUTO_NEAREST", 1)
+    again = reconstruct(scene, out, conf, **OPTS)
+    assert again["run"] == "resume" and (out / "pairs.txt").read_text() == before
+    assert again["options"]["pairs_rule"] == "exhaustive"
+    assert any("keeps its pairs rule, exhaustive" in w for w in again["warnings"])
+    fresh = reconstruct(scene, tmp_path / "fresh", conf, **OPTS)
+    assert (fresh["options"]["pairs_rule"], fresh["options"]["pairs_rule_nearest"]) == ("retrieval", 1)
+    assert 2 <= fresh["pairs"] <= 4
+
+
 def test_each_step_runs_alone_from_files_and_gives_the_run(run, scene, tmp_path):
     from localscale.sfm import database, extract, geometry, mapping, match, pairs
     from localscale.sfm.mapping import model_stats, read_models

@@ -63,6 +63,7 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
     from ..matching import MATCHERS
     from ..matching.lightglue import LIGHTGLUE_PRECISIONS
     from ..sfm.config import SFM_CORRECTIONS, ReconstructConfig
+    from ..sfm.pairs import AUTO_EXHAUSTIVE_MAX, AUTO_NEAREST
 
     d = ReconstructConfig().flat()
     p.add_argument(
@@ -88,17 +89,19 @@ def _add_feature_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pairs",
         default=d["pairs"],
-        metavar="exhaustive|FILE",
-        help="'exhaustive' (every pair) or a file of pairs, 'A B' or 'A<TAB>B' per line: image names "
-        "relative to IMAGES (as in OUT/pairs.txt) or paths relative to the file's folder",
+        metavar="auto|exhaustive|FILE",
+        help=f"default auto: every pair up to {AUTO_EXHAUSTIVE_MAX} images, beyond that each image with its "
+        f"{AUTO_NEAREST} most similar (aggregated local descriptors); 'exhaustive': every pair; or a file of "
+        "pairs, 'A B' or 'A<TAB>B' per line: image names relative to IMAGES (as in OUT/pairs.txt) or paths "
+        "relative to the file's folder",
     )
     p.add_argument(
         "--pairs-nearest",
         type=positive_int,
         default=d["pairs_nearest"],
         metavar="N",
-        help="instead of every pair: each image with its N most similar (aggregated local descriptors; "
-        "default: every pair)",
+        help=f"each image with its N most similar, whatever the number of images (default: {AUTO_NEAREST} "
+        f"beyond {AUTO_EXHAUSTIVE_MAX} images, --pairs auto)",
     )
     p.add_argument(
         "--prune-mnn",

@@ -249,6 +249,7 @@ def run_ours(
         run_dir,
         matcher="aliked-lightglue",
         correction=correction,
+        pairs="exhaustive",
         camera_mode=camera_mode,
         num_keypoints=2048,
         max_side=1024,

@@ -6,7 +6,8 @@ Steps (:func:`reconstruct` runs them all, with the options of one
 
 1. :mod:`.images`: the usable images of a folder (:func:`find_images`);
 2. :mod:`.extract`: local features, once per image (``features.h5``; :func:`extract_features`);
-3. :mod:`.pairs`: exhaustive, from a file, or the nearest by a global descriptor (``pairs.txt``);
+3. :mod:`.pairs`: every pair up to :data:`~.pairs.AUTO_EXHAUSTIVE_MAX` images, the nearest by a global descriptor beyond (``auto``,
+   :func:`pairs_rule`), every pair, or from a file (``pairs.txt``);
 4. :mod:`.match`: ``features.h5`` + ``pairs.txt`` -> matches with a correction (``none``,
    ``auto``, ...), one keypoint set per image (``matches.h5``, ``keypoints.h5``; :func:`match_pairs`);
 5. :mod:`.geometry`: verified two-view geometries, once per pair (``geometries.h5``; :func:`verify_pairs`);
@@ -31,6 +32,8 @@ _EXPORTS = {
         "pairs_exhaustive",
         "pairs_from_file",
         "pairs_from_retrieval",
+        "pairs_rule",
+        "PairsRule",
         "write_pairs",
         "read_pairs",
         "PairsFileError",

@@ -3,7 +3,8 @@ per step), passed whole through :func:`~.reconstruction.reconstruct`, the CLI an
 
 * ``features`` (:class:`FeaturesConfig`): the matcher (its extractor and matching rule), the
   working resolution and keypoints per image (``features.h5``);
-* ``pairs`` (:class:`PairsConfig`): every pair, a pairs file, or the nearest by retrieval (``pairs.txt``);
+* ``pairs`` (:class:`PairsConfig`): every pair up to a number of images and the nearest by retrieval
+  beyond (``auto``), every pair, or a pairs file (``pairs.txt``);
 * ``correction`` (:class:`CorrectionConfig`): how the pairs are matched (``matches.h5``);
 * ``mapping`` (:class:`MappingConfig`): the cameras, the keypoint merge distance and the mapper
   (``database.db``, ``sparse/``).
@@ -35,6 +36,8 @@ from .weights import WEIGHT_OPTIONS
 SFM_CORRECTIONS = ("none", "auto", "global", "local", "fused", "searched")
 
 _RESULT = {"result": True}
+#: the values of ``pairs`` that are not a pairs file (:func:`~.pairs.pairs_rule`)
+PAIRS_RULES = ("auto", "exhaustive")
 #: what the mapping step does with a registered image whose pose is not to be trusted
 SUSPECT_IMAGES = ("reregister", "leave_out", "keep")
 #: the final bundle adjustment's distortion (:attr:`MappingConfig.final_distortion`)
@@ -56,14 +59,25 @@ class FeaturesConfig:
 
 @dataclass
 class PairsConfig:
-    """``pairs``: ``"exhaustive"`` or a pairs file (:func:`~.pairs.pairs_from_file`);
-    ``pairs_nearest``: with ``"exhaustive"``, each image with its N most similar instead."""
+    """``pairs``: ``"auto"`` (every pair up to a number of images, each image with its nearest by
+    retrieval beyond: :func:`~.pairs.pairs_rule`), ``"exhaustive"`` (every pair) or a pairs file
+    (:func:`~.pairs.pairs_from_file`); ``pairs_nearest``: with ``"auto"``, each image with its N
+    most similar, whatever the number of images."""
 
-    pairs: str = field(default="exhaustive", metadata=_RESULT)
+    pairs: str = field(default="auto", metadata=_RESULT)
     pairs_nearest: Optional[int] = field(default=None, metadata=_RESULT)
 
     def __post_init__(self):
         self.pairs = str(self.pairs)
+
+
+def upgrade_pairs(d: dict) -> dict:
+    """``d`` (a pairs section or ``run.json``'s options) of a run written before ``auto`` existed
+    (``pairs="exhaustive"`` was the default and ``pairs_nearest`` applied to it): ``pairs_nearest``
+    with ``exhaustive`` is ``auto`` with ``pairs_nearest`` now."""
+    if d.get("pairs") == "exhaustive" and d.get("pairs_nearest"):
+        return {**d, "pairs": "auto"}
+    return d
 
 
 @dataclass
@@ -145,6 +159,8 @@ class ReconstructConfig:
         conf = cls()
         for s, section_cls in _SECTIONS.items():
             given = d.get(s) or {}
+            if s == "pairs":
+                given = upgrade_pairs(given)
             known = {f.name for f in dataclasses.fields(section_cls)}
             unknown = sorted(set(given) - known)
             if unknown:
@@ -176,8 +192,8 @@ class ReconstructConfig:
             correction=c.correction,
             auto_graph=c.auto_graph if c.correction == "auto" else None,
             prune_mnn=c.prune_mnn,
-            pairs="exhaustive" if p.pairs == "exhaustive" else "file",
-            pairs_file_sha1=None if p.pairs == "exhaustive" else _sha1(p.pairs),
+            pairs=p.pairs if p.pairs in PAIRS_RULES else "file",
+            pairs_file_sha1=None if p.pairs in PAIRS_RULES else _sha1(p.pairs),
             pairs_nearest=p.pairs_nearest,
             camera_mode=m.camera_mode,
             camera_file_sha1=None if m.camera_file is None else _sha1(m.camera_file),
@@ -226,10 +242,14 @@ def _check_features(f: FeaturesConfig) -> None:
 
 
 def _check_pairs(p: PairsConfig) -> None:
-    if p.pairs != "exhaustive" and not Path(p.pairs).is_file():
-        raise LocalScaleError(f"--pairs must be 'exhaustive' or a pairs file; file not found: {p.pairs}")
+    if p.pairs not in PAIRS_RULES and not Path(p.pairs).is_file():
+        raise LocalScaleError(f"--pairs must be 'auto', 'exhaustive' or a pairs file; file not found: {p.pairs}")
     if p.pairs_nearest is not None:
-        if p.pairs != "exhaustive":
+        if p.pairs == "exhaustive":
+            raise LocalScaleError(
+                "--pairs-nearest chooses the pairs by retrieval: give it without --pairs exhaustive (every pair)"
+            )
+        if p.pairs != "auto":
             raise LocalScaleError("--pairs-nearest chooses the pairs itself: give it without a pairs file")
         if not _positive_int(p.pairs_nearest, 1):
             raise LocalScaleError(f"--pairs-nearest must be an integer >= 1, got {p.pairs_nearest!r}")

@@ -1,5 +1,10 @@
 """The pairs step: the image pairs to match (``pairs.txt``, hloc's format: ``name_a name_b`` per line).
 
+Which pairs (:func:`pairs_rule`, from :class:`~.config.PairsConfig`): ``auto`` (the default) is
+every pair up to :data:`AUTO_EXHAUSTIVE_MAX` images and each image with its :data:`AUTO_NEAREST`
+nearest beyond (``pairs_nearest`` sets that number, and then applies whatever the number of
+images); ``exhaustive`` is every pair; any other value is a pairs file.
+
 * :func:`pairs_exhaustive`: every pair (hloc's ``pairs_from_exhaustive``);
 * :func:`pairs_from_file`: a pairs file (:mod:`localscale.io.pairs_file`) of names or of image paths,
   checked against the images;
@@ -17,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import shlex
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -25,9 +31,39 @@ import numpy as np
 from ..core.errors import LocalScaleError
 from ..core.outputs import write_text
 from ..io.pairs_file import PairsFileError, read_pairs_lines
-from .config import ReconstructConfig
+from .config import PairsConfig, ReconstructConfig
 from .h5io import read_group
 from .steps import config_of, parser, run_step
+
+#: ``auto``: every pair up to this many images (docs/decisions/retrieval-pairs-default.md)
+AUTO_EXHAUSTIVE_MAX = 100
+#: ``auto`` beyond :data:`AUTO_EXHAUSTIVE_MAX` images: each image with this many nearest by retrieval
+AUTO_NEAREST = 30
+
+
+@dataclass(frozen=True)
+class PairsRule:
+    """The pairs a run matches: ``rule`` is ``exhaustive`` (every pair), ``retrieval`` (each image
+    with its ``nearest`` most similar, :func:`pairs_from_retrieval`) or ``file``."""
+
+    rule: str
+    nearest: Optional[int] = None
+
+    def __str__(self) -> str:
+        return f"retrieval ({self.nearest} nearest)" if self.rule == "retrieval" else self.rule
+
+
+def pairs_rule(p: PairsConfig, num_images: int) -> PairsRule:
+    """The :class:`PairsRule` of ``p`` for ``num_images`` images: a pairs file; with
+    ``pairs_nearest``, retrieval with that many nearest; ``exhaustive``; ``auto``: every pair up to
+    :data:`AUTO_EXHAUSTIVE_MAX` images, retrieval with :data:`AUTO_NEAREST` nearest beyond."""
+    if p.pairs not in ("auto", "exhaustive"):
+        return PairsRule("file")
+    if p.pairs_nearest:
+        return PairsRule("retrieval", int(p.pairs_nearest))
+    if p.pairs == "exhaustive" or num_images <= AUTO_EXHAUSTIVE_MAX:
+        return PairsRule("exhaustive")
+    return PairsRule("retrieval", AUTO_NEAREST)
 
 
 def pairs_exhaustive(names: list) -> list:
@@ -127,19 +163,27 @@ def read_pairs(path) -> list:
     return [(a, b) for _, a, b in read_pairs_lines(path)]
 
 
+def pairs_by_rule(rule: PairsRule, names: list, features_path) -> list:
+    """The pairs of ``names`` by ``rule`` (``exhaustive`` or ``retrieval`` from ``features_path``)."""
+    if rule.rule == "retrieval":
+        return pairs_from_retrieval(names, features_path, rule.nearest)
+    if rule.rule == "exhaustive":
+        return pairs_exhaustive(names)
+    raise LocalScaleError(f"the pairs of rule {rule.rule!r} come from its file")
+
+
 def pairs_of_features(features_path, pairs_path, conf: Optional[ReconstructConfig] = None, images_dir=None):
-    """The pairs step from paths: the pairs of the images of ``features_path`` (``conf.pairs``)
-    written to ``pairs_path``."""
+    """The pairs step from paths: the pairs of the images of ``features_path`` (``conf.pairs``,
+    :func:`pairs_rule`) written to ``pairs_path``."""
     from .h5io import groups_with
 
     p = (conf or ReconstructConfig()).pairs
     names = sorted(groups_with(features_path, "keypoints"))
-    if p.pairs != "exhaustive":
+    rule = pairs_rule(p, len(names))
+    if rule.rule == "file":
         pairs = pairs_from_file(p.pairs, names, images_dir)
-    elif p.pairs_nearest:
-        pairs = pairs_from_retrieval(names, features_path, p.pairs_nearest)
     else:
-        pairs = pairs_exhaustive(names)
+        pairs = pairs_by_rule(rule, names, features_path)
     Path(pairs_path).parent.mkdir(parents=True, exist_ok=True)
     return write_pairs(pairs_path, pairs)
 

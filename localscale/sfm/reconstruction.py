@@ -36,7 +36,7 @@ from typing import Any, Optional
 from ..core.errors import LocalScaleError
 from ..core.outputs import check_writable_dir, resolved_path
 from . import outdir
-from .config import RESULT_OPTIONS, ReconstructConfig
+from .config import PAIRS_RULES, RESULT_OPTIONS, ReconstructConfig, upgrade_pairs
 from .outdir import OutputFolderError
 from .report import collecting_warnings, read_json, write_json
 from .summary import build_summary, flag, placement_summary, summary_table  # noqa: F401 (summary_table: re-exported)
@@ -71,7 +71,7 @@ def _output_state(out: Path, options: dict, overwrite: bool) -> str:
         previous = read_json(run)["options"]
     except (OSError, ValueError, KeyError, TypeError):
         raise OutputFolderError(f"{run} cannot be read: use --overwrite to start again") from None
-    previous = {**OPTIONS_BEFORE, **previous}
+    previous = upgrade_pairs({**OPTIONS_BEFORE, **previous})
     changed = [k for k in RESULT_OPTIONS if previous.get(k) != options.get(k)]
     if changed:
         k = changed[0]
@@ -221,7 +221,7 @@ class _Reconstruction:
             weight_options(self.conf.correction.correction, f.matcher, self.local_model, self.global_model)
         )
         self.images = find_images(self.images_dir, exclude=[self.out], max_side=f.max_side)
-        pairs_file = None if p.pairs == "exhaustive" else p.pairs
+        pairs_file = None if p.pairs in PAIRS_RULES else p.pairs
         inputs = [("images folder", self.images_dir), ("pairs file", pairs_file), ("camera file", m.camera_file)]
         inputs += [("input file", path) for path in self.rt.input_files]
         inputs += [("reference model", self.rt.reference_model)] if self.rt.reference_model else []
@@ -239,6 +239,29 @@ class _Reconstruction:
         self.stamps = {im.name: _image_stamp(im) for im in self.images}
         if self.state == "resume":
             self._check_unchanged()
+        self._choose_rule()
+
+    def _choose_rule(self) -> None:
+        """:attr:`rule`, the :class:`~.pairs.PairsRule` of the run (recorded in its options as
+        ``pairs_rule`` and ``pairs_rule_nearest``): a resumed run keeps the rule it began with, so
+        that images added to the folder do not switch it between every pair and retrieval (with
+        retrieval, their pairs are the nearest among all the images, as in a new run)."""
+        from .pairs import PairsRule, pairs_rule
+
+        self.rule = pairs_rule(self.conf.pairs, len(self.names))
+        if self.state == "resume":
+            before = read_json(self.out / "run.json").get("options", {})
+            if before.get("pairs_rule") and self.rule.rule != "file":
+                kept = PairsRule(before["pairs_rule"], before.get("pairs_rule_nearest"))
+                if kept != self.rule:
+                    from .report import warn
+
+                    warn(
+                        f"the resumed run keeps its pairs rule, {kept} ({self.rule} for {len(self.names)} images "
+                        "now): use --overwrite to choose again"
+                    )
+                self.rule = kept
+        self.options.update(pairs_rule=self.rule.rule, pairs_rule_nearest=self.rule.nearest)
 
     def _check_unchanged(self) -> None:
         """A resumed run: no image of the previous run changed since (size or modification time)."""
@@ -286,17 +309,13 @@ class _Reconstruction:
             )
 
     def choose_pairs(self) -> None:
-        """``pairs.txt``: the pairs file's, the nearest by retrieval (from ``features.h5``), or all."""
-        from .pairs import pairs_exhaustive, pairs_from_retrieval, write_pairs
+        """``pairs.txt``: the pairs file's, or those of :attr:`rule` (every pair, or the nearest by
+        retrieval from ``features.h5``)."""
+        from .pairs import pairs_by_rule, write_pairs
 
-        nearest = self.conf.pairs.pairs_nearest
         with self._timed("pairs"):
             if self.pair_list is None:
-                self.pair_list = (
-                    pairs_from_retrieval(self.names, self.out / "features.h5", nearest)
-                    if nearest
-                    else pairs_exhaustive(self.names)
-                )
+                self.pair_list = pairs_by_rule(self.rule, self.names, self.out / "features.h5")
             write_pairs(self.out / "pairs.txt", self.pair_list)
 
     def match(self) -> None:
