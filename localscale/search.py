@@ -114,60 +114,66 @@ def search_scale_map(
     def encode_b(win=None):
         return encode_window(model, b, fb, shape_b, win, "image B", bf16)
 
+    def score(x, y, lb_x, lb_y):
+        return pair_scores(model, x, y, lb_x, lb_y, bf16)
+
     ea, eb = encode_a(), encode_b()
     base = model.predict_from_features(ea, eb, bf16=bf16)
-    base_score = float(pair_scores(model, ea.features, eb.features, ea.letterbox, eb.letterbox, bf16)[0])
+    base_score = float(score(ea.features, eb.features, ea.letterbox, eb.letterbox)[0])
     scores: list[tuple[str, Window | None, float]] = [("whole", None, base_score)]
-    turns, turn_score = 0, base_score
+    # B as it is and turned by each quarter turn asked for: (turns, B turned, its shape, its encoding, score)
+    views = [(0, b, shape_b, eb, base_score)]
     for k in cfg.quarter_turns:
         ek = encode_window(model, b, fb, shape_b, None, "image B", bf16, k)
-        v = float(pair_scores(model, ea.features, ek.features, ea.letterbox, ek.letterbox, bf16)[0])
+        v = float(score(ea.features, ek.features, ea.letterbox, ek.letterbox)[0])
         scores.append((f"whole, B turned {90 * k} deg", None, v))
-        if v > turn_score:
-            turns, turn_score, eb = k, v, ek
-    if turns:
-        b, shape_b = np.ascontiguousarray(np.rot90(b, turns)), (shape_b if turns % 2 == 0 else shape_b[::-1])
-    candidates: list[tuple[float, str, Window]] = []
+        views.append((k, np.ascontiguousarray(np.rot90(b, k)), shape_b if k % 2 == 0 else shape_b[::-1], ek, v))
+    whole = max(views, key=lambda view: view[4])  # the first of equal scores: B as it is
+    # windows of A (encoded once) against each view of B, and windows of each view of B against A
+    candidates: list[tuple[float, str, Window, int]] = []
     for zoom in cfg.zooms:
-        for side, rgb, shape, factor in (("a", a, shape_a, fa), ("b", b, shape_b, fb)):
-            windows = grid_windows(*shape, zoom) if side in cfg.sides else []
-            if not windows:
-                continue
-            fw, lb = encode_windows(model, rgb, factor, windows, bf16, cfg.batch_size)
-            for i in range(0, len(windows), cfg.batch_size):
-                part = fw[i : i + cfg.batch_size]
-                sc = (
-                    pair_scores(model, part, eb.features, lb, eb.letterbox, bf16)
-                    if side == "a"
-                    else pair_scores(model, ea.features, part, ea.letterbox, lb, bf16)
-                )
-                for win, v in zip(windows[i : i + cfg.batch_size], sc.tolist()):
-                    scores.append((side, win, v))
-                    if v > turn_score:
-                        candidates.append((v, side, win))
-    best = (turn_score, None, None)
-    for v, side, win in sorted(candidates, key=lambda c: -c[0])[: cfg.checked]:
+        wins_a = grid_windows(*shape_a, zoom) if "a" in cfg.sides else []
+        fw_a, lb_a = encode_windows(model, a, fa, wins_a, bf16, cfg.batch_size) if wins_a else (None, None)
+        for k, bk, shape_k, ek, _ in views:
+            label = "" if k == 0 else f", B turned {90 * k} deg"
+            wins_b = grid_windows(*shape_k, zoom) if "b" in cfg.sides else []
+            fw_b, lb_b = encode_windows(model, bk, fb, wins_b, bf16, cfg.batch_size) if wins_b else (None, None)
+            for side, wins in (("a", wins_a), ("b", wins_b)):
+                for i in range(0, len(wins), cfg.batch_size):
+                    sc = (
+                        score(fw_a[i : i + cfg.batch_size], ek.features, lb_a, ek.letterbox)
+                        if side == "a"
+                        else score(ea.features, fw_b[i : i + cfg.batch_size], ea.letterbox, lb_b)
+                    )
+                    for win, v in zip(wins[i : i + cfg.batch_size], sc.tolist()):
+                        scores.append((side + label, win, v))
+                        if v > whole[4]:
+                            candidates.append((v, side, win, k))
+    chosen, win_a, win_b = whole, None, None
+    for v, side, win, k in sorted(candidates, key=lambda c: -c[0])[: cfg.checked]:
+        view = next(x for x in views if x[0] == k)
         ew = encode_a(win) if side == "a" else ea
-        eo = encode_b(win) if side == "b" else eb
+        eo = encode_window(model, view[1], fb, view[2], win, "image B", bf16) if side == "b" else view[3]
         fwd, bwd = model.predict_from_features(ew, eo, bf16=bf16), model.predict_from_features(eo, ew, bf16=bf16)
         if plausible(fwd, bwd, side, cfg):
-            best = (v, win, None) if side == "a" else (v, None, win)
+            chosen = view[:4] + (v,)
+            win_a, win_b = (win, None) if side == "a" else (None, win)
             break
-    score, win_a, win_b = best
+    turns, bk, shape_k, ek, best_score = chosen
     if win_a is None and win_b is None:
-        pred = base if not turns else model.predict_from_features(ea, eb, bf16=bf16)
+        pred = base if not turns else model.predict_from_features(ea, ek, bf16=bf16)
     else:
         ew = encode_a(win_a) if win_a is not None else ea
-        eo = encode_b(win_b) if win_b is not None else eb
+        eo = encode_window(model, bk, fb, shape_k, win_b, "image B", bf16) if win_b is not None else ek
         pred = model.predict_from_features(ew, eo, bf16=bf16)
         if win_a is not None:
-            pred = paste_window(model.predict_from_features(ea, eb, bf16=bf16), pred, win_a)
+            pred = paste_window(model.predict_from_features(ea, ek, bf16=bf16), pred, win_a)
     if win_b is not None and turns:
-        win_b = unturn_window(win_b, shape_b, turns)
+        win_b = unturn_window(win_b, shape_k, turns)
     if win_b is not None:
         pred.meta["window_b"] = win_b
     pred.meta["quarter_turns_b"] = turns
-    return WindowSearchResult(pred, win_a, win_b, score, base_score, base, len(scores), turns, scores)
+    return WindowSearchResult(pred, win_a, win_b, best_score, base_score, base, len(scores), turns, scores)
 
 
 @torch.inference_mode()

@@ -31,8 +31,9 @@ class WindowSearchConfig:
     zooms: tuple[float, ...] = (0.5, 0.25)
     #: search windows of A (zooms into B), of B (zooms out of B), or both
     sides: tuple[str, ...] = ("a", "b")
-    #: quarter turns of B (counter-clockwise) tried on the whole images before the windows; the
-    #: best-scoring turn is kept for the window search (the scale map does not depend on it)
+    #: quarter turns of B (counter-clockwise) tried besides B as it is: the whole images and every
+    #: window pair are scored for each, and the turn of the pair kept is B's (each turn costs
+    #: another window search)
     quarter_turns: tuple[int, ...] = ()
     #: candidates per network pass
     batch_size: int = 8
