@@ -68,6 +68,7 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--auto", nargs="+", default=[], metavar="FIELD=VALUE", help="AutoConfig fields of the auto methods")
     p.add_argument("--cache", default=None, help="per-pair results (JSON lines; default: OUT with .pairs.jsonl)")
+    p.add_argument("--local-weights", default=None, help="Local-ScaleNet weights of the corrections (default: bundled)")
     return p
 
 

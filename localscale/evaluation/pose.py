@@ -220,7 +220,14 @@ class PointsOracle:
 
 
 def make_method(
-    spec: str, max_side: int, models_cache: dict, auto=None, features=None, precision=None, confidences=None
+    spec: str,
+    max_side: int,
+    models_cache: dict,
+    auto=None,
+    features=None,
+    precision=None,
+    confidences=None,
+    local_weights=None,
 ):
     if spec == "opencv-sift":
         return SiftMatcher()
@@ -240,7 +247,7 @@ def make_method(
     if "models" not in models_cache:
         from localscale import LocalScaleNet, ScaleNet
 
-        models_cache["models"] = (LocalScaleNet.from_pretrained(), ScaleNet.from_pretrained())
+        models_cache["models"] = (LocalScaleNet.from_pretrained(local_weights), ScaleNet.from_pretrained())
     return LibraryMatcher(
         name,
         correction,
@@ -381,6 +388,7 @@ class PoseRun:
     lightglue_confidence: Optional[tuple] = None  #: LightGlue's (depth, width) confidences (None: kornia's)
     auto: dict = field(default_factory=dict)  # AutoConfig fields of the auto methods
     cache: Optional[str] = None  # per-pair JSON lines (default: out with .pairs.jsonl)
+    local_weights: Optional[str] = None  #: Local-ScaleNet weights of the corrections (None: the bundled)
 
     def cache_options(self) -> dict:
         """The options a cached pair record must match to be reused."""
@@ -395,6 +403,8 @@ class PoseRun:
             options["lightglue_confidence"] = list(self.lightglue_confidence)
         if self.gt_models:
             options["gt_models"] = self.gt_models
+        if self.local_weights:
+            options["local_weights"] = self.local_weights
         return options
 
 
@@ -541,6 +551,7 @@ def run(cfg: PoseRun, command: str = "") -> dict:
                     cfg.num_features,
                     cfg.lightglue_precision,
                     cfg.lightglue_confidence,
+                    cfg.local_weights,
                 )
                 done.update(evaluate_method(spec, method, todo, cfg, options, log, images))
     wanted = {job_key(j, spec) for j in jobs for spec in cfg.methods}
