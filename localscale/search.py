@@ -87,6 +87,33 @@ class WindowSearchResult:
         return ", ".join(where) or "the whole images"
 
 
+def _window_candidates(model, a, fa, shape_a, ea, views, cfg, bf16, scores, floor) -> list:
+    """``(score, side, window, turns)`` of the window pairs scoring above ``floor``: windows of A
+    (encoded once) against each view of B, and windows of each view of B against all of A; every
+    score is appended to ``scores``."""
+    candidates = []
+    for zoom in cfg.zooms:
+        wins_a = grid_windows(*shape_a, zoom) if "a" in cfg.sides else []
+        fw_a, lb_a = encode_windows(model, a, fa, wins_a, bf16, cfg.batch_size) if wins_a else (None, None)
+        for k, bk, shape_k, ek, _ in views:
+            label = "" if k == 0 else f", B turned {90 * k} deg"
+            fb = shape_k[0] / bk.shape[0]
+            wins_b = grid_windows(*shape_k, zoom) if "b" in cfg.sides else []
+            fw_b, lb_b = encode_windows(model, bk, fb, wins_b, bf16, cfg.batch_size) if wins_b else (None, None)
+            for side, wins in (("a", wins_a), ("b", wins_b)):
+                for i in range(0, len(wins), cfg.batch_size):
+                    sc = (
+                        pair_scores(model, fw_a[i : i + cfg.batch_size], ek.features, lb_a, ek.letterbox, bf16)
+                        if side == "a"
+                        else pair_scores(model, ea.features, fw_b[i : i + cfg.batch_size], ea.letterbox, lb_b, bf16)
+                    )
+                    for win, v in zip(wins[i : i + cfg.batch_size], sc.tolist()):
+                        scores.append((side + label, win, v))
+                        if v > floor:
+                            candidates.append((v, side, win, k))
+    return candidates
+
+
 @torch.inference_mode()
 def search_scale_map(
     model: LocalScaleNet,
@@ -129,26 +156,7 @@ def search_scale_map(
         scores.append((f"whole, B turned {90 * k} deg", None, v))
         views.append((k, np.ascontiguousarray(np.rot90(b, k)), shape_b if k % 2 == 0 else shape_b[::-1], ek, v))
     whole = max(views, key=lambda view: view[4])  # the first of equal scores: B as it is
-    # windows of A (encoded once) against each view of B, and windows of each view of B against A
-    candidates: list[tuple[float, str, Window, int]] = []
-    for zoom in cfg.zooms:
-        wins_a = grid_windows(*shape_a, zoom) if "a" in cfg.sides else []
-        fw_a, lb_a = encode_windows(model, a, fa, wins_a, bf16, cfg.batch_size) if wins_a else (None, None)
-        for k, bk, shape_k, ek, _ in views:
-            label = "" if k == 0 else f", B turned {90 * k} deg"
-            wins_b = grid_windows(*shape_k, zoom) if "b" in cfg.sides else []
-            fw_b, lb_b = encode_windows(model, bk, fb, wins_b, bf16, cfg.batch_size) if wins_b else (None, None)
-            for side, wins in (("a", wins_a), ("b", wins_b)):
-                for i in range(0, len(wins), cfg.batch_size):
-                    sc = (
-                        score(fw_a[i : i + cfg.batch_size], ek.features, lb_a, ek.letterbox)
-                        if side == "a"
-                        else score(ea.features, fw_b[i : i + cfg.batch_size], ea.letterbox, lb_b)
-                    )
-                    for win, v in zip(wins[i : i + cfg.batch_size], sc.tolist()):
-                        scores.append((side + label, win, v))
-                        if v > whole[4]:
-                            candidates.append((v, side, win, k))
+    candidates = _window_candidates(model, a, fa, shape_a, ea, views, cfg, bf16, scores, whole[4])
     chosen, win_a, win_b = whole, None, None
     for v, side, win, k in sorted(candidates, key=lambda c: -c[0])[: cfg.checked]:
         view = next(x for x in views if x[0] == k)
