@@ -56,7 +56,7 @@ def parser() -> argparse.ArgumentParser:
         "--lightglue-precision",
         default=None,
         choices=("auto", "fp32", "bf16", "int8"),
-        help="LightGlue's precision in the library's matchers (default: theirs, auto)",
+        help="LightGlue's precision in the library's matchers (default: theirs, fp32 for two views)",
     )
     p.add_argument(
         "--lightglue-confidence",

@@ -49,6 +49,19 @@ def parser() -> argparse.ArgumentParser:
         help="known PINHOLE intrinsics of collection NAME (lines 'name w h fx fy cx cy'), kept fixed by "
         "colmap-sift's mapper (a pseudo ground truth of a collection that has intrinsics only)",
     )
+    p.add_argument(
+        "--pairs",
+        default="exhaustive",
+        choices=("exhaustive", "auto"),
+        help="pairs our pipelines match (auto: reconstruct's default; rows end in +pairs-auto)",
+    )
+    p.add_argument(
+        "--ray-workers",
+        type=int,
+        default=0,
+        help="run our pipelines' extraction and matching on a local Ray cluster of N one-thread workers "
+        "(rows end in +rayN; pip install 'localscale[ray]')",
+    )
     p.add_argument("-o", "--output", default="results/reconstruct_collections")
     p.add_argument("--overwrite", action="store_true", help="redo rows already in OUT/results.json")
     return p
@@ -65,6 +78,8 @@ def main(argv=None) -> int:
         intrinsics = {k: read_intrinsics(Path(v)) for k, v in (item.split("=", 1) for item in a.intrinsics)}
     except (OSError, ValueError) as e:
         p.error(f"--intrinsics: {e}")
+    if a.ray_workers < 0:
+        p.error("--ray-workers must be >= 0")
     root = Path(a.root)
     for c in a.collections:
         if not (root / c / "images").is_dir():

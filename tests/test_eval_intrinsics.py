@@ -33,3 +33,16 @@ def test_bad_intrinsics_are_refused_before_anything_runs(tmp_path, capsys, repo_
             rc.main(["--root", str(tmp_path), "--intrinsics", arg, "-o", str(out)])
         assert e.value.code == 2 and "--intrinsics" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_rows_name_the_pairs_and_the_ray_cluster(tmp_path, capsys, repo_script):
+    run = reconstruction.ReconstructionRun
+    assert reconstruction.row_name(run(), "aliked-lg-auto") == "aliked-lg-auto"
+    cfg = run(pairs="auto", ray_workers=2, mapper="global")
+    assert reconstruction.row_name(cfg, "aliked-lg-auto") == "aliked-lg-auto+global+pairs-auto+ray2"
+    # COLMAP's SIFT pipeline always runs in this process on its exhaustive pairs
+    assert reconstruction.row_name(cfg, "colmap-sift") == "colmap-sift+global"
+    rc = repo_script("eval/reconstruct_collections.py")
+    with pytest.raises(SystemExit) as e:
+        rc.main(["--root", str(tmp_path), "--ray-workers", "-1", "-o", str(tmp_path / "out")])
+    assert e.value.code == 2 and "--ray-workers" in capsys.readouterr().err

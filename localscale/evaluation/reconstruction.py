@@ -232,24 +232,15 @@ def run_colmap_sift(
     }
 
 
-def run_ours(
-    images_dir: Path,
-    run_dir: Path,
-    correction: str,
-    camera_mode: str,
-    threads: int,
-    auto_graph: bool = True,
-    mapper: str = "incremental",
-    **options,
-) -> dict:
-    from ..sfm import read_models, reconstruct
+def _reconstruct(images_dir, run_dir, correction, camera_mode, threads, auto_graph, mapper, pairs, engine, options):
+    from ..sfm import reconstruct
 
-    summary = reconstruct(
+    return reconstruct(
         images_dir,
         run_dir,
         matcher="aliked-lightglue",
         correction=correction,
-        pairs="exhaustive",
+        pairs=pairs,
         camera_mode=camera_mode,
         num_keypoints=2048,
         max_side=1024,
@@ -258,8 +249,34 @@ def run_ours(
         show_progress=False,
         auto_graph=auto_graph,
         mapper=mapper,
+        engine=engine,
         **options,
     )
+
+
+def run_ours(
+    images_dir: Path,
+    run_dir: Path,
+    correction: str,
+    camera_mode: str,
+    threads: int,
+    auto_graph: bool = True,
+    mapper: str = "incremental",
+    pairs: str = "exhaustive",
+    ray_workers: int = 0,
+    **options,
+) -> dict:
+    from ..engine import get_executor
+    from ..sfm import read_models
+
+    executor = get_executor("ray", workers=ray_workers, threads_per_worker=1) if ray_workers else None
+    try:
+        summary = _reconstruct(
+            images_dir, run_dir, correction, camera_mode, threads, auto_graph, mapper, pairs, executor, options
+        )
+    finally:
+        if executor is not None:
+            executor.close()
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
     stats = (
@@ -330,6 +347,12 @@ class ReconstructionRun:
     seed: int = 0
     threads: int = 1
     mapper: str = "incremental"
+    #: the pairs our pipelines match: ``exhaustive`` (as COLMAP's SIFT pipeline here) or ``auto``
+    #: (``reconstruct``'s default: retrieval beyond its size limit); rows of ``auto`` end in ``+pairs-auto``
+    pairs: str = "exhaustive"
+    #: our pipelines' extraction and matching on a local Ray cluster of this many one-thread
+    #: workers (0: in this process); rows end in ``+rayN``
+    ray_workers: int = 0
     intrinsics: Dict[str, dict] = field(default_factory=dict)  # collection -> read_intrinsics(...)
     output: str = "results/reconstruct_collections"
     overwrite: bool = False
@@ -358,8 +381,19 @@ def run_pipeline(cfg: ReconstructionRun, method: str, images_dir: Path, run_dir:
         cfg.threads,
         not method.endswith("per-pair"),
         cfg.mapper,
+        cfg.pairs,
+        cfg.ray_workers,
         **options,
     )
+
+
+def row_name(cfg: "ReconstructionRun", method: str) -> str:
+    """A pipeline's row name: the method, then ``+global``, ``+pairs-auto``, ``+rayN`` where they apply
+    (COLMAP's SIFT pipeline runs in this process on its exhaustive pairs whatever ``cfg`` says)."""
+    name = method if cfg.mapper == "incremental" else f"{method}+{cfg.mapper}"
+    if method != "colmap-sift":
+        name += ("+pairs-auto" if cfg.pairs == "auto" else "") + (f"+ray{cfg.ray_workers}" if cfg.ray_workers else "")
+    return name
 
 
 def reference_of(cfg: "ReconstructionRun", collection: str, label: str):
@@ -448,7 +482,7 @@ def run(cfg: ReconstructionRun) -> list:
         for version in cfg.versions:
             label, images_dir, closeups, camera_mode = collection_version(cfg, c, version)
             for method in cfg.pipelines:
-                pipe = method if cfg.mapper == "incremental" else f"{method}+{cfg.mapper}"
+                pipe = row_name(cfg, method)
                 if (label, pipe) in done and not cfg.overwrite:
                     print(f"{label} / {pipe}: in {results_path}, skipped", flush=True)
                     continue

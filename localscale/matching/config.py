@@ -57,7 +57,7 @@ class _MatchFields:
     filter_threshold: float = 0.1
     depth_confidence: Optional[float] = None
     width_confidence: Optional[float] = None
-    lightglue_precision: str = "auto"
+    lightglue_precision: str = "fp32"
     gate: CorrectionGate = field(default_factory=CorrectionGate)
     bf16: bool = False
     refine: bool = False
@@ -107,8 +107,10 @@ class MatchConfig(_MatchFields):
             pruning) confidences, -1 turns one off (None: kornia's value for the extractor:
             ALIKED / DISK 0.95 / 0.99, LighterGlue off / 0.95).
         lightglue_precision: LightGlue's run-time precision (:data:`~.lightglue.LIGHTGLUE_PRECISIONS`):
-            ``auto`` (bfloat16 autocast on a CPU that computes bfloat16 natively, else float32),
-            ``fp32``, ``bf16`` (kornia's mixed precision), ``int8`` (dynamic int8 linear layers, CPU).
+            ``fp32`` (the default of two-view matching), ``auto`` (bfloat16 autocast on a CPU that
+            computes bfloat16 natively, else float32: the default of ``reconstruct``, which matches
+            thousands of pairs), ``bf16`` (kornia's mixed precision), ``int8`` (dynamic int8 linear
+            layers, CPU).
         gate: gating of predicted scale maps (:class:`~.correction.CorrectionGate`).
         bf16: run the scale networks under bfloat16 autocast.
         refine, max_passes, sift_seed, verification: verify the matches, refine the maps by the
