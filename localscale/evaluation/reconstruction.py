@@ -52,6 +52,7 @@ import os
 import random
 import shutil
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List
@@ -232,28 +233,6 @@ def run_colmap_sift(
     }
 
 
-def _reconstruct(images_dir, run_dir, correction, camera_mode, threads, auto_graph, mapper, pairs, engine, options):
-    from ..sfm import reconstruct
-
-    return reconstruct(
-        images_dir,
-        run_dir,
-        matcher="aliked-lightglue",
-        correction=correction,
-        pairs=pairs,
-        camera_mode=camera_mode,
-        num_keypoints=2048,
-        max_side=1024,
-        num_threads=threads,
-        overwrite=True,
-        show_progress=False,
-        auto_graph=auto_graph,
-        mapper=mapper,
-        engine=engine,
-        **options,
-    )
-
-
 def run_ours(
     images_dir: Path,
     run_dir: Path,
@@ -267,16 +246,27 @@ def run_ours(
     **options,
 ) -> dict:
     from ..engine import get_executor
-    from ..sfm import read_models
+    from ..sfm import read_models, reconstruct
 
-    executor = get_executor("ray", workers=ray_workers, threads_per_worker=1) if ray_workers else None
-    try:
-        summary = _reconstruct(
-            images_dir, run_dir, correction, camera_mode, threads, auto_graph, mapper, pairs, executor, options
+    cluster = get_executor("ray", workers=ray_workers, threads_per_worker=1) if ray_workers else nullcontext()
+    with cluster as executor:
+        summary = reconstruct(
+            images_dir,
+            run_dir,
+            matcher="aliked-lightglue",
+            correction=correction,
+            pairs=pairs,
+            camera_mode=camera_mode,
+            num_keypoints=2048,
+            max_side=1024,
+            num_threads=threads,
+            overwrite=True,
+            show_progress=False,
+            auto_graph=auto_graph,
+            mapper=mapper,
+            engine=executor,
+            **options,
         )
-    finally:
-        if executor is not None:
-            executor.close()
     models = read_models(run_dir / "sparse")
     s = summary["seconds"]
     stats = (
