@@ -145,3 +145,30 @@ def test_training_mixes_real_pairs_and_validates_on_them(image_dir, zoomed_pair,
     assert rp.REAL_KIND in kinds and any(k != rp.REAL_KIND for k in kinds)
     with pytest.raises(LocalScaleError, match="real-fraction"):
         TrainConfig(real_fraction=1.5).check()
+
+
+def test_model_card_names_real_pair_collections_licences_and_the_one_left_out(repo_script):
+    card = repo_script("train/make_model_card.py")
+    cfg = {
+        "real_pairs": "runs/real_models/skull_alansartlog/pairs.npz,runs/real_models/new_scene/pairs.npz",
+        "real_val_pairs": "runs/real_models/kitchen_vggsfm/pairs.npz",
+        "real_fraction": 0.3,
+    }
+    rec = card.real_pairs_card(cfg)
+    assert rec["collections"]["skull_alansartlog"] == "CC BY 4.0"
+    assert "SOURCES.md" in rec["collections"]["new_scene"]  # unknown licence: points to the source file
+    assert rec["held_out"] == "kitchen_vggsfm"
+    assert card.real_pairs_card({"real_pairs": ""}) is None
+
+
+def test_shipped_local_card_records_its_real_pair_data():
+    import json
+    from pathlib import Path
+
+    import localscale
+
+    card = json.loads((Path(localscale.__file__).parent / "weights" / "local_scalenet.json").read_text())
+    used = [Path(f).parent.name for f in card["training"]["config"]["real_pairs"].split(",") if f]
+    rec = card["real_pairs"]
+    assert sorted(rec["collections"]) == sorted(used) and all(rec["collections"].values())
+    assert rec["held_out"] not in used

@@ -35,6 +35,33 @@ DATA_CARD = {
 }
 
 
+#: licence of each shared photo collection (its SOURCES.md), for models trained on its real-pair labels
+COLLECTION_LICENCES = {
+    "skull_alansartlog": "CC BY 4.0",
+    "plush_dog_smartdatascan": "CC BY-NC-SA 4.0",
+    "temple_sparse_ring_middlebury": "Middlebury multi-view stereo data (Seitz et al.), no licence text given",
+    "kitchen_vggsfm": "CC BY-NC 4.0 (the vggsfm repository licence)",
+    "cyprus_dim": "BSD 3-Clause (the deep-image-matching repository licence)",
+    "kermit_bundler": "GNU GPL as stated for Bundler (no version)",
+}
+
+
+def real_pairs_card(train_cfg: dict) -> dict | None:
+    """The real-pair labels a run trained on (``--real-pairs``): collections, licences, the one held out."""
+    files = [f for f in str(train_cfg.get("real_pairs") or "").split(",") if f]
+    if not files:
+        return None
+    used = [Path(f).parent.name for f in files]
+    held = Path(str(train_cfg.get("real_val_pairs") or "")).parent.name
+    return {
+        "labels": "the paper's real-pair labels made dense (localscale/training/real_pairs.py) from pycolmap SIFT "
+        "models of the shared photo collections (train/label_collections.py); close-up windows and quarter "
+        f"turns drawn per sample; {train_cfg.get('real_fraction')} of the samples",
+        "collections": {c: COLLECTION_LICENCES.get(c, "see the collection's SOURCES.md") for c in used},
+        "held_out": held or None,
+    }
+
+
 CONTEXT_NOTE = (
     "; with context (--context): the target is rendered from the whole photo, so around the "
     "crop's content it shows the photo's real surroundings, and the fill photo covers only what lies "
@@ -102,6 +129,7 @@ def main(argv=None) -> int:
             "hardware": a.hardware,
         },
         "data": dict(DATA_CARD, pairs=DATA_CARD["pairs"] + (CONTEXT_NOTE if train_cfg.get("context") else "")),
+        "real_pairs": real_pairs_card(train_cfg),
         "validation_history": val,
         "evaluation": {Path(e).stem: json.loads(Path(e).read_text()) for e in a.eval},
         "backbone": backbone_card(model),
